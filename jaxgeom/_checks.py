@@ -1,0 +1,96 @@
+"""Host-boundary validation: clear errors that name the argument and the fix."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import jax
+import numpy as np
+
+
+def reject_tracer(value, name: str, func: str) -> None:
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(
+            f"{func} runs on the host (scipy Qhull) and cannot be traced: `{name}` is a "
+            f"JAX tracer. Call {func} outside jax.jit/vmap/grad and pass concrete arrays."
+        )
+
+
+def host_points(points, name: str = "points", *, func: str = "jaxgeom") -> np.ndarray:
+    """Validate an (N, d) float array of finite coordinates and return it as numpy."""
+    reject_tracer(points, name, func)
+    arr = np.asarray(points)
+    if arr.ndim != 2 or arr.shape[1] < 1:
+        raise ValueError(
+            f"`{name}` must have shape (N, d) with one row per walker; got shape {arr.shape}. "
+            "Reshape with points.reshape(N, d)."
+        )
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise TypeError(
+            f"`{name}` must be a float array (float32 or float64); got dtype {arr.dtype}. "
+            "Convert with points.astype(float)."
+        )
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise ValueError(
+            f"`{name}` has NaN or inf coordinates in {rows.size} row(s), first rows {rows[:5].tolist()}. "
+            "Remove or repair those walkers."
+        )
+    return arr
+
+
+def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
+    if n < minimum:
+        raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")
+
+
+def check_full_rank(points: np.ndarray, name: str = "points") -> None:
+    """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D)."""
+    centred = points - points.mean(axis=0)
+    sv = np.linalg.svd(centred.T @ centred, compute_uv=False)
+    if sv[-1] <= 1e-12 * sv[0]:
+        d = points.shape[1]
+        what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
+        raise ValueError(
+            f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "
+            "tessellation. Spread the walkers out, or drop the flat coordinate(s)."
+        )
+
+
+def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:
+    """Validate `box=(lower, upper)` and that every walker lies inside it."""
+    if box is None:
+        if periodic:
+            raise ValueError(
+                "`periodic=True` needs `box=(lower, upper)`: the periodic cell is not known otherwise."
+            )
+        return None
+    reject_tracer(box, "box", "jaxgeom")
+    d = points.shape[1]
+    arr = np.asarray(box, dtype=np.float64)
+    if arr.ndim == 1 and arr.size == 2:
+        arr = np.repeat(arr[:, None], d, axis=1)
+    if arr.shape != (2, d):
+        raise ValueError(
+            f"`box` must be (lower, upper) with scalars or length-{d} vectors; got shape {arr.shape}."
+        )
+    if not np.isfinite(arr).all() or np.any(arr[1] <= arr[0]):
+        raise ValueError(f"`box` must satisfy lower < upper in every coordinate; got lower={arr[0]}, upper={arr[1]}.")
+    upper_ok = points < arr[1] if periodic else points <= arr[1]
+    outside = ~np.all((points >= arr[0]) & upper_ok, axis=1)
+    if outside.any():
+        rows = np.flatnonzero(outside)
+        interval = "[lower, upper)" if periodic else "[lower, upper]"
+        raise ValueError(
+            f"{rows.size} walker(s) lie outside `box` {interval}, first rows {rows[:5].tolist()}. "
+            "Enlarge the box, or wrap periodic coordinates with lower + (x - lower) % (upper - lower)."
+        )
+    return arr
+
+
+def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
+    valid = tuple(valid)
+    if value not in valid:
+        raise ValueError(f"unknown {name} {value!r}; valid values are {', '.join(map(repr, valid))}.")
+    return value
