@@ -15,37 +15,36 @@ import numpy as np
 
 
 def small_det(m):
-    """Determinant of a k x k matrix (k <= 5) by explicit cofactor expansion."""
-    k = m.shape[-1]
-    if k == 1:
-        return m[..., 0, 0]
-    if k == 2:
-        return m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
-    total = 0.0
-    for j in range(k):
-        total = total + (-1) ** j * m[..., 0, j] * small_det(_minor(m, 0, j))
-    return total
-
-
-def _minor(m, row: int, col: int):
-    k = m.shape[-1]
-    rows = [r for r in range(k) if r != row]
-    cols = [c for c in range(k) if c != col]
-    return m[..., np.array(rows), :][..., :, np.array(cols)]
+    """Determinant of a k x k matrix (k <= 5) by cofactor expansion over scalar entries."""
+    return _det_entries(_entries(m))
 
 
 def small_adjugate(m):
     """Adjugate (transposed cofactor matrix) of a k x k matrix, so that m @ adj = det * I."""
-    k = m.shape[-1]
+    e = _entries(m)
+    k = len(e)
     if k == 1:
         return jnp.ones_like(m)
-    rows = []
-    for i in range(k):
-        row = []
-        for j in range(k):
-            row.append((-1) ** (i + j) * small_det(_minor(m, j, i)))
-        rows.append(jnp.stack(row, axis=-1))
-    return jnp.stack(rows, axis=-2)
+    cof = [[(-1) ** (i + j) * _det_entries(_minor(e, j, i)) for j in range(k)] for i in range(k)]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in cof], axis=-2)
+
+
+def _entries(m):
+    k = m.shape[-1]
+    return [[m[..., i, j] for j in range(k)] for i in range(k)]
+
+
+def _minor(e, row: int, col: int):
+    return [[v for c, v in enumerate(r) if c != col] for i, r in enumerate(e) if i != row]
+
+
+def _det_entries(e):
+    k = len(e)
+    if k == 1:
+        return e[0][0]
+    if k == 2:
+        return e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    return sum((-1) ** j * e[0][j] * _det_entries(_minor(e, 0, j)) for j in range(k))
 
 
 def circumcenter_offset(edges):
@@ -57,18 +56,23 @@ def circumcenter_offset(edges):
 
     **Returns:**
 
-    `(offset, gram_det)`: the (d,) offset (zero where the face is degenerate) and
-    det of the Gram matrix (zero for a degenerate face). Uses the adjugate, so the
-    only division is guarded by a double `where` and gradients stay finite.
+    `(offset, ok)`: the (d,) offset (zero where the face is degenerate) and whether
+    the face is non-degenerate. A full simplex (k = d) solves E u = |e|^2 / 2
+    directly, which keeps the conditioning of E (the Gram form would square it);
+    an edge gives its midpoint; other faces solve the Gram system. Solutions use
+    the adjugate, and the one division is guarded by a double `where`.
     """
-    gram = edges @ edges.T
-    half_sq = 0.5 * jnp.diagonal(gram)
-    det = small_det(gram)
-    scale = jnp.max(half_sq) ** edges.shape[0]
+    k, d = edges.shape
+    half_sq = 0.5 * jnp.sum(edges * edges, axis=1)
+    if k == 1:
+        return 0.5 * edges[0], half_sq[0] > 0.0
+    matrix = edges if k == d else edges @ edges.T
+    det = small_det(matrix)
+    scale = jnp.max(half_sq) ** (d / 2 if k == d else k)  # det(E) ~ length^d, det(Gram) ~ length^2k
     ok = jnp.abs(det) > 10.0 * jnp.finfo(edges.dtype).eps * scale
-    safe_det = jnp.where(ok, det, 1.0)
-    lam = small_adjugate(gram) @ half_sq / safe_det
-    return jnp.where(ok, lam @ edges, 0.0), jnp.where(ok, det, 0.0)
+    solution = small_adjugate(matrix) @ half_sq / jnp.where(ok, det, 1.0)
+    offset = solution if k == d else solution @ edges
+    return jnp.where(ok, offset, 0.0), ok
 
 
 @functools.lru_cache(maxsize=None)
@@ -125,17 +129,17 @@ def dual_pieces(vertices):
     """
     d = vertices.shape[1]
     rel = vertices - vertices[0]
-    centers, gram_det = {}, None
+    centers, ok = {}, None
     for f in faces(d):
-        offset, gram_det = circumcenter_offset(rel[np.array(f[1:])] - rel[f[0]])
+        offset, ok = circumcenter_offset(rel[np.array(f[1:])] - rel[f[0]])
         centers[f] = rel[f[0]] + offset
-    orientation = small_det(rel[1:])  # the last face is the whole simplex: gram_det is its
+    orientation = small_det(rel[1:])  # the last face is the whole simplex: `ok` is its flag
     pieces = [0.0] * (d + 1)
     for i, flag, sign in chains(d):
         m = jnp.stack([centers[f] - rel[i] for f in flag])
         pieces[i] = pieces[i] + sign * small_det(m)
     pieces = jnp.stack(pieces) * jnp.sign(orientation) / math.factorial(d)
-    return jnp.where(gram_det != 0.0, pieces, 0.0)
+    return jnp.where(ok, pieces, 0.0)
 
 
 def simplex_circumcenter(vertices):
