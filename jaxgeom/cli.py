@@ -1,0 +1,174 @@
+"""`jaxgeom` console script. `jaxgeom analyze` tessellates a swarm and reports its geometry.
+
+The report is a list of sections (`REPORT_SECTIONS`); each takes the analysis
+context and returns a flat dict of numbers. New proxies add a section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclasses.dataclass
+class Analysis:
+    """What every report section can read; `timings` collects seconds per stage."""
+
+    args: argparse.Namespace
+    points: np.ndarray
+    box: tuple | None
+    source: str
+    tess: object = None
+    timings: dict = dataclasses.field(default_factory=dict)
+    cache: dict = dataclasses.field(default_factory=dict)
+
+
+def timed(analysis: Analysis, label: str, fn: Callable, *args, **kwargs):
+    """Run fn, block on its JAX outputs, and record the wall time under `label`."""
+    import jax
+
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args, **kwargs))
+    analysis.timings[label] = time.perf_counter() - start
+    return out
+
+
+def section_swarm(a: Analysis) -> dict:
+    n, d = a.points.shape
+    out = {"source": a.source, "n_walkers": n, "dim": d, "graph": a.args.graph, "periodic": a.args.periodic}
+    if a.box is not None:
+        out["box_lower"], out["box_upper"] = np.asarray(a.box[0]).tolist(), np.asarray(a.box[1]).tolist()
+    return out
+
+
+def section_graph(a: Analysis) -> dict:
+    tess = a.tess
+    degree = np.asarray(tess.degree)
+    tiers = np.bincount(np.asarray(tess.tier), minlength=3)
+    out = {f"tier{t}": int(tiers[t]) for t in range(3)}
+    out.update(degree_mean=float(degree.mean()), degree_min=int(degree.min()), degree_max=int(degree.max()))
+    out.update(capacity_neighbors=tess.capacity.neighbors, capacity_simplices=tess.capacity.simplices)
+    if tess.simplices is not None:
+        out["n_simplices"] = int(tess.simplex_mask.sum())
+    out["overflow"] = bool(tess.overflow)
+    return out
+
+
+def section_volumes(a: Analysis) -> dict:
+    import jaxgeom
+
+    if a.tess.simplices is None:
+        return {"skipped": "Voronoi volumes need a Delaunay graph"}
+    timed(a, "voronoi_volumes_first_call", jaxgeom.voronoi_volumes, a.tess)
+    vol = np.asarray(timed(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
+    a.cache["volumes"] = vol
+    interior = vol[np.asarray(a.tess.interior)]
+    out = {"total_finite": float(np.nansum(vol)), "n_unbounded": int(np.isnan(vol).sum())}
+    if interior.size:
+        mean = interior.mean()
+        out.update(tier2_mean=float(mean), tier2_std=float(interior.std()), tier2_min=float(interior.min()),
+                   tier2_max=float(interior.max()), tier2_variance_normalized=float(np.var(interior / mean)))
+    return out
+
+
+REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
+    ("swarm", section_swarm),
+    ("graph", section_graph),
+    ("volumes", section_volumes),
+]
+
+
+def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
+    from ._landscapes import sample_boltzmann
+
+    if args.points is None:
+        pts, box = sample_boltzmann(args.landscape, args.n, args.dim, beta=args.beta, seed=args.seed)
+        return pts, box, f"exp(-{args.beta} V), V = {args.landscape}, seed {args.seed}"
+    pts = np.load(args.points)
+    box = None
+    if args.box is not None:
+        box = (np.full(pts.shape[1], args.box[0]), np.full(pts.shape[1], args.box[1]))
+    elif args.periodic:
+        pad = 0.5 * (np.prod(np.ptp(pts, axis=0)) / len(pts)) ** (1 / pts.shape[1])
+        box = (pts.min(axis=0) - pad, pts.max(axis=0) + pad)
+    return pts, box, str(args.points)
+
+
+def build_graph(a: Analysis):
+    import jaxgeom
+
+    use_box = a.box if (a.args.periodic or a.args.box is not None) else None
+    if a.args.graph == "knn":
+        return timed(a, "knn_graph", jaxgeom.knn_graph, a.points, a.args.k, box=use_box, periodic=a.args.periodic)
+    return timed(a, "delaunay", jaxgeom.delaunay, a.points, box=use_box, periodic=a.args.periodic)
+
+
+def run_analysis(args) -> dict:
+    start = time.perf_counter()
+    points, box, source = load_swarm(args)
+    a = Analysis(args=args, points=points, box=box, source=source)
+    a.timings["load"] = time.perf_counter() - start
+    a.tess = build_graph(a)
+    report = {name: section(a) for name, section in REPORT_SECTIONS}
+    report["timings_s"] = {k: round(v, 6) for k, v in a.timings.items()}
+    return report
+
+
+def format_report(report: dict) -> str:
+    lines = []
+    for name, values in report.items():
+        lines.append(f"[{name}]")
+        for key, value in values.items():
+            shown = f"{value:.6g}" if isinstance(value, float) else str(value)
+            lines.append(f"  {key:<28} {shown}")
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ._landscapes import LANDSCAPES
+
+    parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry")
+    an.add_argument("--points", type=Path, help="(N, d) .npy file; default: sample the built-in landscape")
+    an.add_argument("--landscape", default="double_well", choices=sorted(LANDSCAPES))
+    an.add_argument("--beta", type=float, default=2.0, help="inverse temperature of the default sample")
+    an.add_argument("--dim", type=int, default=2)
+    an.add_argument("--n", type=int, default=5000)
+    an.add_argument("--seed", type=int, default=0)
+    an.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay")
+    an.add_argument("--k", type=int, default=12, help="neighbours per walker with --graph knn")
+    an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
+    an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"), help="domain bounds for every axis")
+    an.add_argument("--out", type=Path, help="directory for summary.json")
+    an.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
+    return parser
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", not args.float32)
+    try:
+        report = run_analysis(args)
+    except (ValueError, TypeError, OSError) as err:
+        print(f"jaxgeom {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    print(format_report(report))
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "summary.json").write_text(json.dumps(report, indent=2))
+        print(f"wrote {args.out / 'summary.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,43 @@
+import json
+
+import numpy as np
+
+from jaxgeom.cli import main
+
+
+def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
+    assert main(["analyze", "--n", "600", "--seed", "3", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "[graph]" in printed and "[volumes]" in printed
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["swarm"]["n_walkers"] == 600 and report["swarm"]["dim"] == 2
+    graph = report["graph"]
+    assert graph["tier0"] + graph["tier1"] + graph["tier2"] == 600
+    assert graph["tier0"] == report["volumes"]["n_unbounded"] > 0
+    assert 5.5 < graph["degree_mean"] < 6.0
+    assert report["timings_s"]["delaunay"] > 0
+
+
+def test_analyze_periodic_points_file(tmp_path):
+    pts = np.random.default_rng(0).random((300, 3))
+    np.save(tmp_path / "pts.npy", pts)
+    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--periodic", "--box", "0", "1",
+                 "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["graph"]["tier2"] == 300
+    assert abs(report["volumes"]["total_finite"] - 1.0) < 1e-9
+
+
+def test_analyze_knn_in_high_dimension(tmp_path):
+    assert main(["analyze", "--graph", "knn", "--k", "8", "--dim", "6", "--n", "400", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["graph"]["degree_min"] == report["graph"]["degree_max"] == 8
+    assert "skipped" in report["volumes"]
+
+
+def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
+    pts = np.random.default_rng(0).random((50, 2))
+    pts[7, 0] = np.nan
+    np.save(tmp_path / "bad.npy", pts)
+    assert main(["analyze", "--points", str(tmp_path / "bad.npy")]) == 2
+    assert "NaN or inf" in capsys.readouterr().err
