@@ -8,13 +8,15 @@ which decides whether Qhull must be run again.
 from __future__ import annotations
 
 import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import Delaunay, QhullError
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from ._checks import check_full_rank, check_min_points, host_box, host_points
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_vertices
@@ -23,8 +25,9 @@ from ._simplex import simplex_circumcenter
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
-SKIN_SPACINGS = {2: 3.0, 3: 2.5, 4: 2.5}
-SKIN_GROWTH = 1.5
+SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
+SKIN_GROWTH = 1.3
+MAX_SLABS = 4
 SKIN_ATTEMPTS = 8
 
 
@@ -128,6 +131,8 @@ def _raise_duplicates(x: np.ndarray, perm: np.ndarray, tri: Delaunay) -> None:
 def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Directed Delaunay edges (src, dst) leaving the sorted points `rows`, grouped by src."""
     indptr, indices = tri.vertex_neighbor_vertices
+    if len(rows) == len(indptr) - 1:
+        return np.repeat(rows, np.diff(indptr)), indices
     counts = indptr[rows + 1] - indptr[rows]
     src = np.repeat(rows, counts)
     group_start = np.repeat(np.cumsum(counts) - counts, counts)
@@ -144,70 +149,110 @@ def _plain_graph(x: np.ndarray) -> RawGraph:
 
 
 def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
+    """Periodic Delaunay graph from slabs of the box triangulated in parallel threads.
+
+    The box is cut along its longest side into slabs; each slab triangulates its own
+    walkers plus every periodic image within a skin around it (Qhull releases the GIL,
+    so slabs run concurrently). A slab keeps the simplices whose canonical vertex it
+    owns, so every periodic simplex is kept exactly once.
+    """
     n, d = x.shape
     lengths = box[1] - box[0]
     y = x - box[0]
     skin = SKIN_SPACINGS[d] * (np.prod(lengths) / n) ** (1.0 / d)
+    axis = int(np.argmax(lengths))
+    n_slabs = max(1, min(os.cpu_count() or 1, MAX_SLABS, int(lengths[axis] // (4 * skin))))
+    cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
+    jobs = [(y, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
+    if n_slabs == 1:
+        parts = [_periodic_slab(*jobs[0])]
+    else:
+        with ThreadPoolExecutor(n_slabs) as pool:
+            parts = list(pool.map(lambda job: _periodic_slab(*job), jobs))
+    cat = lambda k: np.concatenate([p[k] for p in parts])  # noqa: E731
+    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool))
+
+
+def _periodic_slab(y, lengths, axis: int, start: float, stop: float, skin: float):
+    """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop."""
     for _ in range(SKIN_ATTEMPTS):
-        ext, ids, shifts = _periodic_images(y, lengths, skin)
+        lo, hi = np.full(len(lengths), -skin), lengths + skin
+        lo[axis], hi[axis] = start - skin, stop + skin
+        ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
         tri, perm = _qhull(ext)
-        ids, shifts = ids[perm], shifts[perm]
-        central = ~shifts.any(axis=1)
-        simp = tri.simplices[central[tri.simplices].any(axis=1)]
-        if _circumballs_inside(tri.points[simp], -skin, lengths + skin):
+        ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
+        owned = ~shifts.any(axis=1) & (ext[:, axis] >= start) & (ext[:, axis] < stop)
+        simp = tri.simplices[owned[tri.simplices].any(axis=1)]
+        if not owned[tri.convex_hull].any() and _circumballs_empty(tri.points[simp], y, lengths, lo, hi):
             break
         skin *= SKIN_GROWTH
     else:
         raise RuntimeError("periodic Delaunay: the skin check failed after widening the skin; please report this input.")
-    simp = simp[_canonical_images(ids[simp], shifts[simp])]
-    src, dst = _csr_rows(tri, np.flatnonzero(central))
-    hull = np.zeros(n, bool)
-    return RawGraph(ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], hull)
+    canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
+    simp = simp[owned[canonical]]
+    src, dst = _csr_rows(tri, np.flatnonzero(owned))
+    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst]
 
 
-def _periodic_images(y: np.ndarray, lengths: np.ndarray, skin: float):
-    """Original points (first, shift 0) and their images within `skin` of the box."""
+def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
+    """Every periodic image of `y` (box-relative) with all coordinates in (lo, hi)."""
     n, d = y.shape
-    layers = int(np.ceil(skin / lengths.min()))
-    pts, ids, shifts = [y], [np.arange(n)], [np.zeros((n, d), np.int8)]
-    for s in itertools.product(range(-layers, layers + 1), repeat=d):
-        if not any(s):
-            continue
+    reach = int(np.ceil(max(np.max(-lo / lengths), np.max((hi - lengths) / lengths), 0)))
+    pts, ids, shifts = [], [], []
+    for s in itertools.product(range(-reach, reach + 1), repeat=d):
         img = y + np.asarray(s) * lengths
-        keep = np.flatnonzero(np.all((img > -skin) & (img < lengths + skin), axis=1))
+        keep = np.flatnonzero(np.all((img > lo) & (img < hi), axis=1))
         pts.append(img[keep])
         ids.append(keep)
         shifts.append(np.broadcast_to(np.asarray(s, np.int8), (keep.size, d)))
     return np.concatenate(pts), np.concatenate(ids), np.concatenate(shifts)
 
 
-def _circumballs_inside(p: np.ndarray, lo, hi) -> bool:
-    """Whether every (finite) circumball of the simplices `p` (S, d+1, d) lies in [lo, hi]."""
+def _circumballs_empty(p: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi) -> bool:
+    """Whether no periodic image outside the region (lo, hi) lies strictly inside a circumball.
+
+    Balls inside the region are empty by construction (Qhull saw every point
+    there); the few that poke out are checked against the images just outside.
+    """
+    center, radius = _circumballs(p)
+    if not np.isfinite(radius).all():
+        return False
+    poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
+    if not poke.any():
+        return True
+    center, radius = center[poke], radius[poke]
+    reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
+    reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
+    outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
+    outer = outer[~np.all((outer > lo) & (outer < hi), axis=1)]
+    if len(outer) == 0:
+        return True
+    dist, _ = cKDTree(outer).query(center, k=1)
+    return bool(np.all(dist >= radius * (1.0 - 1e-10)))
+
+
+def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2."""
     e = p[:, 1:] - p[:, :1]
-    gram = np.einsum("sik,sjk->sij", e, e)
-    with np.errstate(all="ignore"):
-        lam = np.linalg.solve(gram, 0.5 * np.einsum("sii->si", gram)[..., None])[..., 0]
-    offset = np.einsum("si,sik->sk", lam, e)
-    radius = np.linalg.norm(offset, axis=1, keepdims=True)
-    center = p[:, 0] + offset
-    inside = np.all((center - radius >= lo) & (center + radius <= hi), axis=1)
-    return bool(np.all(inside | ~np.isfinite(radius[:, 0])))
+    flat = np.abs(np.linalg.det(e)) <= 1e-12 * np.einsum("sij,sij->s", e, e) ** (e.shape[1] / 2)
+    e[flat] = np.eye(e.shape[1])
+    offset = np.linalg.solve(e, 0.5 * np.einsum("sij,sij->si", e, e)[..., None])[..., 0]
+    radius = np.where(flat, np.inf, np.linalg.norm(offset, axis=1))
+    return p[:, 0] + offset, radius
 
 
-def _canonical_images(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """Mask keeping one translate of each periodic simplex.
+def _canonical_vertex(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Per simplex, the vertex with the smallest key (original index, then image shift).
 
-    The translate kept is the one in which the vertex with the smallest key
-    (original index, then shift) has shift zero; translating a simplex does not
-    change which vertex that is, so exactly one translate qualifies.
+    Translating a simplex does not change which vertex that is, so keeping the one
+    translate in which that vertex is an owned original (shift zero) keeps every
+    periodic simplex exactly once. Returns that vertex's position (0..d) in each simplex.
     """
     span = int(np.abs(shifts).max()) if shifts.size else 0
-    base = 2 * span + 1
     key = ids.astype(np.int64)
     for k in range(shifts.shape[-1]):
-        key = key * base + (shifts[..., k].astype(np.int64) + span)
-    first = np.argmin(key, axis=1)
-    return ~shifts[np.arange(len(ids)), first].any(axis=1)
+        key = key * (2 * span + 1) + (shifts[..., k].astype(np.int64) + span)
+    return np.argmin(key, axis=1)
 
 
 def _as_capacity(capacity) -> Capacity:
@@ -246,10 +291,10 @@ def _pad_neighbors(raw: RawGraph, n: int, k_cap: int):
     slot = np.arange(rows.size) - np.repeat(starts, np.diff(np.r_[starts, rows.size]))
     nbrs = np.full((n, k_cap), n, np.int32)
     nbrs[rows, slot] = cols
+    if raw.nbr_shifts is None:
+        return np.sort(nbrs, axis=1), None
     order = np.argsort(nbrs, axis=1, kind="stable")
     nbrs = np.take_along_axis(nbrs, order, axis=1)
-    if raw.nbr_shifts is None:
-        return nbrs, None
     shifts = np.zeros((n, k_cap, raw.nbr_shifts.shape[1]), np.int8)
     shifts[rows, slot] = raw.nbr_shifts
     return nbrs, np.take_along_axis(shifts, order[..., None], axis=1)

@@ -128,3 +128,22 @@ def test_tessellation_is_a_pytree_usable_under_jit(rng):
     assert all(isinstance(leaf, jax.Array) for leaf in leaves)
     degree_sum = jax.jit(lambda t: t.degree.sum())(tess)
     assert int(degree_sum) == int(np.sum(np.asarray(tess.neighbors) < 100))
+
+
+@pytest.mark.parametrize("d, n", [(2, 900), (3, 1000)])
+def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
+    """Several slabs and a too-thin first skin (forcing retries) still give the exact graph."""
+    import jaxgeom._delaunay as dl
+
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 4)
+    monkeypatch.setitem(dl.SKIN_SPACINGS, d, 1.0)
+    calls = []
+    real_qhull = dl._qhull
+    monkeypatch.setattr(dl, "_qhull", lambda pts: calls.append(len(pts)) or real_qhull(pts))
+    x = rng.random((n, d))
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
+    nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < n} for i in range(n)]
+    assert ours == periodic_neighbor_sets(x, np.zeros(d), np.ones(d), layers=1)
+    assert len(calls) > 2, "more than one slab, and at least one retry"
+    assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9

@@ -1,0 +1,104 @@
+"""Tessellation benchmark: bare scipy Delaunay vs jaxgeom.delaunay, jitted volumes, freud.
+
+Run: python bench/tessellation.py [--sizes 10000 100000] [--out bench/results/tessellation.json]
+All timings of one configuration are taken side by side in this one run (best of
+`--repeat`), on the same points: uniform in a box of unit density, so that freud's
+absolute duplicate tolerance is never hit. Times are wall seconds, warm (compiled).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from scipy.spatial import Delaunay
+
+import jaxgeom
+
+jax.config.update("jax_enable_x64", True)
+
+
+def best_time(fn, repeat: int) -> tuple[float, object]:
+    best, out = np.inf, None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def freud_periodic(points: np.ndarray, length: float, repeat: int):
+    try:
+        import freud
+    except ImportError:
+        return None
+    d = points.shape[1]
+    box = freud.box.Box.square(length) if d == 2 else freud.box.Box.cube(length)
+    pts3 = np.zeros((len(points), 3), np.float32)
+    pts3[:, :d] = points - length / 2
+
+    def run():
+        vor = freud.locality.Voronoi()
+        vor.compute((box, pts3))
+        return vor.volumes, vor.nlist.neighbor_counts
+
+    seconds, (vols, _) = best_time(run, repeat)
+    return {"seconds": seconds, "volume_sum_rel_error": float(abs(vols.sum() / length**d - 1))}
+
+
+def bench_one(d: int, n: int, repeat: int, seed: int) -> dict:
+    length = n ** (1.0 / d)
+    x = np.random.default_rng(seed).random((n, d)) * length
+    row = {"dim": d, "n": n}
+    row["scipy_delaunay_s"], _ = best_time(lambda: Delaunay(x), repeat)
+    row["jaxgeom_delaunay_s"], tess = best_time(lambda: jaxgeom.delaunay(x), repeat)
+    start = time.perf_counter()
+    jax.block_until_ready(jaxgeom.voronoi_volumes(tess))
+    row["voronoi_volumes_first_call_s"] = time.perf_counter() - start
+    row["voronoi_volumes_s"], _ = best_time(lambda: jaxgeom.voronoi_volumes(tess), repeat)
+    row["delaunay_over_scipy"] = row["jaxgeom_delaunay_s"] / row["scipy_delaunay_s"]
+
+    def periodic():
+        torus = jaxgeom.delaunay(x, box=(0.0, length), periodic=True)
+        return torus, jaxgeom.voronoi_volumes(torus)
+
+    jax.block_until_ready(periodic())  # compile for this capacity
+    row["periodic_delaunay_plus_volumes_s"], (torus, vols) = best_time(periodic, repeat)
+    row["periodic_volume_sum_rel_error"] = float(abs(np.asarray(vols).sum() / length**d - 1))
+    row["periodic_capacity"] = list(torus.capacity)
+    freud_row = freud_periodic(x, length, repeat)
+    if freud_row is not None:
+        row["freud_voronoi_s"] = freud_row["seconds"]
+        row["freud_volume_sum_rel_error"] = freud_row["volume_sum_rel_error"]
+        row["periodic_over_freud"] = row["periodic_delaunay_plus_volumes_s"] / freud_row["seconds"]
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
+    parser.add_argument("--dims", type=int, nargs="+", default=[2, 3])
+    parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tessellation.json")
+    args = parser.parse_args()
+    rows = []
+    for d in args.dims:
+        for n in args.sizes:
+            row = bench_one(d, n, args.repeat, args.seed)
+            rows.append(row)
+            print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}))
+    meta = {"machine": platform.machine(), "cpus": __import__("os").cpu_count(), "jax": jax.__version__,
+            "targets": {"delaunay_over_scipy": "<= 1.3", "periodic_over_freud": "< 1 (2D), <= 1.2 (3D) at N=1e5"}}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
