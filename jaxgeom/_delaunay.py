@@ -161,7 +161,8 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
     y = x - box[0]
     skin = SKIN_SPACINGS[d] * (np.prod(lengths) / n) ** (1.0 / d)
     axis = int(np.argmax(lengths))
-    n_slabs = max(1, min(os.cpu_count() or 1, MAX_SLABS, int(lengths[axis] // (4 * skin))))
+    # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.
+    n_slabs = max(1, min(2 * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (4 * skin))))
     cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
     jobs = [(y, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
     if n_slabs == 1:
@@ -330,6 +331,9 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
     )
     if periodic:
         return tess
+    if box is None:  # hull walkers and their neighbours: index bookkeeping only
+        tier1 = np.append(raw.hull, False)[nbrs].any(axis=1) & ~raw.hull
+        return eqx.tree_at(lambda t: t.tier, tess, jnp.asarray(np.where(raw.hull, 0, np.where(tier1, 1, 2)), jnp.int8))
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess))
 
 

@@ -135,7 +135,7 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     """Several slabs and a too-thin first skin (forcing retries) still give the exact graph."""
     import jaxgeom._delaunay as dl
 
-    monkeypatch.setattr(dl.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 2)
     monkeypatch.setitem(dl.SKIN_SPACINGS, d, 1.0)
     calls = []
     real_qhull = dl._qhull

@@ -118,3 +118,16 @@ def test_volumes_differentiable_and_finite(rng):
 def test_k_nn_graph_has_no_volumes(rng):
     with pytest.raises(ValueError, match="no simplices"):
         jaxgeom.voronoi_volumes(jaxgeom.knn_graph(rng.random((50, 2)), 5))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_float32_volumes_are_accurate(rng, d):
+    x = 5.0 + rng.random((400, d))  # offset from the origin: relative coordinates matter in float32
+    ref = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x)))
+    with jax.enable_x64(False):
+        tess = jaxgeom.delaunay(x.astype(np.float32))
+        vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+    interior = np.asarray(tess.tier) == 2
+    assert vol.dtype == np.float32
+    np.testing.assert_allclose(vol[interior], ref[interior], rtol=2e-3)
+    assert abs(vol[interior].sum() / ref[interior].sum() - 1) < 1e-4
