@@ -1,11 +1,26 @@
 """jaxgeom: JAX geometry kernels for walker swarms."""
 
+from ._cells import mean_curvature_estimate as mean_curvature_estimate
+from ._cells import raychaudhuri_expansion as raychaudhuri_expansion
+from ._cells import shape_distortion as shape_distortion
+from ._cells import vertex_distance_variance as vertex_distance_variance
+from ._cells import volume_distortion as volume_distortion
+from ._curvature import angle_sums as angle_sums
+from ._curvature import deficit_angles as deficit_angles
+from ._curvature import region_average as region_average
+from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay
 from ._graph import Capacity as Capacity
 from ._graph import Tessellation as Tessellation
 from ._graph import neighbor_displacements as neighbor_displacements
 from ._graph import simplex_vertices as simplex_vertices
 from ._knn import knn_graph as knn_graph
+from ._metric import edge_lengths as edge_lengths
+from ._metric import emergent_metric as emergent_metric
+from ._metric import hessian_metric as hessian_metric
+from ._metric import metric_at_walkers as metric_at_walkers
+from ._metric import riemannian_mean as riemannian_mean
+from ._metric import riemannian_volumes as riemannian_volumes
 from ._volumes import circumcenters as circumcenters
 from ._volumes import voronoi_volumes as voronoi_volumes
 

@@ -92,7 +92,7 @@ def _check_delaunay_dim(d: int) -> None:
 def morton_order(x: np.ndarray) -> np.ndarray:
     """Permutation sorting points along a Z-order (Morton) curve."""
     n, d = x.shape
-    bits = max(1, 60 // d)
+    bits = max(1, min(16, 60 // d))
     lo, hi = x.min(axis=0), x.max(axis=0)
     q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
     code = np.zeros(n, np.uint64)

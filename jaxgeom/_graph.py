@@ -156,3 +156,34 @@ def bucket_simplices(n: int) -> int:
 def as_device_tree(tess: Tessellation) -> Tessellation:
     """Move every array leaf onto the default device (used by host builders)."""
     return jax.tree_util.tree_map(jnp.asarray, tess)
+
+
+# A periodic walker may neighbour several images of the same walker (tiny boxes);
+# slot lookup scans this many consecutive columns for the matching image shift.
+MAX_IMAGES_PER_NEIGHBOR = 8
+
+
+def edge_slots(tess: Tessellation, src, dst, shift=None):
+    """Column k with `neighbors[src, k] == dst` (and `neighbor_shifts[src, k] == shift`).
+
+    Binary search over Delaunay rows, which the builder keeps sorted by neighbour
+    index. Returns K (the capacity, an out-of-range id) where the edge is absent.
+    """
+    k_cap = tess.neighbors.shape[1]
+    flat = tess.neighbors.ravel()
+    lo, hi = jnp.zeros_like(src), jnp.full_like(src, k_cap)
+    for _ in range(max(1, math.ceil(math.log2(k_cap))) + 1):
+        mid = (lo + hi) // 2
+        right = (mid < k_cap) & (flat[src * k_cap + jnp.minimum(mid, k_cap - 1)] < dst)
+        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    if tess.neighbor_shifts is None:
+        found = (lo < k_cap) & (flat[src * k_cap + jnp.minimum(lo, k_cap - 1)] == dst)
+        return jnp.where(found, lo, k_cap)
+    flat_shifts = tess.neighbor_shifts.reshape(-1, tess.dim)
+    slot = jnp.full_like(src, k_cap)
+    for t in reversed(range(MAX_IMAGES_PER_NEIGHBOR)):
+        k = lo + t
+        at = src * k_cap + jnp.minimum(k, k_cap - 1)
+        match = (k < k_cap) & (flat[at] == dst) & jnp.all(flat_shifts[at] == shift, axis=-1)
+        slot = jnp.where(match, k, slot)
+    return slot

@@ -1,0 +1,246 @@
+"""Metrics: the three accepted forms, metric edge lengths, Hessian and emergent metrics.
+
+A `metric` argument is `None` (Euclidean), an (N, d, d) array of per-walker
+tensors, or a JAX callable x (d,) -> g (d, d). The metric of an edge is g at the
+edge midpoint for a callable and (g_i + g_j) / 2 for an array (spec NOTES 1).
+`mode` picks how much of it is used: "none" (Euclidean), "diagonal", "full".
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import check_choice
+from ._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ._simplex import dot, small_adjugate, small_det
+
+METRIC_MODES = ("none", "diagonal", "full")
+HESSIAN_FLOORS = ("clip", "softabs")
+
+
+def check_metric(tess: Tessellation, metric, mode: str):
+    """Validate `metric` and `mode`; returns None when the metric is not used."""
+    check_choice(mode, "mode", METRIC_MODES)
+    if metric is None or mode == "none":
+        return None
+    if callable(metric):
+        return metric
+    g = jnp.asarray(metric)
+    n, d = tess.points.shape
+    if g.shape != (n, d, d):
+        raise ValueError(
+            f"`metric` must be None, a callable x (d,) -> g (d, d), or an array of shape "
+            f"(N, d, d) = {(n, d, d)}; got an array of shape {g.shape}."
+        )
+    return g
+
+
+def _with_mode(g, mode: str):
+    return g * jnp.eye(g.shape[-1], dtype=g.dtype) if mode == "diagonal" else g
+
+
+def _wrap(tess: Tessellation, x):
+    """Positions moved back into the periodic box (a callable metric sees box coordinates)."""
+    if not tess.periodic:
+        return x
+    return tess.box[0] + jnp.mod(x - tess.box[0], tess.box_lengths)
+
+
+def _call_metric(metric: Callable, x):
+    flat = x.reshape(-1, x.shape[-1])
+    g = jax.vmap(metric)(flat)
+    if g.shape[1:] != (x.shape[-1],) * 2:
+        raise ValueError(f"the metric callable must map x (d,) to g (d, d); it returned shape {g.shape[1:]}.")
+    return g.reshape(x.shape + (x.shape[-1],))
+
+
+def _quad(g, dx):
+    """dx^T g dx over the last axes, written out so that XLA fuses it."""
+    d = dx.shape[-1]
+    return sum(g[..., i, j] * dx[..., i] * dx[..., j] for i in range(d) for j in range(d))
+
+
+@eqx.filter_jit
+def metric_at_walkers(tess: Tessellation, metric, *, mode: str = "full"):
+    """(N, d, d) metric at every walker (after `mode`), or None for Euclidean."""
+    metric = check_metric(tess, metric, mode)
+    if metric is None:
+        return None
+    g = _call_metric(metric, _wrap(tess, tess.points)) if callable(metric) else metric
+    return _with_mode(g, mode)
+
+
+@eqx.filter_jit
+def edge_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "N K"]:
+    """Metric length sqrt(dx^T g_edge dx) of every neighbour edge, aligned with `tess.neighbors`.
+
+    **Arguments:**
+
+    - `tess`: any [`jaxgeom.Tessellation`][] (Delaunay or k-NN).
+    - `metric`: None, (N, d, d) array, or callable x -> g (see module docs).
+    - `mode`: "none" (Euclidean), "diagonal" (diag(g) only) or "full".
+
+    **Returns:**
+
+    (N, K) lengths; 0 on padding slots.
+    """
+    return jnp.sqrt(edge_sq_lengths(tess, metric, mode=mode))
+
+
+def edge_sq_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "N K"]:
+    """Squared metric edge lengths, aligned with `tess.neighbors` (0 on padding)."""
+    metric = check_metric(tess, metric, mode)
+    dx = neighbor_displacements(tess)
+    mask = tess.neighbor_mask
+    if metric is None:
+        sq = dot(dx, dx)
+    elif callable(metric):
+        mid = jnp.where(mask[..., None], tess.points[:, None, :] + 0.5 * dx, tess.points[0])
+        sq = _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx)
+    else:
+        g = _with_mode(metric, mode)
+        g_pad = jnp.concatenate([g, jnp.zeros((1,) + g.shape[1:], g.dtype)])
+        sq = 0.5 * (_quad(g[:, None], dx) + _quad(g_pad[tess.neighbors], dx))
+    return jnp.where(mask, sq, 0.0)
+
+
+def edge_pairs(d: int) -> tuple[tuple[int, int], ...]:
+    """The (d + 1) d / 2 vertex pairs of a d-simplex, in a fixed order."""
+    return tuple(itertools.combinations(range(d + 1), 2))
+
+
+def simplex_sq_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "S P"]:
+    """Squared metric length of every simplex edge, pairs ordered as `edge_pairs(d)`."""
+    metric = check_metric(tess, metric, mode)
+    verts = simplex_vertices(tess)
+    pairs = edge_pairs(tess.dim)
+    dx = jnp.stack([verts[:, b] - verts[:, a] for a, b in pairs], axis=1)
+    if metric is None:
+        return dot(dx, dx)
+    if callable(metric):
+        mid = jnp.stack([0.5 * (verts[:, a] + verts[:, b]) for a, b in pairs], axis=1)
+        mid = jnp.where(tess.simplex_mask[:, None, None], mid, tess.points[0])
+        return _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx)
+    g = _with_mode(metric, mode)
+    g_pad = jnp.concatenate([g, jnp.zeros((1,) + g.shape[1:], g.dtype)])
+    g_verts = [g_pad[tess.simplices[:, v]] for v in range(tess.dim + 1)]
+    return jnp.stack([0.5 * (_quad(g_verts[a], dx[:, k]) + _quad(g_verts[b], dx[:, k]))
+                      for k, (a, b) in enumerate(pairs)], axis=1)
+
+
+def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, " N"]:
+    """sqrt(det g) at every walker (1 for Euclidean); NaN where det g <= 0."""
+    g = metric_at_walkers(tess, metric, mode=mode)
+    if g is None:
+        return jnp.ones(tess.n_points, tess.points.dtype)
+    det = small_det(g) if tess.dim <= 4 else jnp.linalg.det(g)
+    return jnp.where(det > 0, jnp.sqrt(jnp.where(det > 0, det, 1.0)), jnp.nan)
+
+
+@eqx.filter_jit
+def riemannian_volumes(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
+    """Riemannian cell volumes V_i sqrt(det g(x_i)) (proxy 8).
+
+    **Arguments:**
+
+    - `tess`: a Delaunay tessellation.
+    - `metric`, `mode`: as in [`jaxgeom.edge_lengths`][].
+    - `volumes`: Euclidean cell volumes to reuse; default `voronoi_volumes(tess)`.
+
+    **Returns:**
+
+    (N,) volumes; NaN for unbounded cells.
+    """
+    from ._volumes import voronoi_volumes
+
+    base = voronoi_volumes(tess) if volumes is None else volumes
+    unbounded = jnp.isnan(base)  # keep NaN out of the product so gradients stay finite
+    return jnp.where(unbounded, jnp.nan, jnp.where(unbounded, 0.0, base) * sqrt_det_metric(tess, metric, mode=mode))
+
+
+def riemannian_mean(values, weights, mask=None) -> Float[Array, ""]:
+    """Weighted mean sum(w O) / sum(w) over walkers in `mask` with finite O and w.
+
+    Pass `weights=riemannian_volumes(...)` and `mask=tess.interior` for the
+    Riemannian average of an observable over tier-2 walkers (proxy 8).
+    """
+    ok = jnp.isfinite(values) & jnp.isfinite(weights)
+    if mask is not None:
+        ok = ok & mask
+    w = jnp.where(ok, weights, 0.0)
+    return jnp.sum(w * jnp.where(ok, values, 0.0)) / jnp.sum(w)
+
+
+def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Callable:
+    """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V (Definition 669).
+
+    **Arguments:**
+
+    - `fitness`: JAX function x (d,) -> scalar V(x); H = jax.hessian(fitness).
+    - `eps_sigma`: spectral floor eps_Sigma >= 0 (may be a traced value, e.g.
+      under `jax.grad`).
+    - `floor`: "clip" maps eigenvalues lambda -> max(lambda, 0) + eps_Sigma, so g = H +
+      eps_Sigma I wherever H is positive semi-definite. "softabs" maps lambda ->
+      lambda coth(lambda / eps_Sigma) (SoftAbs with alpha = 1/eps_Sigma): smooth, >= eps_Sigma, and
+      ~|lambda| for |lambda| >> eps_Sigma.
+
+    **Returns:**
+
+    A callable x (d,) -> g (d, d), usable as `metric=` everywhere.
+    """
+    check_choice(floor, "floor", HESSIAN_FLOORS)
+    if not isinstance(eps_sigma, jax.core.Tracer) and np.any(np.asarray(eps_sigma) < 0):
+        raise ValueError(f"`eps_sigma` must be >= 0 (a spectral floor); got {eps_sigma}.")
+    hess = jax.hessian(fitness)
+
+    def clip(x):
+        h = hess(x)
+        eye = jnp.eye(h.shape[-1], dtype=h.dtype)
+        # eigh only where H has a negative eigenvalue: elsewhere its derivative is not
+        # needed and can be NaN for repeated eigenvalues, so it sees a safe matrix.
+        psd = jax.lax.stop_gradient(jnp.linalg.eigvalsh(h)[0] >= 0)
+        lam, q = jnp.linalg.eigh(jnp.where(psd, jnp.diag(jnp.arange(1.0, h.shape[-1] + 1, dtype=h.dtype)), h))
+        correction = (q * jnp.maximum(-lam, 0.0)) @ q.T
+        return h + eps_sigma * eye + jnp.where(psd, 0.0, correction)
+
+    def softabs(x):
+        lam, q = jnp.linalg.eigh(hess(x))
+        small = jnp.abs(lam) < 1e-3 * eps_sigma
+        safe = jnp.where(small, 1.0, lam)
+        value = jnp.where(small, eps_sigma + lam**2 / (3.0 * eps_sigma), safe / jnp.tanh(safe / eps_sigma))
+        return (q * value) @ q.T
+
+    return clip if floor == "clip" else softabs
+
+
+@eqx.filter_jit
+def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array, "N d d"]:
+    """Emergent metric g_i = inverse(C_i + eps_reg (tr C_i / d) I) (Definition 831, NOTES 6).
+
+    C_i = mean over walker i's neighbours of dx dx^T, padding ignored. The
+    regulariser is relative to the local scale, so the metric is scale covariant
+    (g -> g / s^2 under x -> s x). Walkers without neighbours get NaN.
+    """
+    if not isinstance(eps_reg, jax.core.Tracer) and eps_reg < 0:
+        raise ValueError(f"`eps_reg` must be >= 0; got {eps_reg}.")
+    dx = neighbor_displacements(tess)
+    degree = tess.degree
+    d = tess.dim
+    cov = jnp.stack([jnp.stack([jnp.sum(dx[..., i] * dx[..., j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
+    cov = cov / jnp.maximum(degree, 1)[:, None, None].astype(dx.dtype)
+    reg = eps_reg * jnp.trace(cov, axis1=1, axis2=2) / d
+    c = cov + reg[:, None, None] * jnp.eye(d, dtype=dx.dtype)
+    if d <= 4:
+        det = small_det(c)
+        g = small_adjugate(c) / jnp.where(det != 0, det, 1.0)[:, None, None]
+        g = jnp.where((det != 0)[:, None, None], g, jnp.nan)
+    else:
+        g = jnp.linalg.inv(c)
+    return jnp.where((degree > 0)[:, None, None], 0.5 * (g + jnp.swapaxes(g, 1, 2)), jnp.nan)
