@@ -11,8 +11,12 @@ from ._checks import check_choice
 
 
 def double_well(x):
-    """(x_0^2 - 1)^2 + sum_{k>0} x_k^2 / 2: two wells at x_0 = +-1."""
-    return (x[..., 0] ** 2 - 1.0) ** 2 + 0.5 * jnp.sum(x[..., 1:] ** 2, axis=-1)
+    """(x_0^2 - 1)^2 + (1 + x_0^2) sum_{k>0} x_k^2 / 2: two coupled wells at x_0 = +-1.
+
+    The coupling makes the Hessian metric genuinely curved (a diagonal metric that
+    depends on x_0 alone would be flat).
+    """
+    return (x[..., 0] ** 2 - 1.0) ** 2 + 0.5 * (1.0 + x[..., 0] ** 2) * jnp.sum(x[..., 1:] ** 2, axis=-1)
 
 
 def quadratic(x):

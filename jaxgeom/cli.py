@@ -40,6 +40,20 @@ def timed(analysis: Analysis, label: str, fn: Callable, *args, **kwargs):
     return out
 
 
+def timed_warm(analysis: Analysis, label: str, fn: Callable, *args, **kwargs):
+    """Time a first call (with compilation) as `label_first_call`, then a warm call as `label`."""
+    timed(analysis, f"{label}_first_call", fn, *args, **kwargs)
+    return timed(analysis, label, fn, *args, **kwargs)
+
+
+def _stats(values: np.ndarray, prefix: str) -> dict:
+    v = values[np.isfinite(values)]
+    if not v.size:
+        return {f"{prefix}_count": 0}
+    return {f"{prefix}_mean": float(v.mean()), f"{prefix}_median": float(np.median(v)),
+            f"{prefix}_std": float(v.std()), f"{prefix}_min": float(v.min()), f"{prefix}_max": float(v.max())}
+
+
 def section_swarm(a: Analysis) -> dict:
     n, d = a.points.shape
     out = {"source": a.source, "n_walkers": n, "dim": d, "graph": a.args.graph, "periodic": a.args.periodic}
@@ -66,8 +80,7 @@ def section_volumes(a: Analysis) -> dict:
 
     if a.tess.simplices is None:
         return {"skipped": "Voronoi volumes need a Delaunay graph"}
-    timed(a, "voronoi_volumes_first_call", jaxgeom.voronoi_volumes, a.tess)
-    vol = np.asarray(timed(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
+    vol = np.asarray(timed_warm(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
     a.cache["volumes"] = vol
     interior = vol[np.asarray(a.tess.interior)]
     out = {"total_finite": float(np.nansum(vol)), "n_unbounded": int(np.isnan(vol).sum())}
@@ -78,11 +91,106 @@ def section_volumes(a: Analysis) -> dict:
     return out
 
 
+def analysis_metric(a: Analysis):
+    """The metric chosen by --metric: None, the landscape's Hessian metric, or the emergent metric."""
+    import jaxgeom
+    from ._landscapes import landscape
+
+    if "metric" not in a.cache:
+        kind = a.args.metric
+        if kind == "hessian":
+            a.cache["metric"] = jaxgeom.hessian_metric(landscape(a.args.landscape), a.args.eps_sigma)
+        elif kind == "emergent":
+            a.cache["metric"] = timed_warm(a, "emergent_metric", jaxgeom.emergent_metric, a.tess)
+        else:
+            a.cache["metric"] = None
+    return a.cache["metric"]
+
+
+def section_metric(a: Analysis) -> dict:
+    import jaxgeom
+
+    out = {"kind": a.args.metric}
+    if a.args.metric == "hessian":
+        out.update(landscape=a.args.landscape, eps_sigma=a.args.eps_sigma)
+    g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
+    if g is not None:
+        lam = np.linalg.eigvalsh(np.asarray(g)[np.asarray(a.tess.interior)])
+        out.update(_stats(lam[:, -1] / lam[:, 0], "tier2_condition"))
+        out["tier2_min_eigenvalue"] = float(lam[:, 0].min())
+    return out
+
+
+def section_curvature(a: Analysis) -> dict:
+    import jaxgeom
+
+    if a.tess.simplices is None:
+        return {"skipped": "curvature needs a Delaunay graph"}
+    metric, vol = analysis_metric(a), a.cache.get("volumes")
+    riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric, volumes=vol))
+    ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric, volumes=vol))
+    a.cache.update(ricci=ricci, riemannian_volumes=riem)
+    interior = np.asarray(a.tess.interior)
+    out = {"tier2_volume_weighted_ricci": float(jaxgeom.region_average(ricci, riem, interior))}
+    out.update(_stats(ricci[interior], "tier2_ricci"))
+    if a.tess.dim in (2, 3):
+        delta = np.asarray(timed_warm(a, "deficit_angles", jaxgeom.deficit_angles, a.tess, metric))
+        out["mean_abs_deficit"] = float(np.abs(delta[delta != 0]).mean()) if np.any(delta != 0) else 0.0
+    return out
+
+
+def section_cells(a: Analysis) -> dict:
+    import jaxgeom
+
+    if a.tess.simplices is None:
+        return {"skipped": "cell proxies need a Delaunay graph"}
+    shape = np.asarray(timed_warm(a, "shape_distortion", jaxgeom.shape_distortion, a.tess))
+    a.cache["shape"] = shape
+    spread = np.asarray(jaxgeom.vertex_distance_variance(a.tess))
+    interior = np.asarray(a.tess.interior)
+    out = {"volume_distortion": float(timed_warm(a, "volume_distortion", jaxgeom.volume_distortion, a.tess))}
+    if "riemannian_volumes" in a.cache:
+        out["volume_distortion_riemannian"] = float(jaxgeom.volume_distortion(a.tess, a.cache["riemannian_volumes"]))
+    out.update(_stats(shape[interior], "tier2_shape_distortion"))
+    out.update(_stats(spread[interior], "tier2_vertex_distance_variance"))
+    out["raychaudhuri"] = "needs two snapshots: use jaxgeom.raychaudhuri_expansion on a time series"
+    return out
+
+
 REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("swarm", section_swarm),
     ("graph", section_graph),
     ("volumes", section_volumes),
+    ("metric", section_metric),
+    ("curvature", section_curvature),
+    ("cells", section_cells),
 ]
+
+
+def write_maps(a: Analysis, path: Path) -> None:
+    """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    pts = a.points
+    for ax, key, title, cmap in [(axes[0], "ricci", "Ricci scalar", "coolwarm"),
+                                 (axes[1], "shape", "shape distortion r_in / r_circ", "viridis")]:
+        values = a.cache[key]
+        ok = np.isfinite(values)
+        ax.scatter(pts[~ok, 0], pts[~ok, 1], s=3, c="k", label="tier 0 (no value)")
+        lo, hi = np.percentile(values[ok], [2, 98]) if ok.any() else (0, 1)
+        if key == "ricci":
+            lo, hi = -max(abs(lo), abs(hi)), max(abs(lo), abs(hi))
+        sc = ax.scatter(pts[ok, 0], pts[ok, 1], s=4, c=np.clip(values[ok], lo, hi), cmap=cmap, vmin=lo, vmax=hi)
+        fig.colorbar(sc, ax=ax)
+        ax.set_title(f"{title}, metric={a.args.metric}")
+        ax.set_aspect("equal")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
@@ -118,6 +226,10 @@ def run_analysis(args) -> dict:
     a.tess = build_graph(a)
     report = {name: section(a) for name, section in REPORT_SECTIONS}
     report["timings_s"] = {k: round(v, 6) for k, v in a.timings.items()}
+    if args.out is not None and "ricci" in a.cache and "shape" in a.cache:
+        args.out.mkdir(parents=True, exist_ok=True)
+        write_maps(a, args.out / "proxies.png")
+        report["figures"] = {"proxies": str(args.out / "proxies.png")}
     return report
 
 
@@ -127,7 +239,7 @@ def format_report(report: dict) -> str:
         lines.append(f"[{name}]")
         for key, value in values.items():
             shown = f"{value:.6g}" if isinstance(value, float) else str(value)
-            lines.append(f"  {key:<28} {shown}")
+            lines.append(f"  {key:<38} {shown}")
     return "\n".join(lines)
 
 
@@ -147,13 +259,19 @@ def _parser() -> argparse.ArgumentParser:
     an.add_argument("--k", type=int, default=12, help="neighbours per walker with --graph knn")
     an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
     an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"), help="domain bounds for every axis")
-    an.add_argument("--out", type=Path, help="directory for summary.json")
+    an.add_argument("--metric", choices=["none", "hessian", "emergent"], default="hessian",
+                    help="metric for curvature and Riemannian volumes (hessian: of --landscape)")
+    an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
+    an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
     an.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
     return parser
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "eps_sigma", 0.0) < 0:
+        parser.error(f"--eps-sigma must be >= 0; got {args.eps_sigma}")
     import jax
 
     jax.config.update("jax_enable_x64", not args.float32)

@@ -16,6 +16,27 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert graph["tier0"] == report["volumes"]["n_unbounded"] > 0
     assert 5.5 < graph["degree_mean"] < 6.0
     assert report["timings_s"]["delaunay"] > 0
+    assert report["metric"]["kind"] == "hessian" and report["metric"]["tier2_min_eigenvalue"] >= 0.1 - 1e-12
+    curvature, cells = report["curvature"], report["cells"]
+    assert np.isfinite(curvature["tier2_volume_weighted_ricci"]) and curvature["mean_abs_deficit"] > 0
+    assert 0 < cells["tier2_shape_distortion_mean"] < 1 and cells["volume_distortion"] > 0
+    assert (tmp_path / "proxies.png").stat().st_size > 10_000
+    for proxy in ("ricci_scalar", "shape_distortion", "riemannian_volumes", "deficit_angles"):
+        assert report["timings_s"][proxy] >= 0
+
+
+def test_analyze_flat_metric_has_zero_curvature(tmp_path):
+    assert main(["analyze", "--n", "500", "--metric", "none", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["curvature"]["tier2_ricci_max"] == report["curvature"]["tier2_ricci_min"] == 0.0
+    assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
+
+
+def test_analyze_emergent_metric_in_3d(tmp_path):
+    assert main(["analyze", "--n", "800", "--dim", "3", "--metric", "emergent", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["metric"]["tier2_condition_mean"] >= 1.0
+    assert np.isfinite(report["curvature"]["tier2_ricci_median"])
 
 
 def test_analyze_periodic_points_file(tmp_path):
@@ -32,7 +53,15 @@ def test_analyze_knn_in_high_dimension(tmp_path):
     assert main(["analyze", "--graph", "knn", "--k", "8", "--dim", "6", "--n", "400", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["graph"]["degree_min"] == report["graph"]["degree_max"] == 8
-    assert "skipped" in report["volumes"]
+    assert "skipped" in report["volumes"] and "skipped" in report["curvature"]
+
+
+def test_analyze_rejects_negative_eps_sigma(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(["analyze", "--eps-sigma", "-1"])
+    assert "--eps-sigma must be >= 0" in capsys.readouterr().err
 
 
 def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
