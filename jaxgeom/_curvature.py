@@ -83,10 +83,17 @@ def _all_hinge_angles(tess: Tessellation, metric, mode: str):
     if tess.simplices is None:
         raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
     angles = jax.vmap(lambda sq: hinge_angles(sq, d))
-    theta_g, size_g = angles(simplex_sq_lengths(tess, metric, mode=mode))
-    theta_e, _ = angles(simplex_sq_lengths(tess))
+    sq_g, sq_e = jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
+    theta_g, size_g = angles(sq_g)
+    theta_e, _ = angles(sq_e)
     valid = tess.simplex_mask[:, None]
     return jnp.where(valid, theta_g, 0.0), jnp.where(valid, size_g, 0.0), jnp.where(valid, theta_e, 0.0)
+
+
+@functools.lru_cache(maxsize=None)
+def _hinges_of_vertex(d: int) -> tuple[tuple[int, ...], ...]:
+    """For each vertex of a d-simplex, the indices (in `hinges(d)`) of the hinges containing it."""
+    return tuple(tuple(k for k, (h, _) in enumerate(hinges(d)) if v in h) for v in range(d + 1))
 
 
 def _hinge_vertex_ids(tess: Tessellation):
@@ -173,14 +180,17 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     if tess.simplices is None:
         raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
     vectors = jax.vmap(lambda sq: hinge_angle_vectors(sq, d))
-    x_g, y_g, size_g = vectors(simplex_sq_lengths(tess, metric, mode=mode))
-    x_e, y_e, _ = vectors(simplex_sq_lengths(tess))
+    # The barrier materialises the squared lengths once; fused into each of their many
+    # consumers, their gathers would be recomputed (2-4x slower with an array metric).
+    sq_g, sq_e = jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
+    x_g, y_g, size_g = vectors(sq_g)
+    x_e, y_e, _ = vectors(sq_e)
     # theta_E - theta_g in one atan2: both angles lie in [0, pi]
     diff = _safe_atan2(y_e * x_g - x_e * y_g, x_e * x_g + y_e * y_g)
     contrib = jnp.where(tess.simplex_mask[:, None], diff * size_g, 0.0)
-    ids = _hinge_vertex_ids(tess)
-    spread = jnp.broadcast_to(contrib[..., None], ids.shape)
-    total = jax.ops.segment_sum(spread.ravel(), ids.ravel(), num_segments=tess.n_points)
+    # sum each vertex's hinges inside the simplex first: d + 1 scattered values per simplex
+    per_vertex = jnp.stack([sum(contrib[:, h] for h in hs) for hs in _hinges_of_vertex(d)], axis=1)
+    total = jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
     return _per_volume(tess, (2.0 / (d - 1)) * total, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
 
 

@@ -128,11 +128,29 @@ def simplex_sq_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -
         mid = jnp.stack([0.5 * (verts[:, a] + verts[:, b]) for a, b in pairs], axis=1)
         mid = jnp.where(tess.simplex_mask[:, None, None], mid, tess.points[0])
         return _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx)
-    g = _with_mode(metric, mode)
-    g_pad = jnp.concatenate([g, jnp.zeros((1,) + g.shape[1:], g.dtype)])
-    g_verts = [g_pad[tess.simplices[:, v]] for v in range(tess.dim + 1)]
-    return jnp.stack([0.5 * (_quad(g_verts[a], dx[:, k]) + _quad(g_verts[b], dx[:, k]))
+    packed = _packed_table(_with_mode(metric, mode))
+    g_verts = [[row[tess.simplices[:, v]] for row in packed] for v in range(tess.dim + 1)]
+    return jnp.stack([0.5 * (_quad_packed(g_verts[a], dx[:, k]) + _quad_packed(g_verts[b], dx[:, k]))
                       for k, (a, b) in enumerate(pairs)], axis=1)
+
+
+def _packed_table(g):
+    """Upper-triangle entries of symmetric (N, d, d) tensors as d(d+1)/2 rows of length N + 1
+    (a zero column for the sentinel): one 1-D gather per entry is the fast gather on CPU."""
+    d = g.shape[-1]
+    rows = [g[:, i, j] for i in range(d) for j in range(i, d)]
+    return [jnp.concatenate([r, jnp.zeros((1,), r.dtype)]) for r in rows]
+
+
+def _quad_packed(entries, dx):
+    """dx^T g dx for g given by its packed upper-triangle entries."""
+    d = dx.shape[-1]
+    out, k = 0.0, 0
+    for i in range(d):
+        for j in range(i, d):
+            out = out + (1.0 if i == j else 2.0) * entries[k] * dx[..., i] * dx[..., j]
+            k += 1
+    return out
 
 
 def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, " N"]:
