@@ -78,12 +78,22 @@ def hinge_angles(sq_lengths, d: int):
     return _safe_atan2(y, x), size
 
 
+def _metric_and_euclidean_sq_lengths(tess: Tessellation, metric, mode: str):
+    """Squared simplex edge lengths in the metric and in Euclidean space (the same array
+    when the metric is not used). The barrier materialises them once: fused into each of
+    their many consumers, their gathers would be recomputed (2x slower with an array metric)."""
+    sq_e = simplex_sq_lengths(tess)
+    if check_metric(tess, metric, mode) is None:
+        return sq_e, sq_e
+    return jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), sq_e))
+
+
 def _all_hinge_angles(tess: Tessellation, metric, mode: str):
     d = tess.dim
     if tess.simplices is None:
         raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
     angles = jax.vmap(lambda sq: hinge_angles(sq, d))
-    sq_g, sq_e = jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
+    sq_g, sq_e = _metric_and_euclidean_sq_lengths(tess, metric, mode)
     theta_g, size_g = angles(sq_g)
     theta_e, _ = angles(sq_e)
     valid = tess.simplex_mask[:, None]
@@ -180,9 +190,7 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     if tess.simplices is None:
         raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
     vectors = jax.vmap(lambda sq: hinge_angle_vectors(sq, d))
-    # The barrier materialises the squared lengths once; fused into each of their many
-    # consumers, their gathers would be recomputed (2-4x slower with an array metric).
-    sq_g, sq_e = jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
+    sq_g, sq_e = _metric_and_euclidean_sq_lengths(tess, metric, mode)
     x_g, y_g, size_g = vectors(sq_g)
     x_e, y_e, _ = vectors(sq_e)
     # theta_E - theta_g in one atan2: both angles lie in [0, pi]
