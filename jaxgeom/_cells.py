@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._graph import Tessellation, neighbor_displacements, simplex_vertices
-from ._simplex import dot, simplex_circumcenter
+from ._graph import Tessellation, neighbor_coord_displacements, simplex_coords
+from ._simplex import simplex_circumradius
 from ._volumes import voronoi_volumes
 
 
@@ -30,10 +30,7 @@ def volume_distortion(tess: Tessellation, volumes=None) -> Float[Array, ""]:
 def _incident_circumradii(tess: Tessellation):
     """(S,) circumradius of every simplex, the distance from each of its vertices to
     its circumcentre (a Voronoi vertex of each vertex's cell)."""
-    verts = simplex_vertices(tess)
-    centers = jax.vmap(simplex_circumcenter)(verts)
-    offset = centers - verts[:, 0]
-    radius = jnp.sqrt(dot(offset, offset))
+    radius = jax.vmap(simplex_circumradius)(simplex_coords(tess))
     return jnp.where(tess.simplex_mask, radius, 0.0)
 
 
@@ -47,8 +44,7 @@ def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
     spacings a <= b gives a / sqrt(a^2 + b^2), a hexagonal lattice sqrt(3)/2.
     Tier 0 (unbounded or box-touching cells) is NaN.
     """
-    dx = neighbor_displacements(tess)
-    dist = jnp.sqrt(dot(dx, dx))
+    dist = jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
     r_in = 0.5 * jnp.min(jnp.where(tess.neighbor_mask, dist, jnp.inf), axis=1)
     radius = _incident_circumradii(tess)
     spread = jnp.broadcast_to(radius[:, None], tess.simplices.shape)

@@ -14,7 +14,7 @@ from jaxtyping import Array, Float
 
 from ._graph import Tessellation, edge_slots
 from ._metric import check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths
-from ._simplex import _det_entries
+from ._simplex import det_entries
 
 TWO_PI = 2.0 * math.pi
 
@@ -37,7 +37,7 @@ def hinge_angle_vectors(sq_lengths, d: int):
     """(cos, sin)-proportional pair (x, y) of the dihedral angle at every hinge of one
     simplex, and the hinge's measure; the angle is atan2(y, x).
 
-    Only the (d+1)d/2 squared edge lengths are used. With the Gram matrix G based
+    Only the (d+1)d/2 squared edge lengths are used (a sequence, ordered as `edge_pairs(d)`). With the Gram matrix G based
     at a hinge vertex (hinge vectors H first, then the two opposite vertices c, e):
     x = det G[H+c, H+e] and y = sqrt(det G[H,H] det G) (the Desnanot-Jacobi
     identity gives x^2 + y^2 = det G[H+c, H+c] det G[H+e, H+e]). This adjugate form
@@ -59,9 +59,9 @@ def hinge_angle_vectors(sq_lengths, d: int):
         vecs = rest + [c, e]
         gram = [[0.5 * (sq(base, p) + sq(base, q) - sq(p, q)) for q in vecs] for p in vecs]
         k = len(rest)
-        det_hh = _det_entries([row[:k] for row in gram[:k]]) if k else 1.0
-        xs.append(_det_entries([row[:k] + [row[k + 1]] for row in gram[: k + 1]]))
-        ys.append(_safe_sqrt(det_hh * _det_entries(gram)))
+        det_hh = det_entries([row[:k] for row in gram[:k]]) if k else 1.0
+        xs.append(det_entries([row[:k] + [row[k + 1]] for row in gram[: k + 1]]))
+        ys.append(_safe_sqrt(det_hh * det_entries(gram)))
         sizes.append(_safe_sqrt(det_hh) / math.factorial(k) if k else jnp.ones_like(ys[-1]))
     return jnp.stack(xs), jnp.stack(ys), jnp.stack(sizes)
 
@@ -82,10 +82,12 @@ def _metric_and_euclidean_sq_lengths(tess: Tessellation, metric, mode: str):
     """Squared simplex edge lengths in the metric and in Euclidean space (the same array
     when the metric is not used). The barrier materialises them once: fused into each of
     their many consumers, their gathers would be recomputed (2x slower with an array metric)."""
-    sq_e = simplex_sq_lengths(tess)
+    # (Measured: a barrier on the stacked (S, P) arrays works; on a tuple of P columns XLA
+    # still duplicated the producers, 4x slower.)
     if check_metric(tess, metric, mode) is None:
+        sq_e = jax.lax.optimization_barrier(simplex_sq_lengths(tess))
         return sq_e, sq_e
-    return jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), sq_e))
+    return jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
 
 
 def _all_hinge_angles(tess: Tessellation, metric, mode: str):

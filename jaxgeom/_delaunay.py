@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from ._checks import check_full_rank, check_min_points, host_box, host_points
-from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_vertices
+from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
 from ._simplex import simplex_circumcenter
 
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
@@ -347,7 +347,7 @@ def boundary_tiers(tess: Tessellation):
     tier 1: a neighbour of tier 0; tier 2: the rest."""
     tier0 = tess.hull
     if tess.box is not None:
-        centers = jax.vmap(simplex_circumcenter)(simplex_vertices(tess))
+        centers = jax.vmap(simplex_circumcenter)(simplex_coords(tess))
         outside = jnp.any((centers < tess.box[0]) | (centers > tess.box[1]), axis=-1) & tess.simplex_mask
         votes = jnp.broadcast_to(outside[:, None], tess.simplices.shape).astype(jnp.int32)
         touches = jax.ops.segment_sum(votes.ravel(), tess.simplices.ravel(), num_segments=tess.n_points) > 0

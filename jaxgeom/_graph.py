@@ -122,9 +122,35 @@ def gather_points(tess: Tessellation, idx: Int[Array, "..."], shifts=None) -> Fl
 
 def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
     """x_j - x_i for every neighbour slot (periodic images applied); zero on padding."""
-    xj = gather_points(tess, tess.neighbors, tess.neighbor_shifts)
-    dx = xj - tess.points[:, None, :]
-    return jnp.where(tess.neighbor_mask[..., None], dx, 0.0)
+    return jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+
+
+def neighbor_coord_displacements(tess: Tessellation) -> list:
+    """`neighbor_displacements` coordinate-major: d arrays (N, K), the fast layout on CPU."""
+    table = padded_points(tess.points).T
+    mask = tess.neighbor_mask
+    out = []
+    for k in range(tess.dim):
+        dx = table[k][tess.neighbors] - tess.points[:, k, None]
+        if tess.neighbor_shifts is not None:
+            dx = dx + tess.neighbor_shifts[..., k].astype(dx.dtype) * tess.box_lengths[k]
+        out.append(jnp.where(mask, dx, 0.0))
+    return out
+
+
+def simplex_coords(tess: Tessellation) -> tuple:
+    """Simplex vertex coordinates, coordinate-major: d arrays (S, d + 1), periodic images applied.
+
+    The layout the simplex kernels are vmapped over (one 1-D gather per coordinate).
+    """
+    if tess.simplices is None:
+        raise ValueError("this Tessellation has no simplices (a k-NN graph); use jaxgeom.delaunay")
+    table = padded_points(tess.points).T
+    coords = [table[k][tess.simplices] for k in range(tess.dim)]
+    if tess.simplex_shifts is not None:
+        lengths = tess.box_lengths
+        coords = [c + tess.simplex_shifts[..., k].astype(c.dtype) * lengths[k] for k, c in enumerate(coords)]
+    return tuple(coords)
 
 
 def simplex_vertices(tess: Tessellation) -> Float[Array, "S d1 d"]:

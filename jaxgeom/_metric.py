@@ -18,7 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import check_choice
-from ._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords
 from ._simplex import dot, small_adjugate, small_det
 
 METRIC_MODES = ("none", "diagonal", "full")
@@ -118,20 +118,27 @@ def edge_pairs(d: int) -> tuple[tuple[int, int], ...]:
 
 def simplex_sq_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "S P"]:
     """Squared metric length of every simplex edge, pairs ordered as `edge_pairs(d)`."""
+    return jnp.stack(simplex_sq_length_columns(tess, metric, mode=mode), axis=1)
+
+
+def simplex_sq_length_columns(tess: Tessellation, metric=None, *, mode: str = "full") -> tuple:
+    """`simplex_sq_lengths` as a tuple of P arrays (S,), the layout the angle kernels use."""
     metric = check_metric(tess, metric, mode)
-    verts = simplex_vertices(tess)
+    coords = simplex_coords(tess)  # d arrays (S, d + 1)
     pairs = edge_pairs(tess.dim)
-    dx = jnp.stack([verts[:, b] - verts[:, a] for a, b in pairs], axis=1)
+    dx = [[c[:, b] - c[:, a] for c in coords] for a, b in pairs]  # per pair: d arrays (S,)
     if metric is None:
-        return dot(dx, dx)
+        return tuple(sum(x * x for x in v) for v in dx)
     if callable(metric):
-        mid = jnp.stack([0.5 * (verts[:, a] + verts[:, b]) for a, b in pairs], axis=1)
+        mid = jnp.stack([jnp.stack([0.5 * (c[:, a] + c[:, b]) for c in coords], -1) for a, b in pairs], 1)
         mid = jnp.where(tess.simplex_mask[:, None, None], mid, tess.points[0])
-        return _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx)
+        dx_arr = jnp.stack([jnp.stack(v, -1) for v in dx], 1)
+        sq = _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx_arr)
+        return tuple(sq[:, k] for k in range(len(pairs)))
     packed = _packed_table(_with_mode(metric, mode))
     g_verts = [[row[tess.simplices[:, v]] for row in packed] for v in range(tess.dim + 1)]
-    return jnp.stack([0.5 * (_quad_packed(g_verts[a], dx[:, k]) + _quad_packed(g_verts[b], dx[:, k]))
-                      for k, (a, b) in enumerate(pairs)], axis=1)
+    return tuple(0.5 * (_quad_packed(g_verts[a], dx[k]) + _quad_packed(g_verts[b], dx[k]))
+                 for k, (a, b) in enumerate(pairs))
 
 
 def _packed_table(g):
@@ -143,12 +150,12 @@ def _packed_table(g):
 
 
 def _quad_packed(entries, dx):
-    """dx^T g dx for g given by its packed upper-triangle entries."""
-    d = dx.shape[-1]
+    """dx^T g dx for g given by its packed upper-triangle entries; dx is a list of d arrays."""
+    d = len(dx)
     out, k = 0.0, 0
     for i in range(d):
         for j in range(i, d):
-            out = out + (1.0 if i == j else 2.0) * entries[k] * dx[..., i] * dx[..., j]
+            out = out + (1.0 if i == j else 2.0) * entries[k] * dx[i] * dx[j]
             k += 1
     return out
 
@@ -248,13 +255,13 @@ def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array
     """
     if not isinstance(eps_reg, jax.core.Tracer) and eps_reg < 0:
         raise ValueError(f"`eps_reg` must be >= 0; got {eps_reg}.")
-    dx = neighbor_displacements(tess)
+    dx = neighbor_coord_displacements(tess)
     degree = tess.degree
     d = tess.dim
-    cov = jnp.stack([jnp.stack([jnp.sum(dx[..., i] * dx[..., j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
-    cov = cov / jnp.maximum(degree, 1)[:, None, None].astype(dx.dtype)
+    cov = jnp.stack([jnp.stack([jnp.sum(dx[i] * dx[j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
+    cov = cov / jnp.maximum(degree, 1)[:, None, None].astype(cov.dtype)
     reg = eps_reg * jnp.trace(cov, axis1=1, axis2=2) / d
-    c = cov + reg[:, None, None] * jnp.eye(d, dtype=dx.dtype)
+    c = cov + reg[:, None, None] * jnp.eye(d, dtype=cov.dtype)
     if d <= 4:
         det = small_det(c)
         g = small_adjugate(c) / jnp.where(det != 0, det, 1.0)[:, None, None]

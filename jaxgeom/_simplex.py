@@ -1,7 +1,11 @@
 """Geometry of one simplex: small determinants, face circumcentres, signed dual pieces.
 
 Everything here acts on a single simplex and is vmapped by the public functions.
-Python loops below run over the simplex's faces (a static, tiny set), never over data.
+A simplex arrives coordinate-major: a tuple of d arrays, coordinate k of its d + 1
+vertices (`Tessellation` gathers one coordinate at a time). Inside, vectors are Python
+lists of scalars, so XLA sees only elementwise arithmetic on contiguous (S,) arrays
+and fuses it: on CPU this is several times faster than slicing (S, d + 1, d) arrays.
+Python loops below run over a simplex's vertices and faces (static), never over data.
 """
 
 from __future__ import annotations
@@ -19,35 +23,37 @@ def dot(u, v):
     return sum(u[..., k] * v[..., k] for k in range(u.shape[-1]))
 
 
-def matvec(m, v):
-    """m @ v over the last axes, written out (see `dot`)."""
-    return jnp.stack([dot(m[..., i, :], v) for i in range(m.shape[-2])], axis=-1)
+def _sub(u, v):
+    return [a - b for a, b in zip(u, v)]
 
 
-def vecmat(v, m):
-    """v @ m over the last axes, written out (see `dot`)."""
-    return sum(v[..., i, None] * m[..., i, :] for i in range(m.shape[-2]))
+def _vdot(u, v):
+    return sum(a * b for a, b in zip(u, v))
 
 
-def cross(u, v):
-    return jnp.stack([u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1],
-                      u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2],
-                      u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]], axis=-1)
+def _cross3(u, v):
+    return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
 
 
-def small_det(m):
-    """Determinant of a k x k matrix (k <= 5) by cofactor expansion over scalar entries."""
-    return _det_entries(_entries(m))
+def _minor(e, row: int, col: int):
+    return [[v for c, v in enumerate(r) if c != col] for i, r in enumerate(e) if i != row]
 
 
-def small_adjugate(m):
-    """Adjugate (transposed cofactor matrix) of a k x k matrix, so that m @ adj = det * I."""
-    e = _entries(m)
+def det_entries(e):
+    """Determinant of a k x k matrix given as nested lists of scalars (cofactor expansion)."""
     k = len(e)
     if k == 1:
-        return jnp.ones_like(m)
-    cof = [[(-1) ** (i + j) * _det_entries(_minor(e, j, i)) for j in range(k)] for i in range(k)]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in cof], axis=-2)
+        return e[0][0]
+    if k == 2:
+        return e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    return sum((-1) ** j * e[0][j] * det_entries(_minor(e, 0, j)) for j in range(k))
+
+
+def _adjugate_entries(e):
+    k = len(e)
+    if k == 1:
+        return [[1.0]]
+    return [[(-1) ** (i + j) * det_entries(_minor(e, j, i)) for j in range(k)] for i in range(k)]
 
 
 def _entries(m):
@@ -55,17 +61,22 @@ def _entries(m):
     return [[m[..., i, j] for j in range(k)] for i in range(k)]
 
 
-def _minor(e, row: int, col: int):
-    return [[v for c, v in enumerate(r) if c != col] for i, r in enumerate(e) if i != row]
+def small_det(m):
+    """Determinant of (..., k, k) arrays (k <= 5) by explicit cofactor expansion."""
+    return det_entries(_entries(m))
 
 
-def _det_entries(e):
-    k = len(e)
-    if k == 1:
-        return e[0][0]
-    if k == 2:
-        return e[0][0] * e[1][1] - e[0][1] * e[1][0]
-    return sum((-1) ** j * e[0][j] * _det_entries(_minor(e, 0, j)) for j in range(k))
+def small_adjugate(m):
+    """Adjugate of (..., k, k) arrays, so that m @ adj = det * I."""
+    adj = _adjugate_entries(_entries(m))
+    if m.shape[-1] == 1:
+        return jnp.ones_like(m)
+    return jnp.stack([jnp.stack(row, axis=-1) for row in adj], axis=-2)
+
+
+def _vertices(coords):
+    """Vertex v of a coordinate-major simplex as a list of d scalars."""
+    return [[c[v] for c in coords] for v in range(coords[0].shape[0])]
 
 
 def circumcenter_offset(edges):
@@ -73,27 +84,33 @@ def circumcenter_offset(edges):
 
     **Arguments:**
 
-    - `edges`: (k, d) vectors from the face's first vertex to its other k vertices.
+    - `edges`: k vectors (lists of d scalars) from the face's first vertex to the others.
 
     **Returns:**
 
-    `(offset, ok)`: the (d,) offset (zero where the face is degenerate) and whether
-    the face is non-degenerate. A full simplex (k = d) solves E u = |e|^2 / 2
-    directly, which keeps the conditioning of E (the Gram form would square it);
-    an edge gives its midpoint; other faces solve the Gram system. Solutions use
-    the adjugate, and the one division is guarded by a double `where`.
+    `(offset, ok)`: the offset (list of d scalars, zero where the face is degenerate)
+    and whether the face is non-degenerate. A full simplex (k = d) solves
+    E u = |e|^2 / 2 directly, keeping the conditioning of E (the Gram form would
+    square it); an edge gives its midpoint; other faces solve the Gram system.
+    Solutions use the adjugate, and the one division is guarded by a double `where`.
     """
-    k, d = edges.shape
-    half_sq = 0.5 * dot(edges, edges)
+    k, d = len(edges), len(edges[0])
+    half_sq = [0.5 * _vdot(e, e) for e in edges]
     if k == 1:
-        return 0.5 * edges[0], half_sq[0] > 0.0
-    matrix = edges if k == d else jnp.stack([dot(edges[i], edges) for i in range(k)])
-    det = small_det(matrix)
-    scale = jnp.max(half_sq) ** (d / 2 if k == d else k)  # det(E) ~ length^d, det(Gram) ~ length^2k
-    ok = jnp.abs(det) > 10.0 * jnp.finfo(edges.dtype).eps * scale
-    solution = matvec(small_adjugate(matrix), half_sq) / jnp.where(ok, det, 1.0)
-    offset = solution if k == d else vecmat(solution, edges)
-    return jnp.where(ok, offset, 0.0), ok
+        return [0.5 * x for x in edges[0]], half_sq[0] > 0.0
+    matrix = edges if k == d else [[_vdot(a, b) for b in edges] for a in edges]
+    det = det_entries(matrix)
+    scale = max_scalar(half_sq) ** (d / 2 if k == d else k)  # det(E) ~ length^d, det(Gram) ~ length^2k
+    ok = jnp.abs(det) > 10.0 * jnp.finfo(jnp.result_type(det)).eps * scale
+    safe = jnp.where(ok, det, 1.0)
+    adj = _adjugate_entries(matrix)
+    solution = [sum(adj[i][j] * half_sq[j] for j in range(k)) / safe for i in range(k)]
+    offset = solution if k == d else [sum(solution[i] * edges[i][c] for i in range(k)) for c in range(d)]
+    return [jnp.where(ok, o, 0.0) for o in offset], ok
+
+
+def max_scalar(values):
+    return functools.reduce(jnp.maximum, values)
 
 
 @functools.lru_cache(maxsize=None)
@@ -137,22 +154,26 @@ def _np_circumcenter(p: np.ndarray) -> np.ndarray:
     return p[0] + np.linalg.solve(g, 0.5 * np.diag(g)) @ e
 
 
-def dual_pieces(vertices):
+def dual_pieces(coords):
     """Signed Voronoi-cell volume of each vertex inside one simplex.
 
-    d = 2 and 3 use closed forms (`_dual_pieces_2d`, `_dual_pieces_3d`); other d
-    the general flag decomposition `dual_pieces_flags`. All agree to rounding.
+    **Arguments:**
+
+    - `coords`: tuple of d arrays (d + 1,), coordinate k of each vertex.
+
+    **Returns:**
+
+    (d + 1,) pieces whose sum is the simplex volume; zero for a degenerate simplex.
+    d = 2 and 3 use closed forms; other d the flag decomposition `dual_pieces_flags`.
+    All agree to rounding.
     """
-    d = vertices.shape[1]
+    d = len(coords)
+    rel = [_sub(p, _vertices(coords)[0]) for p in _vertices(coords)]
     if d == 2:
-        return _dual_pieces_2d(vertices)
+        return _dual_pieces_2d(rel)
     if d == 3:
-        return _dual_pieces_3d(vertices)
-    return dual_pieces_flags(vertices)
-
-
-def _cross2(u, v):
-    return u[0] * v[1] - u[1] * v[0]
+        return _dual_pieces_3d(rel)
+    return _dual_pieces_flags(rel)
 
 
 def _triangle_pieces(p):
@@ -162,70 +183,67 @@ def _triangle_pieces(p):
     so the returned numerators are L_ij dot_k + L_ik dot_j; callers divide by the
     power of |cross| they need (no square root).
     """
-    e = [p[(i + 1) % 3] - p[i] for i in range(3)]  # e_i from vertex i to i+1
-    sq = [dot(v, v) for v in e]  # sq[i] = |p_{i+1} - p_i|^2
-    dots = [-dot(e[i], e[(i + 2) % 3]) for i in range(3)]  # (p_{i+1}-p_i).(p_{i-1}-p_i)
+    e = [_sub(p[(i + 1) % 3], p[i]) for i in range(3)]  # e_i from vertex i to i+1
+    sq = [_vdot(v, v) for v in e]  # sq[i] = |p_{i+1} - p_i|^2
+    dots = [-_vdot(e[i], e[(i + 2) % 3]) for i in range(3)]  # (p_{i+1}-p_i).(p_{i-1}-p_i)
     # edge (i, i+1) is opposite vertex i+2, edge (i+2, i) opposite vertex i+1
     return [sq[i] * dots[(i + 2) % 3] + sq[(i + 2) % 3] * dots[(i + 1) % 3] for i in range(3)]
 
 
-def _dual_pieces_2d(vertices):
-    rel = vertices - vertices[0]
-    twice_area = _cross2(rel[1], rel[2])
-    ok = jnp.abs(twice_area) > 10.0 * jnp.finfo(rel.dtype).eps * jnp.sum(rel[1:] ** 2)
-    # piece_i = (L_ij cot_k + L_ik cot_j) / 8, cot = dot / |2A|.
-    num = jnp.stack(_triangle_pieces(rel))
-    return jnp.where(ok, num / (8.0 * jnp.abs(jnp.where(ok, twice_area, 1.0))), 0.0)
+def _dual_pieces_2d(rel):
+    twice_area = rel[1][0] * rel[2][1] - rel[1][1] * rel[2][0]
+    ok = jnp.abs(twice_area) > 10.0 * jnp.finfo(jnp.result_type(twice_area)).eps * (_vdot(rel[1], rel[1]) + _vdot(rel[2], rel[2]))
+    denom = 8.0 * jnp.abs(jnp.where(ok, twice_area, 1.0))
+    return jnp.stack([jnp.where(ok, num / denom, 0.0) for num in _triangle_pieces(rel)])
 
 
-def _dual_pieces_3d(vertices):
+def _dual_pieces_3d(rel):
     """V_i = (1/3) sum over faces f of i of H_f a_{f,i}: the circumcentre c cuts the tet
     into signed pyramids over its faces, and the bisector planes (which contain c)
     cut each pyramid like the face's own 2D circumcentric pieces a_{f,i}."""
-    rel = vertices - vertices[0]
     offset, ok = circumcenter_offset(rel[1:])
     pieces = [0.0] * 4
     for opposite in range(4):
         f = [v for v in range(4) if v != opposite]
         p = [rel[v] for v in f]
-        normal = cross(p[1] - p[0], p[2] - p[0])
-        n_sq = dot(normal, normal)
-        side = jnp.sign(dot(normal, rel[opposite] - p[0]))
-        # H_f |n| = side * n.(c - p0); a_{f,i} * 8 |n| = num_i; so H_f a_i = side n.(c-p0) num_i / (8 |n|^2)
-        height_num = side * dot(normal, offset - p[0])
-        safe = jnp.where(n_sq > 0, n_sq, 1.0)
+        normal = _cross3(_sub(p[1], p[0]), _sub(p[2], p[0]))
+        n_sq = _vdot(normal, normal)
+        side = jnp.sign(_vdot(normal, _sub(rel[opposite], p[0])))
+        # H_f |n| = side n.(c - p0) and a_{f,i} 8 |n| = num_i, so H_f a_i = side n.(c - p0) num_i / (8 |n|^2)
+        height = side * _vdot(normal, _sub(offset, p[0])) / (24.0 * jnp.where(n_sq > 0, n_sq, 1.0))
         for v, num in zip(f, _triangle_pieces(p)):
-            pieces[v] = pieces[v] + height_num * num / (24.0 * safe)
-    return jnp.where(ok, jnp.stack(pieces), 0.0)
+            pieces[v] = pieces[v] + height * num
+    return jnp.stack([jnp.where(ok, piece, 0.0) for piece in pieces])
 
 
-def dual_pieces_flags(vertices):
-    """Signed Voronoi-cell volume of each vertex inside one simplex, any d.
+def dual_pieces_flags(coords):
+    """`dual_pieces` by the general flag decomposition (any d; the reference for d = 2, 3)."""
+    return _dual_pieces_flags([_sub(p, _vertices(coords)[0]) for p in _vertices(coords)])
 
-    **Arguments:**
 
-    - `vertices`: (d + 1, d) coordinates.
-
-    **Returns:**
-
-    (d + 1,) pieces whose sum is the simplex volume; zero for a degenerate simplex.
-    """
-    d = vertices.shape[1]
-    rel = vertices - vertices[0]
+def _dual_pieces_flags(rel):
+    d = len(rel[0])
     centers, ok = {}, None
     for f in faces(d):
-        offset, ok = circumcenter_offset(rel[np.array(f[1:])] - rel[f[0]])
-        centers[f] = rel[f[0]] + offset
-    orientation = small_det(rel[1:])  # the last face is the whole simplex: `ok` is its flag
+        offset, ok = circumcenter_offset([_sub(rel[v], rel[f[0]]) for v in f[1:]])
+        centers[f] = [a + b for a, b in zip(rel[f[0]], offset)]
+    orientation = det_entries(rel[1:])  # the last face is the whole simplex: `ok` is its flag
     pieces = [0.0] * (d + 1)
     for i, flag, sign in chains(d):
-        m = jnp.stack([centers[f] - rel[i] for f in flag])
-        pieces[i] = pieces[i] + sign * small_det(m)
-    pieces = jnp.stack(pieces) * jnp.sign(orientation) / math.factorial(d)
-    return jnp.where(ok, pieces, 0.0)
+        pieces[i] = pieces[i] + sign * det_entries([_sub(centers[f], rel[i]) for f in flag])
+    scale = jnp.sign(orientation) / math.factorial(d)
+    return jnp.stack([jnp.where(ok, p * scale, 0.0) for p in pieces])
 
 
-def simplex_circumcenter(vertices):
-    """Circumcentre (d,) of one simplex (its first vertex where degenerate)."""
-    offset, _ = circumcenter_offset(vertices[1:] - vertices[0])
-    return vertices[0] + offset
+def simplex_circumcenter(coords):
+    """Circumcentre (d,) of one coordinate-major simplex (its first vertex where degenerate)."""
+    verts = _vertices(coords)
+    offset, _ = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
+    return jnp.stack([a + b for a, b in zip(verts[0], offset)])
+
+
+def simplex_circumradius(coords):
+    """Circumradius of one coordinate-major simplex (0 where degenerate)."""
+    verts = _vertices(coords)
+    offset, _ = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
+    return jnp.sqrt(_vdot(offset, offset))

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._graph import Tessellation, simplex_vertices
+from ._graph import Tessellation, simplex_coords
 from ._simplex import dual_pieces, simplex_circumcenter
 
 
@@ -31,7 +31,7 @@ def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
     non-periodic graph) are NaN; bounded cells reaching outside `box` keep their
     unclipped volume (their tier is 0). Periodic volumes sum to the box volume.
     """
-    pieces = jax.vmap(dual_pieces)(simplex_vertices(tess))
+    pieces = jax.vmap(dual_pieces)(simplex_coords(tess))
     pieces = jnp.where(tess.simplex_mask[:, None], pieces, 0.0)
     volumes = jax.ops.segment_sum(pieces.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
     return jnp.where(tess.hull, jnp.nan, volumes)
@@ -40,5 +40,5 @@ def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
 @jax.jit
 def circumcenters(tess: Tessellation) -> Float[Array, "S d"]:
     """Circumcentre of every simplex (the Voronoi vertices); padding rows are zero."""
-    centers = jax.vmap(simplex_circumcenter)(simplex_vertices(tess))
+    centers = jax.vmap(simplex_circumcenter)(simplex_coords(tess))
     return jnp.where(tess.simplex_mask[:, None], centers, 0.0)

@@ -24,9 +24,10 @@ def test_obtuse_simplices_give_negative_pieces_and_exact_cells():
     x = np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], -1).reshape(-1, 2).astype(float)
     x += 0.3 * rng.normal(size=x.shape)
     tess = jaxgeom.delaunay(x)
+    from jaxgeom._graph import simplex_coords
     from jaxgeom._simplex import dual_pieces
 
-    pieces = np.asarray(jax.vmap(dual_pieces)(jaxgeom.simplex_vertices(tess)))[np.asarray(tess.simplex_mask)]
+    pieces = np.asarray(jax.vmap(dual_pieces)(simplex_coords(tess)))[np.asarray(tess.simplex_mask)]
     assert (pieces < 0).any(), "the test set contains obtuse triangles"
     ref = scipy_voronoi_volumes(x)
     vol = np.asarray(jaxgeom.voronoi_volumes(tess))
@@ -131,3 +132,15 @@ def test_float32_volumes_are_accurate(rng, d):
     assert vol.dtype == np.float32
     np.testing.assert_allclose(vol[interior], ref[interior], rtol=2e-3)
     assert abs(vol[interior].sum() / ref[interior].sum() - 1) < 1e-4
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_closed_form_pieces_equal_flag_decomposition(rng, d):
+    from jaxgeom._graph import simplex_coords
+    from jaxgeom._simplex import dual_pieces, dual_pieces_flags
+
+    tess = jaxgeom.delaunay(rng.random((150, d)) * 3 - 1)
+    coords = simplex_coords(tess)
+    closed, flags = np.asarray(jax.vmap(dual_pieces)(coords)), np.asarray(jax.vmap(dual_pieces_flags)(coords))
+    mask = np.asarray(tess.simplex_mask)
+    np.testing.assert_allclose(closed[mask], flags[mask], rtol=1e-9, atol=1e-12 * np.abs(flags[mask]).max())
