@@ -75,19 +75,25 @@ def section_graph(a: Analysis) -> dict:
     return out
 
 
+def needs_simplices(section: Callable[[Analysis], dict]) -> Callable[[Analysis], dict]:
+    """Report sections that need Delaunay simplices are skipped, with a note, on k-NN graphs."""
+
+    def guarded(a: Analysis) -> dict:
+        if a.tess.simplices is None:
+            return {"skipped": "needs a Delaunay graph (--graph delaunay)"}
+        return section(a)
+
+    return guarded
+
+
+@needs_simplices
 def section_volumes(a: Analysis) -> dict:
     import jaxgeom
 
-    if a.tess.simplices is None:
-        return {"skipped": "Voronoi volumes need a Delaunay graph"}
     vol = np.asarray(timed_warm(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
     a.cache["volumes"] = vol
-    interior = vol[np.asarray(a.tess.interior)]
     out = {"total_finite": float(np.nansum(vol)), "n_unbounded": int(np.isnan(vol).sum())}
-    if interior.size:
-        mean = interior.mean()
-        out.update(tier2_mean=float(mean), tier2_std=float(interior.std()), tier2_min=float(interior.min()),
-                   tier2_max=float(interior.max()), tier2_variance_normalized=float(np.var(interior / mean)))
+    out.update(_stats(vol[np.asarray(a.tess.interior)], "tier2"))
     return out
 
 
@@ -121,11 +127,10 @@ def section_metric(a: Analysis) -> dict:
     return out
 
 
+@needs_simplices
 def section_curvature(a: Analysis) -> dict:
     import jaxgeom
 
-    if a.tess.simplices is None:
-        return {"skipped": "curvature needs a Delaunay graph"}
     metric, vol = analysis_metric(a), a.cache.get("volumes")
     riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric, volumes=vol))
     ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric, volumes=vol))
@@ -139,11 +144,10 @@ def section_curvature(a: Analysis) -> dict:
     return out
 
 
+@needs_simplices
 def section_cells(a: Analysis) -> dict:
     import jaxgeom
 
-    if a.tess.simplices is None:
-        return {"skipped": "cell proxies need a Delaunay graph"}
     shape = np.asarray(timed_warm(a, "shape_distortion", jaxgeom.shape_distortion, a.tess))
     a.cache["shape"] = shape
     spread = np.asarray(jaxgeom.vertex_distance_variance(a.tess))
