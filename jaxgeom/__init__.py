@@ -10,6 +10,7 @@ from ._curvature import deficit_angles as deficit_angles
 from ._curvature import region_average as region_average
 from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay
+from ._geodesic import geodesic_distances as geodesic_distances
 from ._graph import Capacity as Capacity
 from ._graph import Tessellation as Tessellation
 from ._graph import neighbor_displacements as neighbor_displacements
@@ -21,6 +22,9 @@ from ._metric import hessian_metric as hessian_metric
 from ._metric import metric_at_walkers as metric_at_walkers
 from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
+from ._spectral import GraphLaplacian as GraphLaplacian
+from ._spectral import graph_laplacian as graph_laplacian
+from ._spectral import spectral_gap as spectral_gap
 from ._volumes import circumcenters as circumcenters
 from ._volumes import voronoi_volumes as voronoi_volumes
 
