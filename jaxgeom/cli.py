@@ -161,6 +161,27 @@ def section_cells(a: Analysis) -> dict:
     return out
 
 
+def section_graph_proxies(a: Analysis) -> dict:
+    """Spectral gap of the normalized Laplacian, and geodesics from the best (lowest-V) walker."""
+    import jaxgeom
+    from ._landscapes import landscape
+
+    out = {}
+    k = min(6, a.tess.n_points - 1)
+    gaps = np.asarray(timed(a, "spectral_gap", jaxgeom.spectral_gap, a.tess, k=k))
+    out.update(spectral_gap=float(gaps[1]) if k > 1 else float("nan"), smallest_eigenvalues=gaps.tolist())
+    fitness = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
+    best = int(np.argmin(fitness))
+    metric = analysis_metric(a)
+    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric))[0]
+    reachable = np.isfinite(dist)
+    out.update(best_walker=best, best_fitness=float(fitness[best]),
+               best_walker_geodesic_eccentricity=float(dist[reachable].max()),
+               best_walker_mean_geodesic_distance=float(dist[reachable].mean()),
+               unreachable_walkers=int((~reachable).sum()))
+    return out
+
+
 REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("swarm", section_swarm),
     ("graph", section_graph),
@@ -168,6 +189,7 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("metric", section_metric),
     ("curvature", section_curvature),
     ("cells", section_cells),
+    ("graph_proxies", section_graph_proxies),
 ]
 
 

@@ -21,8 +21,11 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert np.isfinite(curvature["tier2_volume_weighted_ricci"]) and curvature["mean_abs_deficit"] > 0
     assert 0 < cells["tier2_shape_distortion_mean"] < 1 and cells["volume_distortion"] > 0
     assert (tmp_path / "proxies.png").stat().st_size > 10_000
-    for proxy in ("ricci_scalar", "shape_distortion", "riemannian_volumes", "deficit_angles"):
+    for proxy in ("ricci_scalar", "shape_distortion", "riemannian_volumes", "deficit_angles", "spectral_gap"):
         assert report["timings_s"][proxy] >= 0
+    graph_proxies = report["graph_proxies"]
+    assert 0 < graph_proxies["spectral_gap"] < 1 and graph_proxies["smallest_eigenvalues"][0] < 1e-10
+    assert graph_proxies["best_walker_geodesic_eccentricity"] > 0 and graph_proxies["unreachable_walkers"] == 0
 
 
 def test_analyze_flat_metric_has_zero_curvature(tmp_path):
