@@ -10,6 +10,10 @@ from ._curvature import deficit_angles as deficit_angles
 from ._curvature import region_average as region_average
 from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay
+from ._estimation import EstimateInfo as EstimateInfo
+from ._estimation import estimate_gradient as estimate_gradient
+from ._estimation import estimate_hessian as estimate_hessian
+from ._estimation import geometric_hessian as geometric_hessian
 from ._geodesic import geodesic_distances as geodesic_distances
 from ._graph import Capacity as Capacity
 from ._graph import Tessellation as Tessellation

@@ -1,0 +1,267 @@
+"""Gradient and Hessian of a fitness field estimated from its values at the walkers.
+
+Every estimate is a per-walker least-squares fit over a padded stencil (the 1-ring
+neighbours, or the 2-ring where the 1-ring is too small), vmapped over walkers.
+Walkers whose stencil cannot support the fit get NaN and are counted; a NaN value
+at one walker only removes that walker from its neighbours' stencils.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._checks import check_choice
+from ._graph import Tessellation, neighbor_coord_displacements, padded_points
+from ._metric import emergent_metric
+
+GRADIENT_METHODS = ("wls", "fd")
+WEIGHTINGS = ("uniform", "inverse_distance", "gaussian")
+HESSIAN_KINDS = ("full", "diagonal")
+# Fraction of walkers (static capacity) that may fall back to a 2-ring stencil, by d.
+# Measured on random Delaunay graphs: about 15% need it in 2D, 2% in 3D.
+TWO_RING_FRACTION = {2: 0.25, 3: 0.0625}
+# Relative conditioning (smallest squared Cholesky pivot over the mean diagonal) below
+# which a fit is degenerate, and below which a 1-ring quadratic fit moves to the 2-ring.
+RCOND = 1e-10
+RCOND_TWO_RING = 1e-4
+
+
+class EstimateInfo(NamedTuple):
+    """Diagnostics of an estimate: which walkers got a value, and why others did not.
+
+    **Fields:** `valid` (N,) bool; `n_invalid` () int; `two_ring` (N,) bool (stencil
+    was the 2-ring); `n_over_capacity` () int (walkers that needed the 2-ring beyond
+    its static capacity, left NaN).
+    """
+
+    valid: Bool[Array, " N"]
+    n_invalid: Int[Array, ""]
+    two_ring: Bool[Array, " N"]
+    n_over_capacity: Int[Array, ""]
+
+
+def _stencil(tess: Tessellation, values):
+    """Per walker: neighbour displacements (N, K, d), value differences (N, K), usable mask."""
+    dx = jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+    vals = jnp.concatenate([values, jnp.full((1,), jnp.nan, values.dtype)])
+    dv = vals[tess.neighbors] - values[:, None]
+    usable = tess.neighbor_mask & jnp.isfinite(dv)
+    return dx, jnp.where(usable, dv, 0.0), usable
+
+
+def _weights(dx, usable, weighting: str):
+    dist = jnp.sqrt(jnp.sum(dx * dx, axis=-1))
+    safe = jnp.where(usable, dist, 1.0)
+    if weighting == "uniform":
+        w = jnp.ones_like(dist)
+    elif weighting == "inverse_distance":
+        w = 1.0 / safe
+    else:
+        sigma = jnp.nanmedian(jnp.where(usable, dist, jnp.nan), axis=-1, keepdims=True)
+        w = jnp.exp(-(safe**2) / (2.0 * jnp.where(jnp.isfinite(sigma), sigma, 1.0) ** 2))
+    return jnp.where(usable, w, 0.0)
+
+
+def _solve_normal(a, b, rcond: float = RCOND):
+    """Solve the SPD normal equations a x = b; NaN where a is (numerically) singular."""
+    scale = jnp.trace(a) / a.shape[0]
+    eye = jnp.eye(a.shape[0], dtype=a.dtype)
+    ok = jnp.isfinite(scale) & (scale > 0)
+    chol = jnp.linalg.cholesky(jnp.where(ok, a, eye))
+    diag = jnp.diagonal(chol)
+    ok = ok & jnp.all(jnp.isfinite(diag)) & (jnp.min(diag) ** 2 > rcond * jnp.where(ok, scale, 1.0))
+    x = jax.scipy.linalg.cho_solve((jnp.where(ok, chol, eye), True), jnp.where(ok, b, 0.0))
+    return jnp.where(ok, x, jnp.nan), ok
+
+
+@eqx.filter_jit
+def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weighting: str = "uniform",
+                      with_info: bool = False):
+    """Gradient of a field sampled at the walkers.
+
+    **Arguments:**
+
+    - `tess`: Delaunay or k-NN graph (any d).
+    - `values`: (N,) field values V(x_i); NaN entries are left out of every stencil.
+    - `method`: "wls" (default) fits V_j - V_i = g . (x_j - x_i) by weighted least
+      squares over the 1-ring: exact for linear V (NOTES 5). "fd" is the chapter's
+      one-sided formula sum_j w_ij (V_j - V_i)(x_j - x_i) / |x_j - x_i|^2 with
+      weights normalised to sum 1; it is not exact even for linear V.
+    - `weighting`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"
+      (exp(-|dx|^2 / 2 s^2), s = the walker's median neighbour distance).
+    - `with_info`: also return an [`jaxgeom.EstimateInfo`][].
+
+    **Returns:**
+
+    (N, d) gradients. Walkers with fewer than d usable neighbours (d + 1 points with
+    the walker itself), or with neighbours in a lower-dimensional subspace, are NaN.
+    On a k-NN graph the remedy is a larger k.
+    """
+    check_choice(method, "method", GRADIENT_METHODS)
+    check_choice(weighting, "weighting", WEIGHTINGS)
+    values = jnp.asarray(values, tess.points.dtype)
+    dx, dv, usable = _stencil(tess, values)
+    w = _weights(dx, usable, weighting)
+    if method == "fd":
+        sq = jnp.where(usable, jnp.sum(dx * dx, axis=-1), 1.0)
+        w = w / jnp.maximum(jnp.sum(w, axis=1, keepdims=True), jnp.finfo(w.dtype).tiny)
+        grad = jnp.sum((w * dv / sq)[..., None] * dx, axis=1)
+        ok = jnp.sum(usable, axis=1) >= 1
+    else:
+        a = jnp.einsum("nk,nki,nkj->nij", w, dx, dx)
+        b = jnp.einsum("nk,nki,nk->ni", w, dx, dv)
+        grad, ok = jax.vmap(_solve_normal)(a, b)
+        ok = ok & (jnp.sum(usable, axis=1) >= tess.dim)
+    ok = ok & jnp.isfinite(values)
+    grad = jnp.where(ok[:, None], grad, jnp.nan)
+    return (grad, _info(ok, jnp.zeros_like(ok), 0)) if with_info else grad
+
+
+def _info(ok, two_ring, over) -> EstimateInfo:
+    return EstimateInfo(ok, jnp.sum(~ok).astype(jnp.int32), two_ring, jnp.asarray(over, jnp.int32))
+
+
+def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND):
+    """Hessians of local quadratic fits for a batch of stencils, and whether each is well determined.
+
+    **Arguments:** `dxs`: d arrays (M, P) of displacements; `dv`: (M, P) value
+    differences; `usable`: (M, P) mask. Fits V - V_i = g.u + sum_{a<=b} c_ab u_a u_b in
+    the scaled displacement u = dx / s (s = mean stencil distance, for conditioning
+    only: the fit is exact for quadratics at any scale). The normal equations are
+    assembled entry by entry over the (M, P) arrays (XLA fuses each entry's product
+    and sum; batched small matmuls are several times slower on CPU).
+    """
+    d = len(dxs)
+    mask = usable.astype(dv.dtype)
+    dist = jnp.sqrt(sum(x * x for x in dxs))
+    scale = jnp.sum(dist * mask, axis=1) / jnp.maximum(jnp.sum(mask, axis=1), 1.0)
+    scale = jnp.where(scale > 0, scale, 1.0)
+    u = [x / scale[:, None] for x in dxs]
+    feats = u + [u[a] * u[b] for a in range(d) for b in range(a, d)]
+    feats = [f * mask for f in feats]
+    n_coef = len(feats)
+    entries = {(p, q): jnp.sum(feats[p] * feats[q], axis=1) for p in range(n_coef) for q in range(p, n_coef)}
+    a = jnp.stack([jnp.stack([entries[min(p, q), max(p, q)] for q in range(n_coef)], -1) for p in range(n_coef)], -2)
+    b = jnp.stack([jnp.sum(f * dv, axis=1) for f in feats], axis=-1)
+    coef, ok = jax.vmap(lambda a_, b_: _solve_normal(a_, b_, rcond))(a, b)
+    ok = ok & (jnp.sum(usable, axis=1) >= n_coef)
+    return jnp.where(ok[:, None, None], _unpack_hessian(coef, scale, d), jnp.nan), ok
+
+
+def _unpack_hessian(coef, scale, d: int):
+    """Hessian from the quadratic coefficients c (first d entries are the gradient)."""
+    rows, k = [[None] * d for _ in range(d)], d
+    for a in range(d):
+        for b in range(a, d):
+            rows[a][b] = rows[b][a] = coef[:, k] * (2.0 if a == b else 1.0)
+            k += 1
+    h = jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    return h / scale[:, None, None] ** 2
+
+
+def _two_ring(tess: Tessellation, values, walkers):
+    """2-ring stencils (d displacement arrays, value differences, usable) of the given walkers.
+
+    The 2-ring is the 1-ring plus the neighbours' neighbours, without the walker
+    itself; points reached along several paths appear several times (a weight).
+    """
+    n, k_cap = tess.neighbors.shape
+    nbrs_pad = jnp.concatenate([tess.neighbors, jnp.full((1, k_cap), n, tess.neighbors.dtype)])
+    first = nbrs_pad[walkers]  # (F, K)
+    second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, K*K)
+    ring = jnp.concatenate([first, second], axis=1)
+    ring = jnp.where(ring == walkers[:, None], n, ring)
+    table = padded_points(tess.points).T
+    dxs = [table[k][ring] - table[k][walkers][:, None] for k in range(tess.dim)]
+    if tess.periodic:  # minimum image: a 2-ring spans far less than half a box in practice
+        dxs = [x - length * jnp.round(x / length) for x, length in zip(dxs, tess.box_lengths)]
+    vals = jnp.concatenate([values, jnp.full((1,), jnp.nan, values.dtype)])
+    dv = vals[ring] - vals[walkers][:, None]
+    usable = (ring < n) & jnp.isfinite(dv)
+    return dxs, jnp.where(usable, dv, 0.0), usable
+
+
+@eqx.filter_jit
+def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_info: bool = False):
+    """Hessian of a field sampled at the walkers (local quadratic least squares).
+
+    **Arguments:**
+
+    - `tess`: Delaunay or k-NN graph (any d).
+    - `values`: (N,) field values; NaN entries are left out of every stencil.
+    - `kind`: "full" fits V_j - V_i = g.dx + dx^T H dx / 2 over the walker's 1-ring by
+      least squares, in coordinates scaled by the median neighbour distance: exact
+      for quadratic V. Walkers whose 1-ring has fewer than d(d+3)/2 usable
+      neighbours, or whose 1-ring fit is poorly conditioned (relative pivot below
+      `RCOND_TWO_RING`), use their 2-ring instead (at most `TWO_RING_FRACTION` of the
+      walkers, a static capacity; walkers beyond it are NaN and counted in
+      `n_over_capacity`). "diagonal" returns (N, d) second derivatives along the
+      axes from the neighbours best aligned with +e_a and -e_a (a three-point
+      second difference with unequal steps), and with `with_info=True` the
+      chapter's `axis_quality` (N, d) in [0, 1]: the smaller of the two cosines.
+    - `with_info`: also return an [`jaxgeom.EstimateInfo`][] (and `axis_quality`).
+
+    **Returns:**
+
+    (N, d, d) Hessians (kind "full") or (N, d) diagonals; NaN where undetermined.
+    On a k-NN graph with too few neighbours, the remedy is a larger k.
+    """
+    check_choice(kind, "kind", HESSIAN_KINDS)
+    values = jnp.asarray(values, tess.points.dtype)
+    if kind == "diagonal":
+        diag, quality, ok = _diagonal_hessian(tess, values)
+        return (diag, quality, _info(ok, jnp.zeros_like(ok), 0)) if with_info else diag
+    _, dv, usable = _stencil(tess, values)
+    hess, ok = _quadratic_fit(neighbor_coord_displacements(tess), dv, usable, RCOND_TWO_RING)
+    needs = ~ok & jnp.isfinite(values)
+    capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
+    walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)
+    hess2, ok2 = _quadratic_fit(*_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)))
+    ok2 = ok2 & (walkers < tess.n_points)
+    hess = hess.at[walkers].set(jnp.where(ok2[:, None, None], hess2, jnp.nan), mode="drop")
+    ok = ok.at[walkers].set(ok2, mode="drop") & jnp.isfinite(values)
+    two_ring = jnp.zeros_like(ok).at[walkers].set(walkers < tess.n_points, mode="drop")
+    over = jnp.maximum(jnp.sum(needs) - capacity, 0)
+    hess = jnp.where(ok[:, None, None], hess, jnp.nan)
+    return (hess, _info(ok, two_ring, over)) if with_info else hess
+
+
+def _diagonal_hessian(tess: Tessellation, values):
+    dx, dv, usable = _stencil(tess, values)
+    dist = jnp.where(usable, jnp.sqrt(jnp.sum(dx * dx, axis=-1)), jnp.inf)
+    # A neighbour is only roughly on the axis: remove the off-axis linear part of its
+    # value difference with the WLS gradient, else g_perp . dx_perp / h^2 pollutes V''.
+    grad = jnp.nan_to_num(estimate_gradient(tess, values))
+    linear = jnp.einsum("nkd,nd->nkd", dx, grad)
+    diags, qualities = [], []
+    for a in range(tess.dim):
+        cos = jnp.where(usable, dx[..., a] / dist, -2.0)
+        plus, minus = jnp.argmax(cos, axis=1), jnp.argmin(jnp.where(usable, cos, 2.0), axis=1)
+        take = lambda arr, idx: jnp.take_along_axis(arr, idx[:, None], axis=1)[:, 0]  # noqa: E731
+        h_plus, h_minus = take(dx[..., a], plus), -take(dx[..., a], minus)
+        off_axis = jnp.sum(linear, axis=-1) - linear[..., a]
+        v_plus, v_minus = take(dv - off_axis, plus), take(dv - off_axis, minus)
+        ok = (h_plus > 0) & (h_minus > 0)
+        safe_p, safe_m = jnp.where(ok, h_plus, 1.0), jnp.where(ok, h_minus, 1.0)
+        second = 2.0 * (v_plus / safe_p + v_minus / safe_m) / (safe_p + safe_m)
+        diags.append(jnp.where(ok, second, jnp.nan))
+        qualities.append(jnp.where(ok, jnp.clip(jnp.minimum(take(cos, plus), -take(cos, minus)), 0.0, 1.0), 0.0))
+    diag, quality = jnp.stack(diags, axis=1), jnp.stack(qualities, axis=1)
+    ok = jnp.all(jnp.isfinite(diag), axis=1) & jnp.isfinite(values)
+    return jnp.where(ok[:, None], diag, jnp.nan), quality, ok
+
+
+def geometric_hessian(tess: Tessellation, eps_sigma, *, eps_reg: float = 1e-5) -> Float[Array, "N d d"]:
+    """The validation Hessian H_geo = g_emergent - eps_Sigma I (chapter, Method 2).
+
+    It assumes walkers sampled at equilibrium from a density whose neighbour
+    covariance encodes g = H + eps_Sigma I; see `compare_estimation_methods`.
+    """
+    g = emergent_metric(tess, eps_reg=eps_reg)
+    return g - eps_sigma * jnp.eye(tess.dim, dtype=g.dtype)

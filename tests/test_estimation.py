@@ -1,0 +1,127 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxgeom
+
+
+def graphs(x):
+    d = x.shape[1]
+    return {"delaunay": jaxgeom.delaunay(x), "knn": jaxgeom.knn_graph(x, 12 if d == 2 else 20)}
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("graph", ["delaunay", "knn"])
+def test_linear_and_quadratic_fields_are_recovered_exactly(rng, d, graph):
+    x = rng.random((1500, d))
+    tess = graphs(x)[graph]
+    interior = np.asarray(tess.tier) == 2 if graph == "delaunay" else np.ones(len(x), bool)
+    a = rng.normal(size=d)
+    h = rng.normal(size=(d, d))
+    h = h + h.T
+    linear = x @ a - 0.7
+    quadratic = 0.5 * np.einsum("ni,ij,nj->n", x, h, x) + x @ a
+    grad = np.asarray(jaxgeom.estimate_gradient(tess, linear))
+    assert np.abs(grad[interior] - a).max() < 1e-10
+    grad_q = np.asarray(jaxgeom.estimate_gradient(tess, quadratic))
+    assert np.isfinite(grad_q[interior]).all()
+    hess, info = jaxgeom.estimate_hessian(tess, quadratic, with_info=True)
+    hess = np.asarray(hess)
+    rel = np.linalg.norm(hess[interior] - h, axis=(1, 2)) / np.linalg.norm(h)
+    assert np.all(np.isfinite(rel)) and rel.max() < 1e-8
+    assert int(info.n_over_capacity) == 0
+
+
+def test_quadratic_fit_gradient_rmse(rng):
+    """The gradient of the local quadratic fit is exact on quadratics (the WLS gradient is not)."""
+    from jaxgeom._estimation import _quadratic_fit, _stencil
+
+    x = rng.random((800, 2))
+    tess = jaxgeom.knn_graph(x, 12)
+    h = np.array([[2.0, 0.5], [0.5, 1.0]])
+    values = 0.5 * np.einsum("ni,ij,nj->n", x, h, x)
+    _, dv, usable = _stencil(tess, jnp.asarray(values))
+    hess, ok = _quadratic_fit(jaxgeom._graph.neighbor_coord_displacements(tess), dv, usable)
+    assert np.asarray(ok).all()
+    np.testing.assert_allclose(np.asarray(hess), np.broadcast_to(h, (800, 2, 2)), rtol=1e-9)
+
+
+def test_fd_gradient_reproduces_the_chapter_formula(rng):
+    x = rng.random((60, 2))
+    values = np.sin(3 * x[:, 0]) + x[:, 1] ** 2
+    tess = jaxgeom.delaunay(x)
+    nbrs = np.asarray(tess.neighbors)
+    for weighting in ("uniform", "inverse_distance", "gaussian"):
+        ours = np.asarray(jaxgeom.estimate_gradient(tess, values, method="fd", weighting=weighting))
+        for i in range(60):
+            js = nbrs[i][nbrs[i] < 60]
+            dx = x[js] - x[i]
+            dist = np.linalg.norm(dx, axis=1)
+            w = {"uniform": np.ones(len(js)), "inverse_distance": 1 / dist,
+                 "gaussian": np.exp(-dist**2 / (2 * np.median(dist) ** 2))}[weighting]
+            w = w / w.sum()
+            ref = np.sum((w * (values[js] - values[i]) / dist**2)[:, None] * dx, axis=0)
+            np.testing.assert_allclose(ours[i], ref, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("jitter, rtol", [(0.0, 1e-10), (1e-3, 1e-2)])
+def test_diagonal_hessian_and_axis_quality(jitter, rtol):
+    i, j = np.meshgrid(np.arange(12.0), np.arange(12.0))
+    x = np.stack([0.3 * i.ravel(), 0.2 * j.ravel()], axis=1) + jitter * np.random.default_rng(1).normal(size=(144, 2))
+    values = 1.5 * x[:, 0] ** 2 - 0.5 * x[:, 1] ** 2 + 4.0 * x[:, 0] + 3.0 * x[:, 1]
+    tess = jaxgeom.knn_graph(x, 8)
+    diag, quality, info = jaxgeom.estimate_hessian(tess, values, kind="diagonal", with_info=True)
+    inner = np.all((x > 0.5) & (x < [3.0, 2.0]), axis=1)
+    np.testing.assert_allclose(np.asarray(diag)[inner], np.broadcast_to([3.0, -1.0], (inner.sum(), 2)), rtol=rtol)
+    q = np.asarray(quality)
+    assert np.all((q >= 0) & (q <= 1)) and q[inner].min() > 0.98 and bool(info.valid[inner].all())
+
+
+def test_degenerate_neighbourhoods_give_nan_and_a_count_without_leaking(rng):
+    x = rng.random((400, 2))
+    values = x[:, 0] * 2.0 + x[:, 1]
+    values[7] = np.nan
+    tess = jaxgeom.delaunay(x)
+    grad, info = jaxgeom.estimate_gradient(tess, values, with_info=True)
+    grad = np.asarray(grad)
+    assert np.isnan(grad[7]).all() and not bool(info.valid[7])
+    nbrs = np.asarray(tess.neighbors)[7]
+    around = nbrs[nbrs < 400]
+    interior_around = around[np.asarray(tess.tier)[around] == 2]
+    np.testing.assert_allclose(grad[interior_around], np.broadcast_to([2.0, 1.0], (len(interior_around), 2)), rtol=1e-10)
+    assert int(info.n_invalid) == int(np.isnan(grad).any(axis=1).sum())
+    thin = jaxgeom.knn_graph(rng.random((50, 3)), 2)  # 2 neighbours cannot determine a 3D gradient
+    g2, info2 = jaxgeom.estimate_gradient(thin, rng.random(50), with_info=True)
+    assert np.isnan(np.asarray(g2)).all() and int(info2.n_invalid) == 50
+    h2, info3 = jaxgeom.estimate_hessian(thin, rng.random(50), with_info=True)
+    assert int(info3.n_invalid) == 50
+
+
+def test_estimates_run_inside_jit_and_in_float32(rng):
+    x = rng.random((300, 2))
+    tess = jaxgeom.delaunay(x)
+    values = jnp.asarray(x[:, 0] ** 2 + x[:, 1])
+    grad = jax.jit(lambda t, v: jaxgeom.estimate_gradient(t, v))(tess, values)
+    assert np.isfinite(np.asarray(grad)[np.asarray(tess.tier) == 2]).all()
+    with jax.enable_x64(False):
+        t32 = jaxgeom.delaunay(x.astype(np.float32))
+        h32 = np.asarray(jaxgeom.estimate_hessian(t32, (x[:, 0] ** 2 + x[:, 1]).astype(np.float32)))
+    assert h32.dtype == np.float32
+    np.testing.assert_allclose(np.nanmedian(h32[:, 0, 0]), 2.0, rtol=1e-2)
+
+
+def test_geometric_hessian_is_emergent_metric_minus_eps(rng):
+    tess = jaxgeom.delaunay(rng.random((200, 2)))
+    np.testing.assert_allclose(np.asarray(jaxgeom.geometric_hessian(tess, 0.1)),
+                               np.asarray(jaxgeom.emergent_metric(tess)) - 0.1 * np.eye(2), rtol=1e-14)
+
+
+def test_estimation_bad_input(rng):
+    tess = jaxgeom.delaunay(rng.random((30, 2)))
+    with pytest.raises(ValueError, match="unknown method 'central'; valid values are 'wls', 'fd'"):
+        jaxgeom.estimate_gradient(tess, np.zeros(30), method="central")
+    with pytest.raises(ValueError, match="unknown weighting 'cubic'"):
+        jaxgeom.estimate_gradient(tess, np.zeros(30), weighting="cubic")
+    with pytest.raises(ValueError, match="unknown kind 'mixed'; valid values are 'full', 'diagonal'"):
+        jaxgeom.estimate_hessian(tess, np.zeros(30), kind="mixed")
