@@ -26,9 +26,12 @@ from ._metric import hessian_metric as hessian_metric
 from ._metric import metric_at_walkers as metric_at_walkers
 from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
+from ._plots import plot_estimation_quality as plot_estimation_quality
 from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap
+from ._validation import compare_estimation_methods as compare_estimation_methods
+from ._validation import validate_on_synthetic_function as validate_on_synthetic_function
 from ._volumes import circumcenters as circumcenters
 from ._volumes import voronoi_volumes as voronoi_volumes
 

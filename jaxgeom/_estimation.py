@@ -82,15 +82,18 @@ def _solve_normal(a, b, rcond: float = RCOND):
 
 @eqx.filter_jit
 def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weighting: str = "uniform",
-                      with_info: bool = False):
+                      order: int = 2, with_info: bool = False):
     """Gradient of a field sampled at the walkers.
 
     **Arguments:**
 
     - `tess`: Delaunay or k-NN graph (any d).
     - `values`: (N,) field values V(x_i); NaN entries are left out of every stencil.
-    - `method`: "wls" (default) fits V_j - V_i = g . (x_j - x_i) by weighted least
-      squares over the 1-ring: exact for linear V (NOTES 5). "fd" is the chapter's
+    - `method`: "wls" (default) fits a local polynomial by least squares and returns
+      its linear coefficients. `order=2` (default) fits the quadratic model of
+      [`jaxgeom.estimate_hessian`][] (with its 2-ring fallback), exact for quadratic V;
+      `order=1` fits V_j - V_i = g . (x_j - x_i) over the 1-ring with `weighting`,
+      exact for linear V and cheaper (NOTES 5). "fd" is the chapter's
       one-sided formula sum_j w_ij (V_j - V_i)(x_j - x_i) / |x_j - x_i|^2 with
       weights normalised to sum 1; it is not exact even for linear V.
     - `weighting`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"
@@ -99,13 +102,19 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
 
     **Returns:**
 
-    (N, d) gradients. Walkers with fewer than d usable neighbours (d + 1 points with
-    the walker itself), or with neighbours in a lower-dimensional subspace, are NaN.
+    (N, d) gradients. Walkers whose stencil cannot determine the fit (order 1: fewer
+    than d usable neighbours, i.e. d + 1 points with the walker itself; order 2: no
+    well-conditioned fit on the 1-ring or 2-ring) are NaN and counted.
     On a k-NN graph the remedy is a larger k.
     """
     check_choice(method, "method", GRADIENT_METHODS)
     check_choice(weighting, "weighting", WEIGHTINGS)
+    if order not in (1, 2):
+        raise ValueError(f"`order` must be 1 (linear fit) or 2 (quadratic fit); got {order!r}.")
     values = jnp.asarray(values, tess.points.dtype)
+    if method == "wls" and order == 2:
+        _, grad, info = _local_quadratic(tess, values)
+        return (grad, info) if with_info else grad
     dx, dv, usable = _stencil(tess, values)
     w = _weights(dx, usable, weighting)
     if method == "fd":
@@ -128,7 +137,8 @@ def _info(ok, two_ring, over) -> EstimateInfo:
 
 
 def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND):
-    """Hessians of local quadratic fits for a batch of stencils, and whether each is well determined.
+    """Hessians and gradients of local quadratic fits for a batch of stencils, and whether
+    each is well determined.
 
     **Arguments:** `dxs`: d arrays (M, P) of displacements; `dv`: (M, P) value
     differences; `usable`: (M, P) mask. Fits V - V_i = g.u + sum_{a<=b} c_ab u_a u_b in
@@ -151,7 +161,8 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND):
     b = jnp.stack([jnp.sum(f * dv, axis=1) for f in feats], axis=-1)
     coef, ok = jax.vmap(lambda a_, b_: _solve_normal(a_, b_, rcond))(a, b)
     ok = ok & (jnp.sum(usable, axis=1) >= n_coef)
-    return jnp.where(ok[:, None, None], _unpack_hessian(coef, scale, d), jnp.nan), ok
+    grad = coef[:, :d] / scale[:, None]
+    return jnp.where(ok[:, None, None], _unpack_hessian(coef, scale, d), jnp.nan), jnp.where(ok[:, None], grad, jnp.nan), ok
 
 
 def _unpack_hessian(coef, scale, d: int):
@@ -217,19 +228,27 @@ def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_inf
     if kind == "diagonal":
         diag, quality, ok = _diagonal_hessian(tess, values)
         return (diag, quality, _info(ok, jnp.zeros_like(ok), 0)) if with_info else diag
+    hess, _, info = _local_quadratic(tess, values)
+    return (hess, info) if with_info else hess
+
+
+def _local_quadratic(tess: Tessellation, values):
+    """Local quadratic fits on the 1-ring, refit on the 2-ring where the 1-ring is too
+    small or poorly conditioned: (hessian (N, d, d), gradient (N, d), info)."""
     _, dv, usable = _stencil(tess, values)
-    hess, ok = _quadratic_fit(neighbor_coord_displacements(tess), dv, usable, RCOND_TWO_RING)
+    hess, grad, ok = _quadratic_fit(neighbor_coord_displacements(tess), dv, usable, RCOND_TWO_RING)
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
     walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)
-    hess2, ok2 = _quadratic_fit(*_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)))
+    hess2, grad2, ok2 = _quadratic_fit(*_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)))
     ok2 = ok2 & (walkers < tess.n_points)
-    hess = hess.at[walkers].set(jnp.where(ok2[:, None, None], hess2, jnp.nan), mode="drop")
+    hess = hess.at[walkers].set(hess2, mode="drop")
+    grad = grad.at[walkers].set(grad2, mode="drop")
     ok = ok.at[walkers].set(ok2, mode="drop") & jnp.isfinite(values)
     two_ring = jnp.zeros_like(ok).at[walkers].set(walkers < tess.n_points, mode="drop")
     over = jnp.maximum(jnp.sum(needs) - capacity, 0)
-    hess = jnp.where(ok[:, None, None], hess, jnp.nan)
-    return (hess, _info(ok, two_ring, over)) if with_info else hess
+    info = _info(ok, two_ring, over)
+    return jnp.where(ok[:, None, None], hess, jnp.nan), jnp.where(ok[:, None], grad, jnp.nan), info
 
 
 def _diagonal_hessian(tess: Tessellation, values):
@@ -237,7 +256,7 @@ def _diagonal_hessian(tess: Tessellation, values):
     dist = jnp.where(usable, jnp.sqrt(jnp.sum(dx * dx, axis=-1)), jnp.inf)
     # A neighbour is only roughly on the axis: remove the off-axis linear part of its
     # value difference with the WLS gradient, else g_perp . dx_perp / h^2 pollutes V''.
-    grad = jnp.nan_to_num(estimate_gradient(tess, values))
+    grad = jnp.nan_to_num(estimate_gradient(tess, values, order=1))
     linear = jnp.einsum("nkd,nd->nkd", dx, grad)
     diags, qualities = [], []
     for a in range(tess.dim):

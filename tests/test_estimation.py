@@ -25,7 +25,10 @@ def test_linear_and_quadratic_fields_are_recovered_exactly(rng, d, graph):
     grad = np.asarray(jaxgeom.estimate_gradient(tess, linear))
     assert np.abs(grad[interior] - a).max() < 1e-10
     grad_q = np.asarray(jaxgeom.estimate_gradient(tess, quadratic))
-    assert np.isfinite(grad_q[interior]).all()
+    rmse = np.sqrt(np.mean(np.sum((grad_q[interior] - (x[interior] @ h + a)) ** 2, axis=1)))
+    assert rmse < 1e-9
+    grad_lin = np.asarray(jaxgeom.estimate_gradient(tess, linear, order=1))
+    assert np.abs(grad_lin[interior] - a).max() < 1e-10
     hess, info = jaxgeom.estimate_hessian(tess, quadratic, with_info=True)
     hess = np.asarray(hess)
     rel = np.linalg.norm(hess[interior] - h, axis=(1, 2)) / np.linalg.norm(h)
@@ -42,9 +45,10 @@ def test_quadratic_fit_gradient_rmse(rng):
     h = np.array([[2.0, 0.5], [0.5, 1.0]])
     values = 0.5 * np.einsum("ni,ij,nj->n", x, h, x)
     _, dv, usable = _stencil(tess, jnp.asarray(values))
-    hess, ok = _quadratic_fit(jaxgeom._graph.neighbor_coord_displacements(tess), dv, usable)
+    hess, grad, ok = _quadratic_fit(jaxgeom._graph.neighbor_coord_displacements(tess), dv, usable)
     assert np.asarray(ok).all()
     np.testing.assert_allclose(np.asarray(hess), np.broadcast_to(h, (800, 2, 2)), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(grad), x @ h, rtol=1e-9, atol=1e-12)
 
 
 def test_fd_gradient_reproduces_the_chapter_formula(rng):
@@ -83,7 +87,7 @@ def test_degenerate_neighbourhoods_give_nan_and_a_count_without_leaking(rng):
     values = x[:, 0] * 2.0 + x[:, 1]
     values[7] = np.nan
     tess = jaxgeom.delaunay(x)
-    grad, info = jaxgeom.estimate_gradient(tess, values, with_info=True)
+    grad, info = jaxgeom.estimate_gradient(tess, values, order=1, with_info=True)
     grad = np.asarray(grad)
     assert np.isnan(grad[7]).all() and not bool(info.valid[7])
     nbrs = np.asarray(tess.neighbors)[7]
@@ -92,7 +96,7 @@ def test_degenerate_neighbourhoods_give_nan_and_a_count_without_leaking(rng):
     np.testing.assert_allclose(grad[interior_around], np.broadcast_to([2.0, 1.0], (len(interior_around), 2)), rtol=1e-10)
     assert int(info.n_invalid) == int(np.isnan(grad).any(axis=1).sum())
     thin = jaxgeom.knn_graph(rng.random((50, 3)), 2)  # 2 neighbours cannot determine a 3D gradient
-    g2, info2 = jaxgeom.estimate_gradient(thin, rng.random(50), with_info=True)
+    g2, info2 = jaxgeom.estimate_gradient(thin, rng.random(50), order=1, with_info=True)
     assert np.isnan(np.asarray(g2)).all() and int(info2.n_invalid) == 50
     h2, info3 = jaxgeom.estimate_hessian(thin, rng.random(50), with_info=True)
     assert int(info3.n_invalid) == 50
@@ -123,5 +127,46 @@ def test_estimation_bad_input(rng):
         jaxgeom.estimate_gradient(tess, np.zeros(30), method="central")
     with pytest.raises(ValueError, match="unknown weighting 'cubic'"):
         jaxgeom.estimate_gradient(tess, np.zeros(30), weighting="cubic")
+    with pytest.raises(ValueError, match="`order` must be 1"):
+        jaxgeom.estimate_gradient(tess, np.zeros(30), order=3)
     with pytest.raises(ValueError, match="unknown kind 'mixed'; valid values are 'full', 'diagonal'"):
         jaxgeom.estimate_hessian(tess, np.zeros(30), kind="mixed")
+
+
+def test_compare_estimation_methods_metrics_match_numpy(rng):
+    x = rng.normal(size=(800, 2))
+    tess = jaxgeom.delaunay(x)
+    values = 0.5 * (2.0 * x[:, 0] ** 2 + 0.5 * x[:, 1] ** 2)
+    out = jaxgeom.compare_estimation_methods(tess, values, eps_sigma=0.1)
+    valid = out["valid"]
+    assert valid.sum() > 500
+    h_fd, h_geo = np.asarray(out["hessian_fd"])[valid], np.asarray(out["hessian_geometric"])[valid]
+    np.testing.assert_allclose(h_fd, np.broadcast_to(np.diag([2.0, 0.5]), h_fd.shape), atol=1e-8)
+    e_fd, e_geo = np.linalg.eigvalsh(h_fd), np.linalg.eigvalsh(h_geo)
+    metrics = out["metrics"]
+    assert abs(metrics["eigenvalue_correlation"] - np.corrcoef(e_fd.ravel(), e_geo.ravel())[0, 1]) < 1e-12
+    frob = 1 - np.linalg.norm(h_fd - h_geo, axis=(1, 2)) / (np.linalg.norm(h_fd, axis=(1, 2)) + np.linalg.norm(h_geo, axis=(1, 2)))
+    assert abs(metrics["frobenius_agreement"] - frob.mean()) < 1e-12
+    rho = metrics["eigenvalue_correlation"]
+    assert metrics["method_preference"] == ("excellent" if rho > 0.8 else "good" if rho > 0.6 else "poor")
+
+
+def test_validate_on_synthetic_functions():
+    quad = jaxgeom.validate_on_synthetic_function("quadratic", n_walkers=300)
+    assert quad["passed"] and quad["gradient_rmse"] < 1e-9 and quad["hessian_frobenius_error"] < 1e-8
+    coarse = jaxgeom.validate_on_synthetic_function("rosenbrock", n_walkers=300)
+    fine = jaxgeom.validate_on_synthetic_function("rosenbrock", n_walkers=3000)
+    assert fine["gradient_relative_rmse"] < coarse["gradient_relative_rmse"] / 3
+    assert fine["hessian_frobenius_error"] < coarse["hessian_frobenius_error"] / 1.5
+    assert -1 <= fine["fd_geometric_correlation"] <= 1
+    with pytest.raises(ValueError, match="unknown name 'sphere'"):
+        jaxgeom.validate_on_synthetic_function("sphere")
+
+
+def test_plot_estimation_quality_writes_four_panels(tmp_path, rng):
+    result = jaxgeom.validate_on_synthetic_function("rosenbrock", n_walkers=400)
+    path = jaxgeom.plot_estimation_quality(result, tmp_path / "quality.png")
+    assert path.stat().st_size > 20_000
+    x = rng.normal(size=(300, 2))
+    comparison = jaxgeom.compare_estimation_methods(jaxgeom.delaunay(x), x[:, 0] ** 2, eps_sigma=0.1)
+    assert jaxgeom.plot_estimation_quality(comparison, tmp_path / "cmp.png").stat().st_size > 20_000

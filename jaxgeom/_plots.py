@@ -1,0 +1,78 @@
+"""Diagnostic figures (matplotlib is imported lazily)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+NEIGHBOUR_COUNTS = (6, 8, 10, 14, 20, 30)
+
+
+def plot_estimation_quality(result: dict, path) -> Path:
+    """The chapter's four-panel diagnostic of Hessian estimation, written to `path` (PNG).
+
+    **Arguments:**
+
+    - `result`: the dict of [`jaxgeom.compare_estimation_methods`][], or of
+      [`jaxgeom.validate_on_synthetic_function`][] (then errors are against the
+      analytic Hessian; otherwise against the geometric Hessian).
+
+    Panels: FD vs geometric eigenvalues; spatial map of the per-walker relative
+    error; median error against the number of k-NN neighbours (the fit redone on
+    k-NN graphs); histogram of the per-walker errors.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    comparison = result.get("comparison", result)
+    truth = result.get("true_hessian")
+    points, valid = comparison["points"], comparison["valid"]
+    h_fd = np.asarray(comparison["hessian_fd"])
+    reference = truth if truth is not None else np.asarray(comparison["hessian_geometric"])
+    label = "analytic" if truth is not None else "geometric"
+    error = _relative_error(h_fd, reference)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 9))
+    e_fd, e_geo = np.asarray(comparison["eigenvalues_fd"])[valid], np.asarray(comparison["eigenvalues_geometric"])[valid]
+    axes[0, 0].scatter(e_geo.ravel(), e_fd.ravel(), s=3, alpha=0.5)
+    rho = comparison["metrics"]["eigenvalue_correlation"]
+    axes[0, 0].set(xlabel="geometric eigenvalue", ylabel="finite-difference eigenvalue", title=f"eigenvalues, rho = {rho:.2f}")
+    ok = valid & np.isfinite(error)
+    sc = axes[0, 1].scatter(points[ok, 0], points[ok, 1], c=np.log10(error[ok] + 1e-16), s=4, cmap="magma")
+    fig.colorbar(sc, ax=axes[0, 1], label=f"log10 relative error vs {label}")
+    axes[0, 1].set(title="spatial quality map (first two coordinates)")
+    ks, medians = _error_by_neighbour_count(points, comparison["values"], reference, valid)
+    axes[1, 0].loglog(ks, medians, "o-")
+    axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="convergence with neighbours")
+    axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
+    axes[1, 1].set(xlabel="log10 relative Hessian error", ylabel="walkers", title="error distribution")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _relative_error(estimate, reference):
+    if estimate.ndim == 2:  # a diagonal estimate
+        reference = np.diagonal(reference, axis1=1, axis2=2)
+        return np.linalg.norm(estimate - reference, axis=1) / np.maximum(np.linalg.norm(reference, axis=1), 1e-300)
+    diff = np.linalg.norm(estimate - reference, axis=(1, 2))
+    return diff / np.maximum(np.linalg.norm(reference, axis=(1, 2)), 1e-300)
+
+
+def _error_by_neighbour_count(points, values, reference, valid):
+    from ._estimation import estimate_hessian
+    from ._knn import knn_graph
+
+    d = points.shape[1]
+    ks = [k for k in NEIGHBOUR_COUNTS if d * (d + 3) // 2 <= k < len(points)]
+    medians = []
+    for k in ks:
+        est = np.asarray(estimate_hessian(knn_graph(points, k), values))
+        err = _relative_error(est, reference)[valid]
+        medians.append(float(np.nanmedian(err)))
+    return ks, medians
