@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-NEIGHBOUR_COUNTS = (6, 8, 10, 14, 20, 30)
+NEIGHBOUR_COUNTS = (6, 10, 16, 30)
 
 
 def plot_estimation_quality(result: dict, path) -> Path:

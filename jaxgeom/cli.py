@@ -182,6 +182,25 @@ def section_graph_proxies(a: Analysis) -> dict:
     return out
 
 
+def section_estimation(a: Analysis) -> dict:
+    """Gradient and Hessian of the fitness field estimated from its values at the walkers,
+    and their agreement with the geometric (emergent-metric) Hessian."""
+    import jaxgeom
+    from ._landscapes import landscape
+
+    values = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
+    result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
+                   eps_sigma=a.args.eps_sigma)
+    a.cache["estimation"] = result
+    valid = result["valid"]
+    out = _stats(np.linalg.norm(np.asarray(result["gradient"])[valid], axis=1), "tier2_gradient_norm")
+    eig = np.asarray(result["eigenvalues_fd"])[valid]
+    out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))
+    out.update(_stats(eig[:, -1], "tier2_hessian_max_eigenvalue"))
+    out.update({f"agreement_{k}": v for k, v in result["metrics"].items()})
+    return out
+
+
 REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("swarm", section_swarm),
     ("graph", section_graph),
@@ -190,6 +209,7 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("curvature", section_curvature),
     ("cells", section_cells),
     ("graph_proxies", section_graph_proxies),
+    ("estimation", section_estimation),
 ]
 
 
@@ -252,11 +272,22 @@ def run_analysis(args) -> dict:
     a.tess = build_graph(a)
     report = {name: section(a) for name, section in REPORT_SECTIONS}
     report["timings_s"] = {k: round(v, 6) for k, v in a.timings.items()}
-    if args.out is not None and "ricci" in a.cache and "shape" in a.cache:
-        args.out.mkdir(parents=True, exist_ok=True)
-        write_maps(a, args.out / "proxies.png")
-        report["figures"] = {"proxies": str(args.out / "proxies.png")}
+    if args.out is not None:
+        report["figures"] = write_figures(a, args.out)
     return report
+
+
+def write_figures(a: Analysis, out: Path) -> dict:
+    import jaxgeom
+
+    out.mkdir(parents=True, exist_ok=True)
+    figures = {}
+    if "ricci" in a.cache and "shape" in a.cache:
+        write_maps(a, out / "proxies.png")
+        figures["proxies"] = str(out / "proxies.png")
+    if "estimation" in a.cache:
+        figures["estimation"] = str(jaxgeom.plot_estimation_quality(a.cache["estimation"], out / "estimation.png"))
+    return figures
 
 
 def format_report(report: dict) -> str:
