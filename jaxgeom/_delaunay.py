@@ -103,14 +103,14 @@ def morton_order(x: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray]:
-    """Qhull on Morton-sorted points; returns the triangulation and the sort permutation.
-
-    Sorting pays off only for large inputs (20% faster Qhull at N = 1e5, nothing at 1e4).
-    """
-    perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else np.arange(len(x))  # keep in sync: _plain_graph
+def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
+    """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
+    (None where the points were not sorted: sorting pays off only for large inputs,
+    20% faster Qhull at N = 1e5, nothing at 1e4)."""
+    perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
     try:
-        tri = Delaunay(np.ascontiguousarray(x[perm], dtype=np.float64), qhull_options=QHULL_OPTIONS)
+        tri = Delaunay(np.ascontiguousarray(x if perm is None else x[perm], dtype=np.float64),
+                       qhull_options=QHULL_OPTIONS)
     except QhullError as err:
         first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
         raise ValueError(
@@ -123,8 +123,10 @@ def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray]:
     return tri, perm
 
 
-def _raise_duplicates(x: np.ndarray, perm: np.ndarray, tri: Delaunay) -> None:
-    i, j = perm[tri.coplanar[0, 0]], perm[tri.coplanar[0, 2]]
+def _raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri: Delaunay) -> None:
+    i, j = tri.coplanar[0, 0], tri.coplanar[0, 2]
+    if perm is not None:
+        i, j = perm[i], perm[j]
     kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
     raise ValueError(
         f"`points` has {len(tri.coplanar)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
@@ -148,7 +150,7 @@ def _plain_graph(x: np.ndarray) -> RawGraph:
     tri, perm = _qhull(x)
     src, dst = _csr_rows(tri, np.arange(len(x)))
     simplices, hull_ids = tri.simplices, tri.convex_hull.ravel()
-    if len(x) >= MORTON_MIN_POINTS:  # map sorted indices back (identity below the threshold)
+    if perm is not None:  # map sorted indices back
         simplices, src, dst, hull_ids = perm[simplices], perm[src], perm[dst], perm[hull_ids]
     hull = np.zeros(len(x), bool)
     hull[hull_ids] = True
@@ -188,7 +190,8 @@ def _periodic_slab(y, lengths, axis: int, start: float, stop: float, skin: float
         lo[axis], hi[axis] = start - skin, stop + skin
         ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
         tri, perm = _qhull(ext)
-        ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
+        if perm is not None:
+            ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
         owned = ~shifts.any(axis=1) & (ext[:, axis] >= start) & (ext[:, axis] < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
         if not owned[tri.convex_hull].any() and _circumballs_empty(tri.points[simp], y, lengths, lo, hi):

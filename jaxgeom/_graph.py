@@ -6,7 +6,6 @@ import math
 from typing import NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
@@ -178,10 +177,6 @@ def bucket_simplices(n: int) -> int:
     octave = 2 ** (math.ceil(math.log2(n)) - 4)  # ladder values are multiples of this
     return octave * math.ceil(n / octave)
 
-
-def as_device_tree(tess: Tessellation) -> Tessellation:
-    """Move every array leaf onto the default device (used by host builders)."""
-    return jax.tree_util.tree_map(jnp.asarray, tess)
 
 
 # A periodic walker may neighbour several images of the same walker (tiny boxes);

@@ -147,3 +147,23 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     assert ours == periodic_neighbor_sets(x, np.zeros(d), np.ones(d), layers=1)
     assert len(calls) > 2, "more than one slab, and at least one retry"
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
+
+
+def test_morton_sorted_path_maps_indices_back():
+    """Above MORTON_MIN_POINTS Qhull sees sorted points; results must be in the caller's order."""
+    from scipy.spatial import ConvexHull, Delaunay
+
+    import jaxgeom._delaunay as dl
+
+    n = dl.MORTON_MIN_POINTS + 5000
+    x = np.random.default_rng(3).random((n, 2))
+    tess = jaxgeom.delaunay(x)
+    indptr, indices = Delaunay(x).vertex_neighbor_vertices
+    ref = np.full(np.asarray(tess.neighbors).shape, n, np.int64)
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    ref[rows, np.arange(len(indices)) - indptr[rows]] = indices
+    np.testing.assert_array_equal(np.asarray(tess.neighbors), np.sort(ref, axis=1))
+    hull = np.zeros(n, bool)
+    hull[ConvexHull(x).vertices] = True
+    np.testing.assert_array_equal(np.asarray(tess.hull), hull)
+    assert int(tess.simplex_mask.sum()) == len(Delaunay(x).simplices)
