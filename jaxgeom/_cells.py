@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._graph import Tessellation, neighbor_coord_displacements, simplex_coords
+from ._graph import Tessellation, nearest_neighbor_distances, simplex_coords
 from ._simplex import simplex_circumradius
 from ._volumes import voronoi_volumes
 
@@ -44,8 +44,7 @@ def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
     spacings a <= b gives a / sqrt(a^2 + b^2), a hexagonal lattice sqrt(3)/2.
     Tier 0 (unbounded or box-touching cells) is NaN.
     """
-    dist = jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
-    r_in = 0.5 * jnp.min(jnp.where(tess.neighbor_mask, dist, jnp.inf), axis=1)
+    r_in = 0.5 * nearest_neighbor_distances(tess)
     radius = _incident_circumradii(tess)
     spread = jnp.broadcast_to(radius[:, None], tess.simplices.shape)
     r_circ = jax.ops.segment_max(spread.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)

@@ -71,13 +71,6 @@ def _safe_atan2(y, x):
     return jnp.where(degenerate, 0.0, jnp.arctan2(y, jnp.where(degenerate, 1.0, x)))
 
 
-def hinge_angles(sq_lengths, d: int):
-    """Dihedral angle at every hinge of one simplex and the hinge's measure (see
-    `hinge_angle_vectors`); returns `(theta, size)`."""
-    x, y, size = hinge_angle_vectors(sq_lengths, d)
-    return _safe_atan2(y, x), size
-
-
 def _metric_and_euclidean_sq_lengths(tess: Tessellation, metric, mode: str):
     """Squared simplex edge lengths in the metric and in Euclidean space (the same array
     when the metric is not used). The barrier materialises them once: fused into each of
@@ -90,14 +83,20 @@ def _metric_and_euclidean_sq_lengths(tess: Tessellation, metric, mode: str):
     return jax.lax.optimization_barrier((simplex_sq_lengths(tess, metric, mode=mode), simplex_sq_lengths(tess)))
 
 
-def _all_hinge_angles(tess: Tessellation, metric, mode: str):
-    d = tess.dim
+def _hinge_vectors(tess: Tessellation, metric, mode: str):
+    """`hinge_angle_vectors` of every simplex in the metric, (x_g, y_g, size_g), and in
+    Euclidean space, (x_e, y_e)."""
     if tess.simplices is None:
         raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
-    angles = jax.vmap(lambda sq: hinge_angles(sq, d))
+    vectors = jax.vmap(lambda sq: hinge_angle_vectors(sq, tess.dim))
     sq_g, sq_e = _metric_and_euclidean_sq_lengths(tess, metric, mode)
-    theta_g, size_g = angles(sq_g)
-    theta_e, _ = angles(sq_e)
+    x_e, y_e, _ = vectors(sq_e)
+    return vectors(sq_g), (x_e, y_e)
+
+
+def _all_hinge_angles(tess: Tessellation, metric, mode: str):
+    (x_g, y_g, size_g), (x_e, y_e) = _hinge_vectors(tess, metric, mode)
+    theta_g, theta_e = _safe_atan2(y_g, x_g), _safe_atan2(y_e, x_e)
     valid = tess.simplex_mask[:, None]
     return jnp.where(valid, theta_g, 0.0), jnp.where(valid, size_g, 0.0), jnp.where(valid, theta_e, 0.0)
 
@@ -189,12 +188,7 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     points; region averages sum R_i V_i / sum V_i converge (NOTES 2).
     """
     d = tess.dim
-    if tess.simplices is None:
-        raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
-    vectors = jax.vmap(lambda sq: hinge_angle_vectors(sq, d))
-    sq_g, sq_e = _metric_and_euclidean_sq_lengths(tess, metric, mode)
-    x_g, y_g, size_g = vectors(sq_g)
-    x_e, y_e, _ = vectors(sq_e)
+    (x_g, y_g, size_g), (x_e, y_e) = _hinge_vectors(tess, metric, mode)
     # theta_E - theta_g in one atan2: both angles lie in [0, pi]
     diff = _safe_atan2(y_e * x_g - x_e * y_g, x_e * x_g + y_e * y_g)
     contrib = jnp.where(tess.simplex_mask[:, None], diff * size_g, 0.0)

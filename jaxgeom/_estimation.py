@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._checks import check_choice
-from ._graph import Tessellation, neighbor_coord_displacements, padded_points
+from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, padded_points
 from ._metric import emergent_metric
 
 GRADIENT_METHODS = ("wls", "fd")
@@ -53,13 +53,13 @@ class EstimateInfo(NamedTuple):
     n_over_capacity: Int[Array, ""]
 
 
-def _stencil(tess: Tessellation, values):
-    """Per walker: neighbour displacements (N, K, d), value differences (N, K), usable mask."""
-    dx = jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+def _value_differences(tess: Tessellation, values):
+    """Per walker: neighbour value differences (N, K) (0 where unusable) and the usable mask
+    (real neighbour with a finite value difference)."""
     vals = jnp.concatenate([values, jnp.full((1,), jnp.nan, values.dtype)])
     dv = vals[tess.neighbors] - values[:, None]
     usable = tess.neighbor_mask & jnp.isfinite(dv)
-    return dx, jnp.where(usable, dv, 0.0), usable
+    return jnp.where(usable, dv, 0.0), usable
 
 
 def _weights(dx, usable, weighting: str):
@@ -122,7 +122,8 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
     if method == "wls" and order == 2:
         _, grad, info = _local_quadratic(tess, values)
         return (grad, info) if with_info else grad
-    dx, dv, usable = _stencil(tess, values)
+    dx = neighbor_displacements(tess)
+    dv, usable = _value_differences(tess, values)
     w = _weights(dx, usable, weighting)
     if method == "fd":
         sq = jnp.where(usable, jnp.sum(dx * dx, axis=-1), 1.0)
@@ -244,7 +245,7 @@ def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_inf
 def _local_quadratic(tess: Tessellation, values):
     """Local quadratic fits on the 1-ring, refit on the 2-ring where the 1-ring is too
     small or poorly conditioned: (hessian (N, d, d), gradient (N, d), info)."""
-    _, dv, usable = _stencil(tess, values)
+    dv, usable = _value_differences(tess, values)
     hess, grad, ok = _quadratic_fit(neighbor_coord_displacements(tess), dv, usable, RCOND_TWO_RING)
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
@@ -261,7 +262,8 @@ def _local_quadratic(tess: Tessellation, values):
 
 
 def _diagonal_hessian(tess: Tessellation, values):
-    dx, dv, usable = _stencil(tess, values)
+    dx = neighbor_displacements(tess)
+    dv, usable = _value_differences(tess, values)
     dist = jnp.where(usable, jnp.sqrt(jnp.sum(dx * dx, axis=-1)), jnp.inf)
     # A neighbour is only roughly on the axis: remove the off-axis linear part of its
     # value difference with the WLS gradient, else g_perp . dx_perp / h^2 pollutes V''.

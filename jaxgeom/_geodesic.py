@@ -7,12 +7,11 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse
 from jaxtyping import Array, Float
 from scipy.sparse.csgraph import dijkstra
 
 from ._checks import check_choice
-from ._graph import Tessellation
+from ._graph import Tessellation, padded_to_csr
 from ._metric import edge_lengths
 
 GEODESIC_METHODS = ("dijkstra", "bellman_ford")
@@ -60,10 +59,7 @@ def _check_sources(sources, n: int):
 
 
 def _dijkstra(tess: Tessellation, lengths, sources: np.ndarray) -> np.ndarray:
-    nbrs, w = np.asarray(tess.neighbors), np.asarray(lengths, dtype=np.float64)
-    rows, slots = np.nonzero(nbrs < tess.n_points)
-    graph = scipy.sparse.csr_matrix((w[rows, slots], (rows, nbrs[rows, slots])), shape=(tess.n_points,) * 2)
-    return dijkstra(graph, directed=False, indices=sources)
+    return dijkstra(padded_to_csr(tess.neighbors, lengths, tess.n_points), directed=False, indices=sources)
 
 
 def _candidates(dist, lengths, neighbors, symmetric: bool):

@@ -7,6 +7,8 @@ from typing import NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
+import scipy.sparse
 from jaxtyping import Array, Bool, Float, Int
 
 
@@ -106,19 +108,6 @@ def padded_points(points: Float[Array, "N d"]) -> Float[Array, "N1 d"]:
     return jnp.concatenate([points, jnp.zeros((1, points.shape[1]), points.dtype)], axis=0)
 
 
-def gather_points(tess: Tessellation, idx: Int[Array, "..."], shifts=None) -> Float[Array, "... d"]:
-    """Coordinates of walkers `idx` (sentinel gives 0), moved to their periodic image.
-
-    Gathers one coordinate at a time from a coordinate-major table, which is
-    about twice as fast as a row gather on CPU.
-    """
-    table = padded_points(tess.points).T  # (d, N + 1)
-    coords = jnp.stack([table[k][idx] for k in range(tess.dim)], axis=-1)
-    if shifts is not None:
-        coords = coords + shifts.astype(coords.dtype) * tess.box_lengths
-    return coords
-
-
 def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
     """x_j - x_i for every neighbour slot (periodic images applied); zero on padding."""
     return jnp.stack(neighbor_coord_displacements(tess), axis=-1)
@@ -137,6 +126,23 @@ def neighbor_coord_displacements(tess: Tessellation) -> list:
     return out
 
 
+def neighbor_distances(tess: Tessellation) -> Float[Array, "N K"]:
+    """Euclidean |x_j - x_i| for every neighbour slot; zero on padding."""
+    return jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
+
+
+def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
+    """Distance from each walker to its nearest neighbour (inf without neighbours)."""
+    return jnp.min(jnp.where(tess.neighbor_mask, neighbor_distances(tess), jnp.inf), axis=1)
+
+
+def padded_to_csr(neighbors, values, n: int):
+    """Host: a scipy CSR matrix with entry (i, neighbors[i, k]) = values[i, k] on real slots."""
+    nbrs, vals = np.asarray(neighbors), np.asarray(values, dtype=np.float64)
+    rows, slots = np.nonzero(nbrs < n)
+    return scipy.sparse.csr_matrix((vals[rows, slots], (rows, nbrs[rows, slots])), shape=(n, n))
+
+
 def simplex_coords(tess: Tessellation) -> tuple:
     """Simplex vertex coordinates, coordinate-major: d arrays (S, d + 1), periodic images applied.
 
@@ -153,10 +159,8 @@ def simplex_coords(tess: Tessellation) -> tuple:
 
 
 def simplex_vertices(tess: Tessellation) -> Float[Array, "S d1 d"]:
-    """Vertex coordinates of every simplex (periodic images applied)."""
-    if tess.simplices is None:
-        raise ValueError("this Tessellation has no simplices (a k-NN graph); use jaxgeom.delaunay")
-    return gather_points(tess, tess.simplices, tess.simplex_shifts)
+    """Vertex coordinates of every simplex (periodic images applied); `simplex_coords` stacked."""
+    return jnp.stack(simplex_coords(tess), axis=-1)
 
 
 def neighbor_any(tess: Tessellation, flags: Bool[Array, " N"]) -> Bool[Array, " N"]:

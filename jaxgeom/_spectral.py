@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int
 
 from ._checks import check_choice
 from ._delaunay import morton_order
-from ._graph import Tessellation, neighbor_coord_displacements
+from ._graph import Tessellation, nearest_neighbor_distances, neighbor_distances, padded_to_csr
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
 SPECTRAL_METHODS = ("scipy", "lobpcg")
@@ -57,9 +57,7 @@ class GraphLaplacian(eqx.Module):
 
     def to_scipy(self) -> scipy.sparse.csr_matrix:
         """The same operator as a scipy CSR matrix (host)."""
-        nbrs, w = np.asarray(self.neighbors), np.asarray(self.weights, dtype=np.float64)
-        rows, slots = np.nonzero(nbrs < self.n)
-        adj = scipy.sparse.csr_matrix((w[rows, slots], (rows, nbrs[rows, slots])), shape=(self.n, self.n))
+        adj = padded_to_csr(self.neighbors, self.weights, self.n)
         if not self.symmetric:
             adj = 0.5 * (adj + adj.T)
         s = scipy.sparse.diags(np.asarray(self.inv_sqrt_degree, dtype=np.float64))
@@ -69,10 +67,9 @@ class GraphLaplacian(eqx.Module):
 
 def mean_nearest_neighbor_distance(tess: Tessellation):
     """Mean over walkers of the distance to their nearest neighbour."""
-    dist = jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
-    nearest = jnp.min(jnp.where(tess.neighbor_mask, dist, jnp.inf), axis=1)
+    nearest = nearest_neighbor_distances(tess)
     ok = jnp.isfinite(nearest)
-    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.sum(ok).astype(dist.dtype)
+    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.sum(ok).astype(nearest.dtype)
 
 
 def check_length_scale(length_scale) -> None:
@@ -105,7 +102,7 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
         w = mask.astype(tess.points.dtype)
     else:
         scale = alpha * mean_nearest_neighbor_distance(tess) if length_scale is None else length_scale
-        sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
+        sq = neighbor_distances(tess) ** 2
         w = jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
     symmetric = tess.simplices is not None
     degree = jnp.sum(w, axis=1)

@@ -38,13 +38,13 @@ def test_linear_and_quadratic_fields_are_recovered_exactly(rng, d, graph):
 
 def test_quadratic_fit_gradient_rmse(rng):
     """The gradient of the local quadratic fit is exact on quadratics (the WLS gradient is not)."""
-    from jaxgeom._estimation import _quadratic_fit, _stencil
+    from jaxgeom._estimation import _quadratic_fit, _value_differences
 
     x = rng.random((800, 2))
     tess = jaxgeom.knn_graph(x, 12)
     h = np.array([[2.0, 0.5], [0.5, 1.0]])
     values = 0.5 * np.einsum("ni,ij,nj->n", x, h, x)
-    _, dv, usable = _stencil(tess, jnp.asarray(values))
+    dv, usable = _value_differences(tess, jnp.asarray(values))
     hess, grad, ok = _quadratic_fit(jaxgeom._graph.neighbor_coord_displacements(tess), dv, usable)
     assert np.asarray(ok).all()
     np.testing.assert_allclose(np.asarray(hess), np.broadcast_to(h, (800, 2, 2)), rtol=1e-9)
@@ -170,3 +170,4 @@ def test_plot_estimation_quality_writes_four_panels(tmp_path, rng):
     x = rng.normal(size=(300, 2))
     comparison = jaxgeom.compare_estimation_methods(jaxgeom.delaunay(x), x[:, 0] ** 2, eps_sigma=0.1)
     assert jaxgeom.plot_estimation_quality(comparison, tmp_path / "cmp.png").stat().st_size > 20_000
+
