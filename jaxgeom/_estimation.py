@@ -197,11 +197,18 @@ def _two_ring(tess: Tessellation, values, walkers):
     first = nbrs_pad[walkers]  # (F, m)
     second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, m*m)
     ring = jnp.concatenate([first, second], axis=1)
-    ring = jnp.where(ring == walkers[:, None], n, ring)
+    is_self = ring == walkers[:, None]
     table = padded_points(tess.points).T
     dxs = [table[k][ring] - table[k][walkers][:, None] for k in range(tess.dim)]
-    if tess.periodic:  # minimum image: a 2-ring spans far less than half a box in practice
-        dxs = [x - length * jnp.round(x / length) for x, length in zip(dxs, tess.box_lengths)]
+    if tess.neighbor_shifts is not None:  # compose the stored image shifts along i -> j -> k
+        shifts = jnp.concatenate([tess.neighbor_shifts[:, :width], jnp.zeros((1, width, tess.dim), jnp.int8)])
+        shifts = shifts.astype(jnp.int32)
+        s1 = shifts[walkers]  # (F, m, d)
+        s2 = (shifts[first] + s1[:, :, None, :]).reshape(walkers.shape[0], -1, tess.dim)
+        total = jnp.concatenate([s1, s2], axis=1)
+        dxs = [x + total[..., k].astype(x.dtype) * tess.box_lengths[k] for k, x in enumerate(dxs)]
+        is_self = is_self & jnp.all(total == 0, axis=-1)  # another image of i is a real point
+    ring = jnp.where(is_self, n, ring)
     vals = jnp.concatenate([values, jnp.full((1,), jnp.nan, values.dtype)])
     dv = vals[ring] - vals[walkers][:, None]
     usable = (ring < n) & jnp.isfinite(dv)

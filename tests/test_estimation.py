@@ -171,3 +171,34 @@ def test_plot_estimation_quality_writes_four_panels(tmp_path, rng):
     comparison = jaxgeom.compare_estimation_methods(jaxgeom.delaunay(x), x[:, 0] ** 2, eps_sigma=0.1)
     assert jaxgeom.plot_estimation_quality(comparison, tmp_path / "cmp.png").stat().st_size > 20_000
 
+
+def test_periodic_two_ring_uses_stored_image_shifts(rng):
+    """A periodic quadratic-in-image field: every walker's fit (2-ring ones included) is exact."""
+    x = rng.random((600, 2))
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
+    h = np.array([[1.5, 0.4], [0.4, -0.8]])
+    values = 0.5 * np.einsum("ni,ij,nj->n", x, h, x)
+    # the field is not periodic, so compare fits on walkers whose 2-ring stays inside the box
+    hess, info = jaxgeom.estimate_hessian(tess, values, with_info=True)
+    inner = np.all((x > 0.25) & (x < 0.75), axis=1)
+    assert bool(info.two_ring[inner].any()), "some inner walkers use the 2-ring"
+    rel = np.linalg.norm(np.asarray(hess)[inner] - h, axis=(1, 2)) / np.linalg.norm(h)
+    assert rel.max() < 1e-8
+
+
+def test_two_ring_displacements_compose_neighbour_displacements(rng):
+    """In a thin periodic box 2-ring steps exceed half the box, where minimum image fails."""
+    from jaxgeom._estimation import TWO_RING_WIDTH, _two_ring
+
+    lower, upper = np.zeros(2), np.array([3.0, 0.4])
+    x = lower + rng.random((14, 2)) * (upper - lower)
+    tess = jaxgeom.delaunay(x, box=(lower, upper), periodic=True)
+    walkers = jnp.arange(14, dtype=jnp.int32)
+    dxs, _, usable = _two_ring(tess, jnp.zeros(14), walkers)
+    got, usable = np.stack([np.asarray(d) for d in dxs], -1), np.asarray(usable)
+    m = min(tess.neighbors.shape[1], TWO_RING_WIDTH[2])
+    nbrs, disp = np.asarray(tess.neighbors)[:, :m], np.asarray(jaxgeom.neighbor_displacements(tess))[:, :m]
+    second = disp[:, :, None, :] + disp[np.minimum(nbrs, 13)]  # i -> j, then j -> k
+    expected = np.concatenate([disp, second.reshape(14, -1, 2)], axis=1)
+    assert np.abs(expected[usable][:, 1]).max() > 0.2, "some 2-ring step spans more than half the box"
+    np.testing.assert_allclose(got[usable], expected[usable], atol=1e-12)
