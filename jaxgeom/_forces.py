@@ -1,0 +1,150 @@
+"""The scutoidal viscous force: a row-normalized graph Laplacian on velocities (Definitions 834-835).
+
+F_i = nu * sum_j w_ij / sum_k w_ik * (v_j - v_i) over the neighbours listed in
+the Tessellation. Conservation (spec NOTES 4): for a symmetric weight (every
+mode on a Delaunay graph, without volume weighting) sum_i deg_i F_i = 0 and the
+degree-weighted velocity variance never increases; for any non-negative
+weights an explicit step with nu dt <= 1 makes each new velocity a convex
+combination of old ones. The plain mean velocity is NOT conserved.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._checks import check_choice
+from ._graph import Tessellation, neighbor_coord_displacements
+from ._metric import edge_sq_lengths
+from ._spectral import DEFAULT_ALPHA, check_length_scale
+
+VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
+# eps of w = 1 / (length + eps), relative to the mean nearest-neighbour length (NOTES 9: no
+# absolute regularisers). The chapter's absolute 1e-8 is this at unit spacing.
+INVERSE_DISTANCE_EPS = 1e-8
+
+
+def check_nonnegative(value, name: str) -> None:
+    """Host check of a physical parameter that must be >= 0 (tracers pass)."""
+    if value is None or isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value)
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"`{name}` must be a finite number >= 0; got {value}.")
+
+
+def _check_force_inputs(tess: Tessellation, velocities, mode: str, metric, volume_weights) -> None:
+    check_choice(mode, "mode", VISCOUS_MODES)
+    n, d = tess.points.shape
+    if jnp.shape(velocities) != (n, d):
+        raise ValueError(f"`velocities` must have shape (N, d) = {(n, d)} like tess.points; got {jnp.shape(velocities)}.")
+    if mode.startswith("metric") and metric is None:
+        raise ValueError(f"mode {mode!r} needs `metric` (an (N, d, d) array or a callable x -> g); "
+                         "pass one, or use mode 'kernel'/'inverse_distance' for Euclidean weights.")
+    if volume_weights is not None:
+        if jnp.shape(volume_weights) != (n,):
+            raise ValueError(f"`volume_weights` must have shape (N,) = {(n,)}; got {jnp.shape(volume_weights)}.")
+        if not isinstance(volume_weights, jax.core.Tracer) and np.any(np.asarray(volume_weights) < 0):
+            raise ValueError("`volume_weights` must be >= 0 (cell volumes); got negative entries.")
+
+
+def _safe_sqrt(sq, mask):
+    """sqrt on real slots, 0 on padding, with finite gradients everywhere."""
+    ok = mask & (sq > 0)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def _mean_nearest(lengths, mask):
+    """Mean over walkers with neighbours of their smallest edge length."""
+    nearest = jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
+    ok = jnp.isfinite(nearest)
+    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(lengths.dtype)
+
+
+def _inverse_length_weights(lengths, mask):
+    eps = INVERSE_DISTANCE_EPS * _mean_nearest(lengths, mask)
+    return jnp.where(mask, 1.0 / (lengths + eps), 0.0)
+
+
+def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
+                 alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+    """Raw edge weights w_ij of Definition 835, aligned with `tess.neighbors` (0 on padding)."""
+    mask = tess.neighbor_mask
+    dtype = tess.points.dtype
+    if mode == "uniform":
+        return mask.astype(dtype)
+    if mode.startswith("metric"):
+        sq = edge_sq_lengths(tess, metric, mode="diagonal" if mode == "metric_diagonal" else "full")
+        return _inverse_length_weights(_safe_sqrt(sq, mask), mask)
+    sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
+    lengths = _safe_sqrt(sq, mask)
+    if mode == "inverse_distance":
+        return _inverse_length_weights(lengths, mask)
+    scale = alpha * _mean_nearest(lengths, mask) if length_scale is None else length_scale
+    return jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
+
+
+def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
+                           volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+    """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0.
+
+    Non-finite volume weights (unbounded cells) drop the edge.
+    """
+    w = edge_weights(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
+    if volume_weights is not None:
+        vol = jnp.asarray(volume_weights, w.dtype)
+        vol = jnp.concatenate([jnp.where(jnp.isfinite(vol), vol, 0.0), jnp.zeros((1,), w.dtype)])
+        w = w * vol[tess.neighbors]
+    degree = jnp.sum(w, axis=1, keepdims=True)
+    return jnp.where(degree > 0, w / jnp.where(degree > 0, degree, 1.0), 0.0)
+
+
+def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Float[Array, "N d"]:
+    """nu * sum_j W~_ij (v_j - v_i), coordinate by coordinate (one 1-D gather each)."""
+    row_sum = jnp.sum(normalized_weights, axis=1)
+    cols = []
+    for k in range(velocities.shape[1]):
+        table = jnp.concatenate([velocities[:, k], jnp.zeros((1,), velocities.dtype)])
+        cols.append(jnp.sum(normalized_weights * table[tess.neighbors], axis=1) - row_sum * velocities[:, k])
+    return nu * jnp.stack(cols, axis=1)
+
+
+def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", length_scale=None, metric=None,
+                  volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N d"]:
+    """The scutoidal viscous force of Definition 834, O(N K).
+
+    **Arguments:**
+
+    - `tess`: Delaunay or k-NN [`jaxgeom.Tessellation`][] at the current positions.
+    - `velocities`: (N, d) walker velocities.
+    - `nu`: coupling strength nu >= 0 (a differentiable scalar).
+    - `mode`: edge weights w_ij (Definition 835): "uniform" (1), "kernel"
+      (exp(-|dx|^2 / (2 l^2))), "inverse_distance" (1 / (|dx| + eps)),
+      "metric_diagonal" (1 / (|dx|_diag(g_edge) + eps)), "metric_full"
+      (1 / (sqrt(dx^T g_edge dx) + eps)); eps = 1e-8 times the mean nearest-neighbour
+      length, g_edge as in [`jaxgeom.edge_lengths`][].
+    - `length_scale`: l of "kernel"; None = alpha * mean nearest-neighbour distance.
+    - `metric`: (N, d, d) array or callable x -> g; required by the metric modes.
+    - `volume_weights`: optional (N,) cell volumes V_j; weights become w_ij V_j
+      (edges to non-finite volumes are dropped). This breaks w_ij = w_ji.
+    - `alpha`: factor of the adaptive length rule (default 3).
+
+    **Returns:**
+
+    (N, d) forces; 0 for walkers without neighbours.
+    """
+    _check_force_inputs(tess, velocities, mode, metric, volume_weights)
+    check_nonnegative(nu, "nu")
+    check_length_scale(length_scale)
+    scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
+    return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), mode, scale, metric, volume_weights, alpha)
+
+
+@eqx.filter_jit
+def _viscous_force(tess, velocities, nu, mode, length_scale, metric, volume_weights, alpha):
+    w = row_normalized_weights(tess, mode=mode, length_scale=length_scale, metric=metric,
+                               volume_weights=volume_weights, alpha=alpha)
+    return apply_viscous(tess, w, velocities, nu)
