@@ -10,6 +10,9 @@ from ._curvature import deficit_angles as deficit_angles
 from ._curvature import region_average as region_average
 from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay
+from ._dynamics import OBSERVABLES as OBSERVABLES
+from ._dynamics import SwarmParams as SwarmParams
+from ._dynamics import SwarmState as SwarmState
 from ._estimation import EstimateInfo as EstimateInfo
 from ._estimation import estimate_gradient as estimate_gradient
 from ._estimation import estimate_hessian as estimate_hessian
@@ -29,6 +32,8 @@ from ._metric import metric_at_walkers as metric_at_walkers
 from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
 from ._plots import plot_estimation_quality as plot_estimation_quality
+from ._simulate import init_swarm as init_swarm
+from ._simulate import simulate as simulate
 from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap

@@ -32,6 +32,10 @@ MORTON_MIN_POINTS = 30_000
 SKIN_ATTEMPTS = 8
 
 
+class CapacityError(ValueError):
+    """A graph does not fit the capacities it was pinned to (grow them and rebuild)."""
+
+
 class RawGraph(NamedTuple):
     """What Qhull gives, in original walker indices (host numpy arrays)."""
 
@@ -287,7 +291,7 @@ def _resolve_capacity(raw: RawGraph, n: int, d: int, capacity, periodic: bool) -
         return Capacity(simplices, bucket_neighbors(need.neighbors))
     pinned = _as_capacity(capacity)
     if pinned.simplices < need.simplices or pinned.neighbors < need.neighbors:
-        raise ValueError(
+        raise CapacityError(
             f"`capacity` {tuple(pinned)} is too small for this graph: it needs simplices >= "
             f"{need.simplices} and neighbors >= {need.neighbors}. Pass capacity=None to size it "
             "automatically, or a larger Capacity."

@@ -89,17 +89,25 @@ def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None,
 
 def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
                            volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
-    """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0.
-
-    Non-finite volume weights (unbounded cells) drop the edge.
-    """
+    """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0."""
     w = edge_weights(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
-    if volume_weights is not None:
-        vol = jnp.asarray(volume_weights, w.dtype)
-        vol = jnp.concatenate([jnp.where(jnp.isfinite(vol), vol, 0.0), jnp.zeros((1,), w.dtype)])
-        w = w * vol[tess.neighbors]
-    degree = jnp.sum(w, axis=1, keepdims=True)
-    return jnp.where(degree > 0, w / jnp.where(degree > 0, degree, 1.0), 0.0)
+    return normalize_rows(with_volume_weights(tess, w, volume_weights))[0]
+
+
+def with_volume_weights(tess: Tessellation, weights, volume_weights):
+    """w_ij V_j; edges to non-finite volumes (unbounded cells) are dropped."""
+    if volume_weights is None:
+        return weights
+    vol = jnp.asarray(volume_weights, weights.dtype)
+    vol = jnp.concatenate([jnp.where(jnp.isfinite(vol), vol, 0.0), jnp.zeros((1,), weights.dtype)])
+    return weights * vol[tess.neighbors]
+
+
+def normalize_rows(weights):
+    """(W~, degree): weights divided by their row sums (rows summing to 0 stay 0)."""
+    degree = jnp.sum(weights, axis=1)
+    safe = jnp.where(degree > 0, degree, 1.0)[:, None]
+    return jnp.where(degree[:, None] > 0, weights / safe, 0.0), degree
 
 
 def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Float[Array, "N d"]:

@@ -1,0 +1,359 @@
+"""Swarm dynamics: SwarmState / SwarmParams pytrees, one Langevin + viscous + cloning step.
+
+The integrator is the symmetric splitting B A V O V A B of underdamped Langevin
+dynamics (BAOAB of Leimkuhler and Matthews with the viscous force inside):
+
+- B: v += dt/2 * (-grad V(x))            (fitness force by autodiff)
+- A: x += dt/2 * v
+- V: v += dt/2 * F_visc(v)               (explicit; convex combination when nu dt <= 2)
+- O: v = c v + sqrt(T (1 - c^2)) sigma xi,  c = exp(-gamma dt), sigma sigma^T = D
+- V, A, B as above.
+
+D = I, or D = g^-1 with g the Hessian metric (the adaptive gas, `anisotropic=True`);
+sigma = L^-T for the Cholesky factor g = L L^T. With position-dependent D the O
+step omits the Ito drift T div D, so the adaptive gas samples exp(-V/T) only up
+to that term (as the chapter's algorithm does).
+
+Cloning (the Fractal Gas rule): each walker picks a random companion c and gets
+the virtual reward VR = r^a d^b from its relativized reward r (from -V) and
+relativized distance d to another random walker. Walker i clones with
+probability clone_rate * clip((VR_c - VR_i) / VR_i, 0, 1), taking the
+companion's position (plus a jitter of clone_jitter mean spacings) and velocity.
+Dead walkers (non-finite fitness) always clone.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from ._checks import check_choice
+from ._forces import VISCOUS_MODES, apply_viscous, check_nonnegative, edge_weights
+from ._graph import Tessellation
+from ._metric import HESSIAN_FLOORS, hessian_metric
+from ._spectral import DEFAULT_ALPHA
+
+COND_LIMIT = 1e6  # chapter: raise eps_Sigma 10x when cond(g) exceeds this
+EPS_SIGMA_RAISE = 10.0
+
+
+def _leaf(value):
+    return None if value is None else jnp.asarray(value)
+
+
+class SwarmParams(eqx.Module):
+    """Physical parameters of the swarm (float fields are differentiable leaves).
+
+    **Fields:**
+
+    - `dt` (> 0), `gamma` (friction >= 0), `temperature` (>= 0), `nu` (viscous
+      coupling >= 0), `eps_sigma` (Hessian-metric floor >= 0).
+    - `length_scale`: viscous kernel width l; None = `alpha` times the mean
+      nearest-neighbour distance, measured on the initial swarm (or every step
+      with `adapt_length_scale=True`).
+    - `alpha`: factor of that rule (chapter: 2-5; default 3).
+    - `clone_rate` in [0, 1]: scales the cloning probability; `clone_jitter`:
+      cloned walkers land this many mean spacings from their companion.
+    - `reward_power`, `distance_power`: exponents a, b of the virtual reward.
+    - `nu_initial`: start of the nu annealing schedule (chapter: 0.01 -> nu).
+    - static: `mode` (viscous weights, `VISCOUS_MODES`), `volume_weighting`,
+      `anisotropic` (D = g^-1), `cloning`, `anneal_nu` (nu linear from
+      `nu_initial` to `nu` over the run), `adapt_length_scale`,
+      `adapt_eps_sigma` (x10 whenever max cond(g) > 1e6), `floor` ("clip"/"softabs").
+    """
+
+    dt: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.01)
+    gamma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    temperature: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
+    nu: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
+    eps_sigma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
+    length_scale: Float[Array, ""] | None = eqx.field(converter=_leaf, default=None)
+    alpha: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=DEFAULT_ALPHA)
+    clone_rate: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
+    clone_jitter: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
+    reward_power: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    distance_power: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    nu_initial: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.01)
+    mode: str = eqx.field(static=True, default="kernel")
+    volume_weighting: bool = eqx.field(static=True, default=False)
+    anisotropic: bool = eqx.field(static=True, default=False)
+    cloning: bool = eqx.field(static=True, default=True)
+    anneal_nu: bool = eqx.field(static=True, default=False)
+    adapt_length_scale: bool = eqx.field(static=True, default=False)
+    adapt_eps_sigma: bool = eqx.field(static=True, default=False)
+    floor: str = eqx.field(static=True, default="clip")
+
+    def __check_init__(self):
+        check_choice(self.mode, "mode", VISCOUS_MODES)
+        check_choice(self.floor, "floor", HESSIAN_FLOORS)
+        for name in ("gamma", "temperature", "nu", "eps_sigma", "clone_rate", "nu_initial"):
+            check_nonnegative(getattr(self, name), name)
+        for name in ("dt", "alpha", "length_scale", "clone_jitter"):  # jitter 0 would duplicate walkers
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
+                raise ValueError(f"`{name}` must be > 0; got {value}.")
+
+    @property
+    def needs_metric(self) -> bool:
+        return self.anisotropic or self.mode.startswith("metric") or self.adapt_eps_sigma
+
+
+class SwarmState(eqx.Module):
+    """Everything that evolves, as one pytree (carried through `jax.lax.scan`).
+
+    **Fields:**
+
+    - `positions`, `velocities`: (N, d); `fitness`: (N,) V at the positions;
+      `force`: (N, d) -grad V there (reused by the next step's first kick).
+    - `alive`: (N,) finite fitness; `cloned`: (N,) cloned in the latest step.
+    - `volumes`: (N,) Voronoi volumes at the positions (NaN for unbounded
+      cells, everywhere on a k-NN graph); `interior`: (N,) tier 2 at that time.
+      Both serve the Raychaudhuri expansion and the volume weighting.
+    - `key`: PRNG key; `tess`: the current tessellation (its `points` follow
+      `positions` between rebuilds); `step`: int32 step count.
+    - `spacing0`: mean nearest-neighbour distance of the initial swarm.
+    - `eps_factor`: current eps_Sigma / params.eps_sigma (10^raises).
+    """
+
+    positions: Float[Array, "N d"]
+    velocities: Float[Array, "N d"]
+    fitness: Float[Array, " N"]
+    force: Float[Array, "N d"]
+    alive: Bool[Array, " N"]
+    cloned: Bool[Array, " N"]
+    volumes: Float[Array, " N"]
+    interior: Bool[Array, " N"]
+    key: PRNGKeyArray
+    tess: Tessellation
+    step: Int[Array, ""]
+    spacing0: Float[Array, ""]
+    eps_factor: Float[Array, ""]
+
+
+OBSERVABLES = ("mean_fitness", "best_fitness", "velocity_variance", "degree_weighted_variance", "mean_ricci",
+               "volume_distortion", "mean_shape_distortion", "mean_expansion", "n_clones", "nu", "eps_sigma")
+GEOMETRIC_OBSERVABLES = ("mean_ricci", "volume_distortion", "mean_shape_distortion", "mean_expansion")
+
+
+def fitness_and_force(fitness, x):
+    """V and -grad V at every walker (autodiff); the force is 0 where V is not finite."""
+    values, grads = jax.vmap(jax.value_and_grad(fitness))(x)
+    ok = jnp.isfinite(values)[:, None] & jnp.all(jnp.isfinite(grads), axis=1, keepdims=True)
+    return values, jnp.where(ok, -grads, 0.0)
+
+
+def metric_field(fitness, params: SwarmParams, eps_sigma, x):
+    """(N, d, d) Hessian metric g = floor(H) + eps_Sigma I at the walkers."""
+    return jax.vmap(hessian_metric(fitness, eps_sigma, floor=params.floor))(x)
+
+
+def cell_volumes(tess: Tessellation):
+    """(volumes, interior): Voronoi volumes and tier-2 flags; NaN volumes on a k-NN graph."""
+    from ._volumes import voronoi_volumes
+
+    if tess.simplices is None:
+        return jnp.full(tess.n_points, jnp.nan, tess.points.dtype), tess.interior
+    return voronoi_volumes(tess), tess.interior
+
+
+def current_nu(params: SwarmParams, progress):
+    """nu, or its linear annealing schedule nu_initial -> nu over the run (progress in [0, 1])."""
+    if not params.anneal_nu:
+        return params.nu
+    return params.nu_initial + (params.nu - params.nu_initial) * progress
+
+
+def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
+    from ._spectral import mean_nearest_neighbor_distance
+
+    if params.length_scale is not None:
+        return params.length_scale
+    spacing = mean_nearest_neighbor_distance(tess) if params.adapt_length_scale else state.spacing0
+    return params.alpha * spacing
+
+
+def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, g):
+    """Row-normalized weights and the degree (sum of raw weights) used by both V half-steps."""
+    from ._forces import normalize_rows, with_volume_weights
+
+    w = edge_weights(tess, mode=params.mode, length_scale=viscous_length(params, state, tess), metric=g)
+    if params.volume_weighting:
+        sqrt_det = 1.0 if g is None else jnp.sqrt(jnp.maximum(jnp.linalg.det(g), 0.0))
+        w = with_volume_weights(tess, w, state.volumes * sqrt_det)  # Riemannian volumes (Def. 833)
+    return normalize_rows(w)
+
+
+def ornstein_uhlenbeck(params: SwarmParams, v, g, key):
+    """Exact O step v -> c v + sqrt(T (1 - c^2)) sigma xi with sigma sigma^T = D (I or g^-1)."""
+    c = jnp.exp(-params.gamma * params.dt)
+    xi = jax.random.normal(key, v.shape, v.dtype)
+    if params.anisotropic:
+        chol = jnp.linalg.cholesky(g)  # g = L L^T, so L^-T xi has covariance g^-1
+        xi = jax.vmap(lambda low, e: jax.scipy.linalg.solve_triangular(low, e, trans="T", lower=True))(chol, xi)
+    return c * v + jnp.sqrt(params.temperature * (1.0 - c * c)) * xi
+
+
+def relativize(values, mask):
+    """Fractal Gas relativization: standardize, then z -> 1 + log(1 + z) (z > 0) or exp(z)."""
+    count = jnp.maximum(jnp.sum(mask), 1).astype(values.dtype)
+    safe = jnp.where(mask, values, 0.0)
+    mean = jnp.sum(safe) / count
+    std = jnp.sqrt(jnp.sum(jnp.where(mask, (safe - mean) ** 2, 0.0)) / count)
+    z = (safe - mean) / jnp.where(std > 0, std, 1.0)
+    return jnp.where(mask, jnp.where(z > 0, 1.0 + jnp.log1p(jnp.where(z > 0, z, 0.0)), jnp.exp(jnp.minimum(z, 0.0))),
+                     0.0)
+
+
+def random_partner(key, n: int):
+    """A uniformly random other walker for every walker (never itself)."""
+    pick = jax.random.randint(key, (n,), 0, n - 1, dtype=jnp.int32)
+    return pick + (pick >= jnp.arange(n, dtype=jnp.int32)).astype(jnp.int32)
+
+
+def clone_decisions(params: SwarmParams, state: SwarmState, key):
+    """(companion, clones): each walker's companion and whether it clones onto it."""
+    n = state.positions.shape[0]
+    k_comp, k_other, k_draw = jax.random.split(key, 3)
+    companion, other = random_partner(k_comp, n), random_partner(k_other, n)
+    alive = state.alive
+    dist = jnp.sqrt(jnp.sum((state.positions - state.positions[other]) ** 2, axis=1))
+    reward = relativize(-jnp.where(alive, state.fitness, 0.0), alive)
+    vr = reward**params.reward_power * relativize(dist, alive) ** params.distance_power
+    ratio = (vr[companion] - vr) / jnp.where(vr > 0, vr, 1.0)
+    prob = jnp.where(alive, params.clone_rate * jnp.clip(ratio, 0.0, 1.0), 1.0)
+    clones = (jax.random.uniform(k_draw, (n,), vr.dtype) < prob) & alive[companion]
+    return companion, clones
+
+
+def apply_clones(params: SwarmParams, companion, clones, x, v, spacing, key):
+    """Cloned walkers take their companion's velocity and a jittered copy of its position."""
+    jitter = params.clone_jitter * spacing * jax.random.normal(key, x.shape, x.dtype)
+    return (jnp.where(clones[:, None], x[companion] + jitter, x),
+            jnp.where(clones[:, None], v[companion], v))
+
+
+def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone) -> SwarmState:
+    """One B A V O V A B step (module docstring) on the state's graph, plus cloning
+    when `do_clone` (cloned walkers jump after the second drift, before the last kick)."""
+    from ._spectral import mean_nearest_neighbor_distance
+
+    half = 0.5 * params.dt
+    key, k_noise, k_clone, k_jitter = jax.random.split(state.key, 4)
+    v = state.velocities + half * state.force
+    x = state.positions + half * v
+    tess = eqx.tree_at(lambda t: t.points, state.tess, x)
+    eps = params.eps_sigma * state.eps_factor
+    g = metric_field(fitness, params, eps, x) if params.needs_metric else None
+    w, _ = viscous_weights(params, state, tess, g)
+    nu = current_nu(params, progress)
+    v = v + half * apply_viscous(tess, w, v, nu)
+    v = ornstein_uhlenbeck(params, v, g, k_noise)
+    v = v + half * apply_viscous(tess, w, v, nu)
+    x = x + half * v
+    clones = jnp.zeros(x.shape[0], bool)
+    if params.cloning:
+        companion, clones = clone_decisions(params, state, k_clone)
+        clones = clones & do_clone
+        x, v = apply_clones(params, companion, clones, x, v, mean_nearest_neighbor_distance(tess), k_jitter)
+    values, force = fitness_and_force(fitness, x)
+    v = v + half * force
+    return eqx.tree_at(
+        lambda s: (s.positions, s.velocities, s.fitness, s.force, s.alive, s.cloned, s.key, s.tess, s.step,
+                   s.eps_factor),
+        state,
+        (x, v, values, force, jnp.isfinite(values), clones, key, eqx.tree_at(lambda t: t.points, tess, x),
+         state.step + 1, _raised_eps_factor(params, state, g)),
+    )
+
+
+def _raised_eps_factor(params: SwarmParams, state: SwarmState, g):
+    """The chapter's rule: eps_Sigma x10 for the next step when max cond(g) > 1e6."""
+    if not params.adapt_eps_sigma:
+        return state.eps_factor
+    lam = jnp.linalg.eigvalsh(jax.lax.stop_gradient(g))
+    cond = jnp.max(lam[:, -1] / jnp.where(lam[:, 0] > 0, lam[:, 0], jnp.nan))
+    return jnp.where(cond > COND_LIMIT, EPS_SIGMA_RAISE, 1.0) * state.eps_factor
+
+
+def _finite_mean(values, mask):
+    ok = mask & jnp.isfinite(values)
+    return jnp.sum(jnp.where(ok, values, 0.0)) / jnp.sum(ok).astype(values.dtype)
+
+
+def _variance(v, weights):
+    mean = jnp.sum(weights[:, None] * v, axis=0) / jnp.sum(weights)
+    return jnp.sum(weights * jnp.sum((v - mean) ** 2, axis=1)) / jnp.sum(weights)
+
+
+class _View(eqx.Module):
+    """What an observable reads: the state before this observation (`old`, for the
+    expansion) and after refreshing its cell volumes (`new`)."""
+
+    fitness: object = eqx.field(static=True)
+    params: SwarmParams
+    old: SwarmState
+    new: SwarmState
+    progress: Float[Array, ""]
+
+
+def _mean_ricci(s: _View):
+    from ._curvature import region_average, ricci_scalar
+    from ._metric import riemannian_volumes
+
+    g = metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+    ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
+    return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+
+
+def _mean_expansion(s: _View):
+    from ._cells import raychaudhuri_expansion
+
+    valid = s.old.interior & s.new.interior & ~s.new.cloned
+    theta = raychaudhuri_expansion(s.old.volumes, s.new.volumes, s.params.dt, valid=valid)
+    return _finite_mean(theta, valid)
+
+
+def _degree_weighted_variance(s: _View):
+    w = edge_weights(s.new.tess, mode=s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess),
+                     metric=metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+                     if s.params.mode.startswith("metric") else None)
+    return _variance(s.new.velocities, jnp.sum(w, axis=1))
+
+
+def _observers():
+    from ._cells import shape_distortion, volume_distortion
+
+    return {
+        "mean_fitness": lambda s: _finite_mean(s.new.fitness, s.new.alive),
+        "best_fitness": lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf)),
+        "velocity_variance": lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness)),
+        "degree_weighted_variance": _degree_weighted_variance,
+        "mean_ricci": _mean_ricci,
+        "volume_distortion": lambda s: volume_distortion(s.new.tess, s.new.volumes),
+        "mean_shape_distortion": lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior),
+        "mean_expansion": _mean_expansion,
+        "n_clones": lambda s: jnp.sum(s.new.cloned).astype(s.new.fitness.dtype),
+        "nu": lambda s: current_nu(s.params, s.progress),
+        "eps_sigma": lambda s: s.params.eps_sigma * s.new.eps_factor,
+    }
+
+
+def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple[str, ...]):
+    """Refresh the state's cell volumes on its current graph and measure `observe`.
+
+    Returns `(state, {name: scalar})`. Geometric observables are NaN on a k-NN graph.
+    """
+    needs_cells = params.volume_weighting or any(name in GEOMETRIC_OBSERVABLES for name in observe)
+    new = state
+    if needs_cells:
+        volumes, interior = cell_volumes(state.tess)
+        new = eqx.tree_at(lambda s: (s.volumes, s.interior), state, (volumes, interior))
+    view, observers = _View(fitness, params, state, new, jnp.asarray(progress)), _observers()
+    dtype = state.positions.dtype
+    nan = jnp.asarray(jnp.nan, dtype)
+    geometric = state.tess.simplices is not None
+    return new, {name: nan if name in GEOMETRIC_OBSERVABLES and not geometric
+                 else jnp.asarray(observers[name](view), dtype) for name in observe}

@@ -1,0 +1,204 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxgeom
+from jaxgeom._dynamics import ornstein_uhlenbeck, relativize
+from jaxgeom._landscapes import quadratic, rastrigin
+
+
+def bowl(x):
+    return 0.5 * (x[0] ** 2 + 2.0 * x[1] ** 2)
+
+
+def flat(x):
+    return 0.0 * jnp.sum(x)
+
+
+def swarm(rng, n=300, lo=-1.0, hi=1.0, dtype=np.float64, fitness=bowl, **kwargs):
+    x = rng.uniform(lo, hi, (n, 2)).astype(dtype)
+    return jaxgeom.init_swarm(fitness, x, key=3, **kwargs)
+
+
+def test_same_seed_gives_bitwise_identical_runs(rng):
+    state = swarm(rng)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
+    a, ha = jaxgeom.simulate(bowl, state, params, n_steps=15)
+    b, hb = jaxgeom.simulate(bowl, state, params, n_steps=15)
+    assert np.array_equal(np.asarray(a.positions), np.asarray(b.positions))
+    assert np.array_equal(np.asarray(a.velocities), np.asarray(b.velocities))
+    for name in jaxgeom.OBSERVABLES:
+        assert np.array_equal(ha[name], hb[name], equal_nan=True)
+    assert ha["n_clones"].sum() > 0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_float32_and_float64_both_run(rng, dtype):
+    state = swarm(rng, dtype=dtype)
+    final, history = jaxgeom.simulate(bowl, state, jaxgeom.SwarmParams(dt=0.05), n_steps=5, rebuild_every=2)
+    assert final.positions.dtype == dtype and final.velocities.dtype == dtype
+    assert np.isfinite(final.positions).all()
+    assert all(history[name].shape == (6,) for name in jaxgeom.OBSERVABLES)
+    assert np.isfinite(history["mean_ricci"]).all() and np.isfinite(history["mean_expansion"][1:]).all()
+
+
+def test_no_recompilation_after_warm_up(rng):
+    traces = []
+
+    def counted(x):
+        traces.append(1)  # runs only while JAX traces
+        return bowl(x)
+
+    state = swarm(rng, n=400, fitness=counted)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.3, nu=0.2, clone_rate=0.3)
+    state, _ = jaxgeom.simulate(counted, state, params, n_steps=3)
+    before = len(traces)
+    final, history = jaxgeom.simulate(counted, state, params, n_steps=100)
+    assert len(traces) == before
+    assert history["n_reallocations"] == 0 and history["n_clones"].sum() > 0
+    assert not bool(final.tess.overflow)
+
+
+def test_cloning_improves_the_best_fitness_on_rastrigin(rng):
+    state = jaxgeom.init_swarm(rastrigin, rng.uniform(2.0, 5.0, (500, 2)), key=0)
+    runs = {}
+    for cloning in (True, False):
+        params = jaxgeom.SwarmParams(dt=0.02, gamma=2.0, temperature=1.0, nu=0.05, clone_rate=0.5, cloning=cloning)
+        runs[cloning] = jaxgeom.simulate(rastrigin, state, params, n_steps=150,
+                                         observe=("best_fitness", "mean_fitness", "n_clones"))[1]
+    history = runs[True]
+    assert history["best_fitness"][-1] < 0.6 * history["best_fitness"][0]
+    assert history["n_clones"].sum() > 100 and runs[False]["n_clones"].sum() == 0
+    # cloning moves the swarm into the good wells: far lower mean fitness than Langevin alone
+    assert history["mean_fitness"][-1] < 0.5 * runs[False]["mean_fitness"][-1]
+
+
+def test_viscous_only_dynamics_reach_a_common_velocity(rng):
+    state = swarm(rng, n=200, fitness=flat, velocities=rng.normal(size=(200, 2)))
+    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, mode="uniform", cloning=False)
+    final, history = jaxgeom.simulate(flat, state, params, n_steps=600, rebuild_every=10)
+    variance = history["velocity_variance"]
+    assert variance[-1] < 1e-5 * variance[0] and variance[-1] < 0.1 * variance[300]  # still decaying geometrically
+    assert np.all(np.diff(history["degree_weighted_variance"][:10]) <= 1e-12)
+
+
+def test_langevin_equipartition_without_viscosity(rng):
+    state = swarm(rng, n=1000)
+    params = jaxgeom.SwarmParams(dt=0.05, gamma=1.0, temperature=0.5, nu=0.0, cloning=False)
+    _, history = jaxgeom.simulate(bowl, state, params, n_steps=400, rebuild_every=50,
+                                  observe=("velocity_variance", "mean_fitness"))
+    # <|v - mean v|^2> = d T; <V> = d T / 2 for a quadratic V (BAOAB is exact-ish at this dt)
+    np.testing.assert_allclose(history["velocity_variance"][200:].mean(), 2 * 0.5, rtol=0.03)
+    np.testing.assert_allclose(history["mean_fitness"][200:].mean(), 0.5, rtol=0.05)
+
+
+def test_anisotropic_noise_has_covariance_T_inverse_metric():
+    g = jnp.array([[4.0, 1.0], [1.0, 2.0]])
+    params = jaxgeom.SwarmParams(dt=1.0, gamma=50.0, temperature=0.3, anisotropic=True)
+    v = ornstein_uhlenbeck(params, jnp.zeros((200_000, 2)), jnp.broadcast_to(g, (200_000, 2, 2)),
+                           jax.random.PRNGKey(0))
+    np.testing.assert_allclose(np.cov(np.asarray(v).T), 0.3 * np.linalg.inv(np.asarray(g)), atol=3e-3)
+
+
+def test_relativize_is_monotone_and_positive():
+    values = jnp.array([3.0, -1.0, 0.5, 10.0, 2.0])
+    r = np.asarray(relativize(values, jnp.ones(5, bool)))
+    assert np.all(r > 0) and np.array_equal(np.argsort(r), np.argsort(np.asarray(values)))
+
+
+def test_schedules(rng):
+    stiff = lambda x: 0.5 * (1e7 * x[0] ** 2 + x[1] ** 2)  # noqa: E731
+    state = jaxgeom.init_swarm(stiff, rng.uniform(-1e-3, 1e-3, (200, 2)) * [1, 1000], key=0)
+    params = jaxgeom.SwarmParams(dt=1e-4, nu=0.1, nu_initial=0.01, eps_sigma=1e-3, anneal_nu=True,
+                                 adapt_eps_sigma=True, adapt_length_scale=True, cloning=False)
+    _, history = jaxgeom.simulate(stiff, state, params, n_steps=6, observe=("nu", "eps_sigma"))
+    np.testing.assert_allclose(history["nu"][:6], np.linspace(0.01, 0.1, 6), rtol=1e-12)
+    # cond(g) = (1e7 + eps) / (1 + eps) > 1e6 until eps ~ 9: raised 10x per step up to 10
+    np.testing.assert_allclose(history["eps_sigma"][:6], [1e-3, 1e-2, 1e-1, 1.0, 10.0, 10.0], rtol=1e-12)
+
+
+def test_callback_rebuild_matches_host_rebuild(rng):
+    state = swarm(rng, n=200)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
+    a, ha = jaxgeom.simulate(bowl, state, params, n_steps=8)
+    b, hb = jaxgeom.simulate(bowl, state, params, n_steps=8, rebuild="callback")
+    np.testing.assert_allclose(np.asarray(b.positions), np.asarray(a.positions), atol=1e-10)
+    assert np.array_equal(np.asarray(a.tess.neighbors), np.asarray(b.tess.neighbors))
+    np.testing.assert_allclose(np.asarray(hb["mean_ricci"]), ha["mean_ricci"], rtol=1e-8)
+
+
+def test_gradient_through_a_whole_simulation_matches_finite_differences(rng):
+    x = rng.uniform(-1, 1, (120, 2))
+    state = jaxgeom.init_swarm(quadratic, x, rng.normal(size=(120, 2)), key=1)
+
+    def loss(theta):
+        params = jaxgeom.SwarmParams(dt=0.05, temperature=0.1, nu=theta[0], eps_sigma=theta[1],
+                                     mode="metric_full", anisotropic=True, cloning=False)
+        _, history = jaxgeom.simulate(quadratic, state, params, n_steps=10, rebuild="callback",
+                                      observe=("mean_fitness",))
+        return history["mean_fitness"][-1]
+
+    theta = jnp.array([0.3, 0.5])
+    grad = jax.grad(loss)(theta)
+    h = 1e-6
+    fd = [(loss(theta.at[i].add(h)) - loss(theta.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(fd), rtol=1e-5)
+    assert abs(float(grad[0])) > 0 and abs(float(grad[1])) > 0
+
+
+@pytest.mark.parametrize("rebuild", ["host", "callback"])
+def test_capacity_overflow_reallocates_instead_of_truncating(rng, rebuild):
+    x = rng.uniform(-1, 1, (300, 2))
+    tess = jaxgeom.delaunay(x)
+    tight = jaxgeom.Capacity(tess.capacity.simplices, int(np.asarray(tess.degree).max()))
+    state = jaxgeom.init_swarm(bowl, x, key=0, capacity=tight)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.3, clone_rate=1.0, clone_jitter=0.05)
+    final, history = jaxgeom.simulate(bowl, state, params, n_steps=20, rebuild=rebuild)
+    assert final.tess.capacity.neighbors > tight.neighbors
+    assert not bool(final.tess.overflow)
+    rebuilt = jaxgeom.delaunay(np.asarray(final.positions))
+    assert np.array_equal(np.sort(np.asarray(rebuilt.neighbors), 1)[:, :8],
+                          np.sort(np.asarray(final.tess.neighbors), 1)[:, :8])
+    if rebuild == "host":
+        assert history["n_reallocations"] >= 1
+
+
+def test_knn_swarm_in_4d(rng):
+    f = lambda x: jnp.sum(x**2)  # noqa: E731
+    state = jaxgeom.init_swarm(f, rng.normal(size=(300, 4)), graph="knn", k=10)
+    final, history = jaxgeom.simulate(f, state, jaxgeom.SwarmParams(dt=0.05), n_steps=5)
+    assert np.isnan(history["mean_ricci"]).all() and np.isfinite(history["degree_weighted_variance"]).all()
+    assert final.tess.neighbors.shape == state.tess.neighbors.shape
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(mode="gauss"), ValueError, "unknown mode 'gauss'; valid values are 'uniform'"),
+    (dict(nu=-1.0), ValueError, "`nu` must be a finite number >= 0"),
+    (dict(dt=-0.1), ValueError, "`dt` must be > 0"),
+    (dict(temperature=-1.0), ValueError, "`temperature` must be a finite number >= 0"),
+    (dict(eps_sigma=-0.1), ValueError, "`eps_sigma` must be a finite number >= 0"),
+])
+def test_bad_params(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        jaxgeom.SwarmParams(**kwargs)
+
+
+def test_bad_swarm_input(rng):
+    x = rng.uniform(-1, 1, (50, 2))
+    with pytest.raises(TypeError, match="must return a scalar per walker"):
+        jaxgeom.init_swarm(lambda p: p * 2.0, x)
+    with pytest.raises(ValueError, match="`fitness` is NaN or inf at 1 initial walker"):
+        jaxgeom.init_swarm(lambda p: jnp.where(p[0] == x[7, 0], jnp.nan, 1.0), x)
+    with pytest.raises(ValueError, match=r"`velocities` must be a float array of shape \(N, d\)"):
+        jaxgeom.init_swarm(bowl, x, np.zeros((50, 3)))
+    with pytest.raises(ValueError, match="`positions` has NaN or inf"):
+        jaxgeom.init_swarm(bowl, np.where(np.arange(50)[:, None] == 3, np.nan, x))
+    state = jaxgeom.init_swarm(bowl, x)
+    params = jaxgeom.SwarmParams()
+    with pytest.raises(ValueError, match="`rebuild_every` must be an integer >= 1"):
+        jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild_every=0)
+    with pytest.raises(ValueError, match="unknown observable 'ricci'; valid values are 'mean_fitness'"):
+        jaxgeom.simulate(bowl, state, params, n_steps=5, observe=("ricci",))
+    with pytest.raises(ValueError, match="unknown rebuild 'device'"):
+        jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild="device")
