@@ -76,3 +76,75 @@ def _error_by_neighbour_count(points, values, reference, valid):
         err = _relative_error(est, reference)[valid]
         medians.append(float(np.nanmedian(err)))
     return ks, medians
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    fig.clf()
+    return path
+
+
+def _landscape_grid(fitness, lo, hi, d: int):
+    import jax
+    import jax.numpy as jnp
+
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 120), np.linspace(lo[1], hi[1], 120))
+    plane = np.zeros((gx.size, d))
+    plane[:, 0], plane[:, 1] = gx.ravel(), gy.ravel()
+    return gx, gy, np.asarray(jax.vmap(fitness)(jnp.asarray(plane))).reshape(gx.shape)
+
+
+def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
+    """Walkers coloured by their Ricci scalar over the contours of V (first two coordinates,
+    other coordinates 0), one panel per snapshot `{"step", "positions", "ricci"}`, each
+    zoomed to the swarm (the central 98% of walkers) within `box`."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(snapshots), figsize=(4.4 * len(snapshots), 4.2), squeeze=False)
+    for ax, snap in zip(axes[0], snapshots):
+        x, ricci = snap["positions"], snap["ricci"]
+        lo = np.maximum(np.percentile(x[:, :2], 1, axis=0), box[0])
+        hi = np.minimum(np.percentile(x[:, :2], 99, axis=0), box[1])
+        pad = 0.1 * np.max(hi - lo) + 1e-3
+        lo, hi = lo - pad, hi + pad
+        gx, gy, values = _landscape_grid(fitness, lo, hi, x.shape[1])
+        ax.contour(gx, gy, values, levels=15, colors="0.6", linewidths=0.6)
+        ok = np.isfinite(ricci) if ricci is not None else np.zeros(len(x), bool)
+        ax.scatter(x[~ok, 0], x[~ok, 1], s=2, c="0.7")
+        if ok.any():
+            scale = np.percentile(np.abs(ricci[ok]), 90)
+            sc = ax.scatter(x[ok, 0], x[ok, 1], s=3, c=ricci[ok], cmap="coolwarm", vmin=-scale, vmax=scale)
+            fig.colorbar(sc, ax=ax, label="Ricci scalar (Hessian metric)")
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"step {snap['step']}")
+    return _save(fig, path)
+
+
+def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
+    """Every observable of a `jaxgeom.simulate` history against time, one panel each."""
+    plt = _pyplot()
+    names = [n for n in series if n != "time"] + (["spectral_gap"] if len(gaps) else [])
+    cols = 3
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.8 * rows), squeeze=False)
+    t = series["time"]
+    dt = t[1] - t[0] if len(t) > 1 else 1.0
+    for ax, name in zip(axes.ravel(), names):
+        if name == "spectral_gap":
+            ax.plot(np.asarray(gap_steps) * dt, gaps, "o-")
+        else:
+            ax.plot(t, series[name], lw=1)
+        ax.set(title=name, xlabel="time")
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    return _save(fig, path)

@@ -1,4 +1,5 @@
-"""`jaxgeom` console script. `jaxgeom analyze` tessellates a swarm and reports its geometry.
+"""`jaxgeom` console script. `jaxgeom simulate` runs a swarm (see _simcli.py); `jaxgeom analyze`
+tessellates a swarm and reports its geometry.
 
 The report is a list of sections (`REPORT_SECTIONS`); each takes the analysis
 context and returns a flat dict of numbers. New proxies add a section.
@@ -15,6 +16,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from ._simcli import add_simulate_parser, simulate_main
 
 
 @dataclasses.dataclass
@@ -321,6 +324,7 @@ def _parser() -> argparse.ArgumentParser:
     an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
     an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
     an.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
+    add_simulate_parser(sub)
     return parser
 
 
@@ -331,6 +335,9 @@ def main(argv=None) -> int:
         parser.error(f"--eps-sigma must be >= 0; got {args.eps_sigma}")
     import jax
 
+    if args.command == "simulate":
+        jax.config.update("jax_enable_x64", args.float64)
+        return simulate_main(args)
     jax.config.update("jax_enable_x64", not args.float32)
     try:
         report = run_analysis(args)

@@ -1,6 +1,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from jaxgeom.cli import main
 
@@ -77,3 +78,35 @@ def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
     np.save(tmp_path / "bad.npy", pts)
     assert main(["analyze", "--points", str(tmp_path / "bad.npy")]) == 2
     assert "NaN or inf" in capsys.readouterr().err
+
+
+def test_simulate_writes_time_series_and_figures(tmp_path, capsys):
+    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--float64", "--no-progress",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "best_fitness" in out and "total clones" in out
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert len(history["series"]["mean_fitness"]) == 13 and len(history["series"]["time"]) == 13
+    assert history["series"]["best_fitness"][-1] <= history["series"]["best_fitness"][0]
+    assert history["spectral_gap"]["step"] == [0, 4, 8, 12]
+    assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
+
+
+def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
+    (tmp_path / "bowl.py").write_text("import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\ndef V(x):\n"
+                                      "    return jnp.sum(x ** 2)\n")
+    assert main(["simulate", "--landscape", str(tmp_path / "bowl.py"), "--n", "200", "--steps", "6", "--dim", "4",
+                 "--graph", "knn", "--k", "8", "--gap-every", "0", "--no-cloning", "--float64",
+                 "--no-progress"]) == 0
+    assert "mean_fitness" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--dim", "4"], "--dim 4 needs --graph knn"),
+    (["--landscape", "nowhere"], "--landscape must be one of"),
+    (["--nu", "-1"], "`nu` must be a finite number >= 0"),
+    (["--dt", "0"], "`dt` must be > 0"),
+])
+def test_simulate_reports_bad_input(argv, message, capsys):
+    assert main(["simulate", "--n", "50", "--steps", "2", "--float64", "--no-progress"] + argv) == 2
+    assert message in capsys.readouterr().err

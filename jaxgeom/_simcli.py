@@ -1,0 +1,184 @@
+"""`jaxgeom simulate`: run a swarm on a landscape, print a summary, write a time series and figures."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
+
+
+def add_simulate_parser(sub) -> None:
+    from ._dynamics import OBSERVABLES  # noqa: F401  (documented in the help below)
+    from ._forces import VISCOUS_MODES
+    from ._landscapes import LANDSCAPES
+
+    sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape")
+    sim.add_argument("--landscape", default="rastrigin",
+                     help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
+                          "BOX = (lower, upper))")
+    sim.add_argument("--n", type=int, default=3000, help="walkers")
+    sim.add_argument("--dim", type=int, default=2, help="2 or 3 (higher with --graph knn)")
+    sim.add_argument("--steps", type=int, default=300)
+    sim.add_argument("--dt", type=float, default=0.01)
+    sim.add_argument("--gamma", type=float, default=2.0, help="friction")
+    sim.add_argument("--temperature", type=float, default=1.0)
+    sim.add_argument("--mode", default="kernel", choices=VISCOUS_MODES, help="viscous weights")
+    sim.add_argument("--nu", type=float, default=0.1, help="viscous coupling")
+    sim.add_argument("--eps-sigma", type=float, default=0.1, help="Hessian-metric floor (curvature, metric modes)")
+    sim.add_argument("--clone-rate", type=float, default=0.1)
+    sim.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=True)
+    sim.add_argument("--anisotropic", action="store_true", help="diffusion D = g^-1 (adaptive gas)")
+    sim.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay")
+    sim.add_argument("--k", type=int, default=12, help="neighbours with --graph knn")
+    sim.add_argument("--rebuild-every", type=int, default=1)
+    sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
+    sim.add_argument("--float64", action="store_true", help="simulate in float64 (default float32)")
+    sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def load_landscape(spec: str, dim: int):
+    """(V, (lower, upper)) for a built-in name or a user .py file defining V."""
+    from ._landscapes import LANDSCAPES
+
+    if spec in LANDSCAPES:
+        fitness, _, half = LANDSCAPES[spec]
+        return fitness, (-half, half)
+    path = Path(spec)
+    if path.suffix != ".py" or not path.is_file():
+        raise ValueError(f"--landscape must be one of {', '.join(sorted(LANDSCAPES))} or an existing .py file "
+                         f"defining V(x); got {spec!r}.")
+    module_spec = importlib.util.spec_from_file_location("jaxgeom_user_landscape", path)
+    module = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(module)
+    if not callable(getattr(module, "V", None)):
+        raise ValueError(f"{path} must define a function V(x) mapping a ({dim},) array to a scalar.")
+    return module.V, tuple(getattr(module, "BOX", (-3.0, 3.0)))
+
+
+def _validate(args) -> None:
+    if args.n < 10 or args.steps < 1 or args.rebuild_every < 1:
+        raise ValueError(f"need --n >= 10, --steps >= 1, --rebuild-every >= 1; got {args.n}, {args.steps}, "
+                         f"{args.rebuild_every}.")
+    if args.graph == "delaunay" and args.dim not in (2, 3):
+        raise ValueError(f"--dim {args.dim} needs --graph knn (Delaunay simulations run in 2 or 3 dimensions).")
+    if args.gap_every % args.rebuild_every:
+        raise ValueError("--gap-every must be a multiple of --rebuild-every.")
+
+
+def run_simulation(args) -> dict:
+    import jax.numpy as jnp
+
+    import jaxgeom
+
+    _validate(args)
+    fitness, (lo, hi) = load_landscape(args.landscape, args.dim)
+    dtype = np.float64 if args.float64 else np.float32
+    x0 = np.random.default_rng(args.seed).uniform(lo, hi, (args.n, args.dim)).astype(dtype)
+    params = jaxgeom.SwarmParams(dt=args.dt, gamma=args.gamma, temperature=args.temperature, nu=args.nu,
+                                 eps_sigma=args.eps_sigma, mode=args.mode, clone_rate=args.clone_rate,
+                                 cloning=args.cloning, anisotropic=args.anisotropic)
+    start = time.perf_counter()
+    state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k)
+    segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
+    gap_every = args.gap_every if args.gap_every and segment % args.gap_every == 0 else 0
+    snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0
+    while done < args.steps:
+        n = min(segment, args.steps - done)
+        state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
+                                          spectral_gap_every=gap_every if n % max(gap_every, 1) == 0 else 0,
+                                          progress=not args.no_progress)
+        parts.append((done, history))
+        done += n
+        snapshots.append(_snapshot(fitness, params, state, done))
+    result = _merge(parts, float(args.dt))
+    result.update(config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+                  seconds_total=time.perf_counter() - start, snapshots=snapshots,
+                  fitness=fitness, box=(lo, hi), dtype=str(jnp.dtype(dtype)))
+    return result
+
+
+def _snapshot(fitness, params, state, step: int) -> dict:
+    """Positions and per-walker Ricci scalar (Hessian metric) of one state, for the figure."""
+    import jaxgeom
+    from ._dynamics import metric_field
+
+    ricci = None
+    if state.tess.simplices is not None:
+        g = metric_field(fitness, params, params.eps_sigma * state.eps_factor, state.positions)
+        ricci = np.asarray(jaxgeom.ricci_scalar(state.tess, g))
+    return {"step": step, "positions": np.asarray(state.positions), "ricci": ricci}
+
+
+def _merge(parts, dt: float) -> dict:
+    """Concatenate segment histories (each segment's last entry is the next one's first)."""
+    names = [k for k, v in parts[0][1].items() if isinstance(v, np.ndarray) and not k.startswith("spectral")]
+    series = {name: np.concatenate([h[name][:-1] for _, h in parts] + [parts[-1][1][name][-1:]]) for name in names}
+    series["time"] = dt * np.arange(len(series[names[0]]))
+    gap_steps = np.concatenate([done + h["spectral_gap_step"] for done, h in parts])
+    gaps = np.concatenate([h["spectral_gap"] for _, h in parts])
+    keep = np.r_[True, np.diff(gap_steps) > 0] if gap_steps.size else np.zeros(0, bool)
+    return {"series": series, "spectral_gap_step": gap_steps[keep], "spectral_gap": gaps[keep],
+            "n_reallocations": sum(h["n_reallocations"] for _, h in parts),
+            "seconds_rebuild": sum(h["seconds_rebuild"] for _, h in parts),
+            "seconds_steps": sum(h["seconds_steps"] for _, h in parts)}
+
+
+def summary_table(result: dict) -> str:
+    rows = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"]
+    for name, values in result["series"].items():
+        if name == "time":
+            continue
+        finite = values[np.isfinite(values)]
+        cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
+        rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
+    if result["spectral_gap"].size:
+        rows.append(f"{'spectral_gap':<26}{result['spectral_gap'][0]:>12.5g}{result['spectral_gap'][-1]:>12.5g}")
+    rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
+                f"capacity reallocations {result['n_reallocations']}, "
+                f"time {result['seconds_total']:.1f} s (rebuilds {result['seconds_rebuild']:.1f} s, "
+                f"steps {result['seconds_steps']:.1f} s)")
+    return "\n".join(rows)
+
+
+def _json_ready(values):
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, float)]
+
+
+def write_outputs(result: dict, out: Path) -> dict:
+    from ._plots import plot_observables, plot_swarm_snapshots
+
+    out.mkdir(parents=True, exist_ok=True)
+    payload = {"config": result["config"], "dtype": result["dtype"],
+               "series": {k: _json_ready(v) for k, v in result["series"].items()},
+               "spectral_gap": {"step": result["spectral_gap_step"].tolist(),
+                                "value": _json_ready(result["spectral_gap"])},
+               "n_reallocations": result["n_reallocations"], "seconds_total": result["seconds_total"],
+               "seconds_rebuild": result["seconds_rebuild"], "seconds_steps": result["seconds_steps"]}
+    (out / "history.json").write_text(json.dumps(payload, indent=1))
+    swarm = plot_swarm_snapshots(result["fitness"], result["snapshots"], result["box"], out / "swarm.png")
+    series = plot_observables(result["series"], result["spectral_gap_step"], result["spectral_gap"],
+                              out / "observables.png")
+    return {"history": str(out / "history.json"), "swarm": str(swarm), "observables": str(series)}
+
+
+def simulate_main(args) -> int:
+    try:
+        result = run_simulation(args)
+    except (ValueError, TypeError, OSError, FloatingPointError) as err:
+        print(f"jaxgeom simulate: error: {err}", file=sys.stderr)
+        return 2
+    print(summary_table(result))
+    if args.out is not None:
+        for name, path in write_outputs(result, args.out).items():
+            print(f"wrote {name}: {path}")
+    return 0
