@@ -87,11 +87,11 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path) -> Path:
+def _save(fig, path, dpi: int = 100) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=dpi)
     fig.clf()
     return path
 
@@ -127,7 +127,7 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
             sc = ax.scatter(x[ok, 0], x[ok, 1], s=3, c=ricci[ok], cmap="coolwarm", vmin=-scale, vmax=scale)
             fig.colorbar(sc, ax=ax, label="Ricci scalar (Hessian metric)")
         ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"step {snap['step']}")
-    return _save(fig, path)
+    return _save(fig, path, dpi=72)
 
 
 def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
