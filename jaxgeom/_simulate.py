@@ -194,6 +194,9 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     for name in observe:
         check_choice(name, "observable", OBSERVABLES)
     check_choice(rebuild, "rebuild", REBUILD_MODES)
+    if params.volume_weighting and state.tess.simplices is None:
+        raise ValueError("`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
+                         "use init_swarm(..., graph='delaunay') or volume_weighting=False.")
     if spectral_gap_every and (spectral_gap_every % rebuild_every or rebuild == "callback"):
         raise ValueError("`spectral_gap_every` must be a multiple of `rebuild_every` and needs rebuild='host' "
                          f"(the gap is computed on the host after a rebuild); got {spectral_gap_every}.")

@@ -164,6 +164,16 @@ def test_capacity_overflow_reallocates_instead_of_truncating(rng, rebuild):
         assert history["n_reallocations"] >= 1
 
 
+def test_volume_weighted_metric_mode_runs_and_keeps_the_velocity_range(rng):
+    state = swarm(rng, n=300, fitness=flat, velocities=rng.normal(size=(300, 2)))
+    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, mode="metric_diagonal",
+                                 volume_weighting=True, cloning=False)
+    final, history = jaxgeom.simulate(flat, state, params, n_steps=20, observe=("velocity_variance",))
+    v0, v1 = np.asarray(state.velocities), np.asarray(final.velocities)
+    assert np.all(v1.min(0) >= v0.min(0) - 1e-12) and np.all(v1.max(0) <= v0.max(0) + 1e-12)
+    assert history["velocity_variance"][-1] < 0.5 * history["velocity_variance"][0]
+
+
 def test_knn_swarm_in_4d(rng):
     f = lambda x: jnp.sum(x**2)  # noqa: E731
     state = jaxgeom.init_swarm(f, rng.normal(size=(300, 4)), graph="knn", k=10)
@@ -200,5 +210,8 @@ def test_bad_swarm_input(rng):
         jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild_every=0)
     with pytest.raises(ValueError, match="unknown observable 'ricci'; valid values are 'mean_fitness'"):
         jaxgeom.simulate(bowl, state, params, n_steps=5, observe=("ricci",))
+    knn = jaxgeom.init_swarm(bowl, x, graph="knn", k=6)
+    with pytest.raises(ValueError, match="`volume_weighting=True` needs Voronoi volumes"):
+        jaxgeom.simulate(bowl, knn, jaxgeom.SwarmParams(volume_weighting=True), n_steps=2)
     with pytest.raises(ValueError, match="unknown rebuild 'device'"):
         jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild="device")
