@@ -111,13 +111,14 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
                          f"got {v.dtype} {v.shape}.")
     check_fitness(fitness, x)
     tess, _ = build_graph(x, graph, k, capacity)
-    xj = jnp.asarray(x)
+    xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
+    dtype = xj.dtype
     values, force = fitness_and_force(fitness, xj)
-    key = jax.random.PRNGKey(key) if isinstance(key, int) else key
+    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
     n = len(x)
-    return SwarmState(xj, jnp.asarray(v, x.dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
-                      jnp.full(n, jnp.nan, x.dtype), jnp.zeros(n, bool), key, tess, jnp.asarray(0, jnp.int32),
-                      jnp.asarray(mean_nearest_neighbor_distance(tess), x.dtype), jnp.asarray(1.0, x.dtype))
+    return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
+                      jnp.full(n, jnp.nan, dtype), jnp.zeros(n, bool), key, tess, jnp.asarray(0, jnp.int32),
+                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype))
 
 
 def _graph_kind(tess: Tessellation) -> str:
