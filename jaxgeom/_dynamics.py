@@ -255,9 +255,11 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
     x = x + half * v
     clones = jnp.zeros(x.shape[0], bool)
     if params.cloning:
-        companion, clones = clone_decisions(params, state, k_clone)
+        companion, clones = jax.lax.optimization_barrier(clone_decisions(params, state, k_clone))
         clones = clones & do_clone
         x, v = apply_clones(params, companion, clones, x, v, mean_nearest_neighbor_distance(tess), k_jitter)
+        # materialise once: XLA otherwise re-derives the clone decisions inside every consumer (2x step time)
+        x, v, clones = jax.lax.optimization_barrier((x, v, clones))
     values, force = fitness_and_force(fitness, x)
     v = v + half * force
     return eqx.tree_at(
