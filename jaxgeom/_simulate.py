@@ -3,8 +3,8 @@
 Rebuild strategy (measured, bench/results/dynamics.json, N = 1e4 in 2D, float32,
 rebuild every step): the default `rebuild="host"` runs `rebuild_every` steps in one
 jitted `lax.scan` chunk and rebuilds the graph with Qhull on the host between chunks:
-36.7 ms per step against 63.4 ms with the Qhull call inside the scan through
-`jax.pure_callback` (Qhull alone: 25.6 ms). The host loop is also the only place that
+42.9 ms per step against 72.1 ms with the Qhull call inside the scan through
+`jax.pure_callback` (Qhull alone: 24.5 ms). The host loop is also the only place that
 can grow a too-small capacity (a new bucket, one recompilation) instead of truncating,
 compute the spectral gap every M steps, and show a progress bar.
 `rebuild="callback"` is kept for what only it can do: the whole simulation is one
