@@ -40,6 +40,21 @@ def host_points(points, name: str = "points", *, func: str = "jaxgeom") -> np.nd
     return arr
 
 
+def check_nonnegative(value, name: str) -> None:
+    """A physical parameter that must be finite and >= 0 (tracers pass)."""
+    if value is None or isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value)
+    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"`{name}` must be a finite number >= 0; got {value}.")
+
+
+def check_positive(value, name: str) -> None:
+    """A parameter that must be > 0 (None and tracers pass)."""
+    if value is not None and not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
+        raise ValueError(f"`{name}` must be > 0; got {value}.")
+
+
 def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
     if n < minimum:
         raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")

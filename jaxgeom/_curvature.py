@@ -14,7 +14,7 @@ from jaxtyping import Array, Float
 
 from ._graph import Tessellation, edge_slots
 from ._metric import check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths
-from ._simplex import det_entries
+from ._simplex import det_entries, safe_sqrt
 
 TWO_PI = 2.0 * math.pi
 
@@ -26,11 +26,6 @@ def hinges(d: int) -> tuple[tuple[tuple[int, ...], tuple[int, int]], ...]:
     for c, e in itertools.combinations(range(d + 1), 2):
         out.append((tuple(v for v in range(d + 1) if v not in (c, e)), (c, e)))
     return tuple(out)
-
-
-def _safe_sqrt(x):
-    pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
 
 
 def hinge_angle_vectors(sq_lengths, d: int):
@@ -61,8 +56,8 @@ def hinge_angle_vectors(sq_lengths, d: int):
         k = len(rest)
         det_hh = det_entries([row[:k] for row in gram[:k]]) if k else 1.0
         xs.append(det_entries([row[:k] + [row[k + 1]] for row in gram[: k + 1]]))
-        ys.append(_safe_sqrt(det_hh * det_entries(gram)))
-        sizes.append(_safe_sqrt(det_hh) / math.factorial(k) if k else jnp.ones_like(ys[-1]))
+        ys.append(safe_sqrt(det_hh * det_entries(gram)))
+        sizes.append(safe_sqrt(det_hh) / math.factorial(k) if k else jnp.ones_like(ys[-1]))
     return jnp.stack(xs), jnp.stack(ys), jnp.stack(sizes)
 
 

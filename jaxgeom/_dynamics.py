@@ -27,11 +27,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ._checks import check_choice
-from ._forces import VISCOUS_MODES, apply_viscous, check_nonnegative, edge_weights
+from ._checks import check_choice, check_nonnegative, check_positive
+from ._forces import VISCOUS_MODES, apply_viscous, edge_weights
 from ._graph import Tessellation
 from ._metric import HESSIAN_FLOORS, hessian_metric
 from ._spectral import DEFAULT_ALPHA
@@ -92,9 +91,7 @@ class SwarmParams(eqx.Module):
         for name in ("gamma", "temperature", "nu", "eps_sigma", "clone_rate", "nu_initial"):
             check_nonnegative(getattr(self, name), name)
         for name in ("dt", "alpha", "length_scale", "clone_jitter"):  # jitter 0 would duplicate walkers
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
-                raise ValueError(f"`{name}` must be > 0; got {value}.")
+            check_positive(getattr(self, name), name)
 
     @property
     def needs_metric(self) -> bool:
@@ -301,11 +298,16 @@ class _View(eqx.Module):
     progress: Float[Array, ""]
 
 
+def _observed_metric(s: _View):
+    """The Hessian metric at the observed walkers, with the current eps_Sigma."""
+    return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+
+
 def _mean_ricci(s: _View):
     from ._curvature import region_average, ricci_scalar
     from ._metric import riemannian_volumes
 
-    g = metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+    g = _observed_metric(s)
     ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
     return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
 
@@ -319,9 +321,8 @@ def _mean_expansion(s: _View):
 
 
 def _degree_weighted_variance(s: _View):
-    w = edge_weights(s.new.tess, mode=s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess),
-                     metric=metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
-                     if s.params.mode.startswith("metric") else None)
+    g = _observed_metric(s) if s.params.mode.startswith("metric") else None
+    w = edge_weights(s.new.tess, mode=s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
     return _variance(s.new.velocities, jnp.sum(w, axis=1))
 
 

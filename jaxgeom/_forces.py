@@ -16,24 +16,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import check_choice
-from ._graph import Tessellation, neighbor_coord_displacements
+from ._checks import check_choice, check_nonnegative
+from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements
 from ._metric import edge_sq_lengths
+from ._simplex import safe_sqrt
 from ._spectral import DEFAULT_ALPHA, check_length_scale
 
 VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
 # eps of w = 1 / (length + eps), relative to the mean nearest-neighbour length (NOTES 9: no
 # absolute regularisers). The chapter's absolute 1e-8 is this at unit spacing.
 INVERSE_DISTANCE_EPS = 1e-8
-
-
-def check_nonnegative(value, name: str) -> None:
-    """Host check of a physical parameter that must be >= 0 (tracers pass)."""
-    if value is None or isinstance(value, jax.core.Tracer):
-        return
-    arr = np.asarray(value)
-    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise ValueError(f"`{name}` must be a finite number >= 0; got {value}.")
 
 
 def _check_force_inputs(tess: Tessellation, velocities, mode: str, metric, volume_weights) -> None:
@@ -51,21 +43,8 @@ def _check_force_inputs(tess: Tessellation, velocities, mode: str, metric, volum
             raise ValueError("`volume_weights` must be >= 0 (cell volumes); got negative entries.")
 
 
-def _safe_sqrt(sq, mask):
-    """sqrt on real slots, 0 on padding, with finite gradients everywhere."""
-    ok = mask & (sq > 0)
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
-
-
-def _mean_nearest(lengths, mask):
-    """Mean over walkers with neighbours of their smallest edge length."""
-    nearest = jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
-    ok = jnp.isfinite(nearest)
-    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(lengths.dtype)
-
-
 def _inverse_length_weights(lengths, mask):
-    eps = INVERSE_DISTANCE_EPS * _mean_nearest(lengths, mask)
+    eps = INVERSE_DISTANCE_EPS * mean_row_minimum(lengths, mask)
     return jnp.where(mask, 1.0 / (lengths + eps), 0.0)
 
 
@@ -78,12 +57,12 @@ def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None,
         return mask.astype(dtype)
     if mode.startswith("metric"):
         sq = edge_sq_lengths(tess, metric, mode="diagonal" if mode == "metric_diagonal" else "full")
-        return _inverse_length_weights(_safe_sqrt(sq, mask), mask)
+        return _inverse_length_weights(safe_sqrt(sq), mask)
     sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
-    lengths = _safe_sqrt(sq, mask)
+    lengths = safe_sqrt(sq)
     if mode == "inverse_distance":
         return _inverse_length_weights(lengths, mask)
-    scale = alpha * _mean_nearest(lengths, mask) if length_scale is None else length_scale
+    scale = alpha * mean_row_minimum(lengths, mask) if length_scale is None else length_scale
     return jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
 
 

@@ -136,6 +136,13 @@ def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
     return jnp.min(jnp.where(tess.neighbor_mask, neighbor_distances(tess), jnp.inf), axis=1)
 
 
+def mean_row_minimum(lengths, mask) -> Float[Array, ""]:
+    """Mean over walkers with a neighbour of their smallest edge length (0 if none has one)."""
+    nearest = jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
+    ok = jnp.isfinite(nearest)
+    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(lengths.dtype)
+
+
 def padded_to_csr(neighbors, values, n: int):
     """Host: a scipy CSR matrix with entry (i, neighbors[i, k]) = values[i, k] on real slots."""
     nbrs, vals = np.asarray(neighbors), np.asarray(values, dtype=np.float64)

@@ -16,7 +16,6 @@ N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 
 
 def add_simulate_parser(sub) -> None:
-    from ._dynamics import OBSERVABLES  # noqa: F401  (documented in the help below)
     from ._forces import VISCOUS_MODES
     from ._landscapes import LANDSCAPES
 

@@ -18,6 +18,12 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def safe_sqrt(x):
+    """sqrt for x > 0 and 0 elsewhere (padding, flat simplices), with finite gradients."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
 def dot(u, v):
     """Sum over the last axis of u * v, written out so XLA fuses it (no dot_general)."""
     return sum(u[..., k] * v[..., k] for k in range(u.shape[-1]))

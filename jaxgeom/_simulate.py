@@ -37,10 +37,14 @@ NEIGHBOR_HEADROOM = 8  # cloning puts walkers next to their companions: max degr
 SIMPLEX_HEADROOM = 1.1  # 3D simplex counts drift by a few percent
 
 
-def check_fitness(fitness, x: np.ndarray) -> None:
-    """`fitness` must map one walker (d,) to a finite scalar at every initial walker."""
+def check_callable_fitness(fitness) -> None:
     if not callable(fitness):
         raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar V(x); got {type(fitness).__name__}.")
+
+
+def check_fitness(fitness, x: np.ndarray) -> None:
+    """`fitness` must map one walker (d,) to a finite scalar at every initial walker."""
+    check_callable_fitness(fitness)
     try:
         values = jax.vmap(fitness)(jnp.asarray(x))
     except Exception as err:  # noqa: BLE001 - re-raised with the fix
@@ -183,8 +187,7 @@ def _observe_final(fitness, params, state, observe):
 
 
 def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every):
-    if not callable(fitness):
-        raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar; got {type(fitness).__name__}.")
+    check_callable_fitness(fitness)
     if not isinstance(state, SwarmState):
         raise TypeError("`state` must be a jaxgeom.SwarmState; build one with jaxgeom.init_swarm(fitness, positions).")
     if not isinstance(params, SwarmParams):

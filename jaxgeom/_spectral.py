@@ -12,7 +12,7 @@ from jaxtyping import Array, Float, Int
 
 from ._checks import check_choice
 from ._delaunay import morton_order
-from ._graph import Tessellation, nearest_neighbor_distances, neighbor_distances, padded_to_csr
+from ._graph import Tessellation, mean_row_minimum, neighbor_distances, padded_to_csr
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
 SPECTRAL_METHODS = ("scipy", "lobpcg")
@@ -67,9 +67,7 @@ class GraphLaplacian(eqx.Module):
 
 def mean_nearest_neighbor_distance(tess: Tessellation):
     """Mean over walkers of the distance to their nearest neighbour."""
-    nearest = nearest_neighbor_distances(tess)
-    ok = jnp.isfinite(nearest)
-    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.sum(ok).astype(nearest.dtype)
+    return mean_row_minimum(neighbor_distances(tess), tess.neighbor_mask)
 
 
 def check_length_scale(length_scale) -> None:
