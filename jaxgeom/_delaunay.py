@@ -94,8 +94,9 @@ def _check_delaunay_dim(d: int) -> None:
         )
 
 
-def morton_order(x: np.ndarray) -> np.ndarray:
-    """Permutation sorting points along a Z-order (Morton) curve."""
+def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """Z-order (Morton) codes of points quantised on their bounding box, and the
+    number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
     n, d = x.shape
     bits = max(1, min(16, 60 // d))
     lo, hi = x.min(axis=0), x.max(axis=0)
@@ -104,7 +105,12 @@ def morton_order(x: np.ndarray) -> np.ndarray:
     for b in range(bits):
         for k in range(d):
             code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d + k)
-    return np.argsort(code, kind="stable")
+    return code, bits * d
+
+
+def morton_order(x: np.ndarray) -> np.ndarray:
+    """Permutation sorting points along a Z-order (Morton) curve."""
+    return np.argsort(morton_codes(x)[0], kind="stable")
 
 
 def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:

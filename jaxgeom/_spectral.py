@@ -11,7 +11,7 @@ import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
 from ._checks import check_choice
-from ._delaunay import morton_order
+from ._delaunay import morton_codes
 from ._graph import Tessellation, mean_row_minimum, neighbor_distances, padded_to_csr
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
@@ -142,8 +142,9 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
         raise ValueError(f"`k` must be an int with 1 <= k < N = {tess.n_points}; got {k!r}.")
     lap = graph_laplacian(tess, length_scale=length_scale, weights=weights, alpha=alpha)
     if method == "scipy":
-        order = morton_order(np.asarray(tess.points, dtype=np.float64))
-        return jnp.asarray(_scipy_smallest(lap.to_scipy()[order][:, order], int(k)), dtype=tess.points.dtype)
+        matrix = lap.to_scipy()
+        order = nested_dissection_order(np.asarray(tess.points, dtype=np.float64), matrix)
+        return jnp.asarray(_scipy_smallest(matrix[order][:, order], int(k)), dtype=tess.points.dtype)
     if tol is None:
         tol = 1e-8 if tess.points.dtype == jnp.float64 else 1e-3
     return _lobpcg_smallest(lap, int(k), tol, maxiter, seed)
@@ -155,15 +156,54 @@ def _scipy_smallest(matrix, k: int) -> np.ndarray:
     Shift-invert Lanczos around sigma = -0.01 / N: L - sigma I is positive definite,
     and a shift far below the gap (lambda_1 ~ 1/N in 2D) keeps the wanted eigenvalues
     well separated after inversion (sigma = -0.01 took 5x more solves at N = 1e5).
-    Callers pass the matrix in a spatially local (Morton) order: that cut SuperLU's
-    factorisation time by a third.
+    Callers pass the matrix in a fill-reducing (nested-dissection) order, so SuperLU
+    factorises it as given, without pivoting (the matrix is positive definite):
+    at N = 1e5 in 2D the factorisation takes 0.35 s (COLAMD on Morton-sorted input:
+    0.59 s) and the whole call 1.0 s instead of 1.35 s.
     """
     n = matrix.shape[0]
     if n <= 200 or k >= n - 1:
         return np.linalg.eigvalsh(matrix.toarray())[:k]
-    vals = scipy.sparse.linalg.eigsh(matrix.tocsc(), k=k, sigma=-0.01 / n, which="LM", return_eigenvectors=False,
+    sigma = -0.01 / n
+    lu = scipy.sparse.linalg.splu((matrix - sigma * scipy.sparse.identity(n)).tocsc(), permc_spec="NATURAL",
+                                  diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    inverse = scipy.sparse.linalg.LinearOperator((n, n), matvec=lu.solve, matmat=lu.solve, dtype=np.float64)
+    vals = scipy.sparse.linalg.eigsh(matrix, k=k, sigma=sigma, which="LM", OPinv=inverse, return_eigenvectors=False,
                                      v0=np.ones(n) / np.sqrt(n) + 1e-3 * np.arange(n) / n)
     return np.sort(np.clip(vals, 0.0, None))
+
+
+def nested_dissection_order(points: np.ndarray, matrix, leaf_size: int = 32) -> np.ndarray:
+    """Fill-reducing permutation of a sparse graph on points: geometric nested dissection.
+
+    The cells of the Morton quadtree (octree) are the dissection pieces: at level l
+    every piece is halved by bit l of the Morton code, and the endpoints on the lower
+    side of the edges that cross the cut become that piece's separator. Vertices are
+    ordered by the post-order of their piece (children before their separator), then
+    along the Morton curve. Levels stop at pieces of about `leaf_size` points.
+    """
+    code, n_bits = morton_codes(points)
+    upper = scipy.sparse.triu(matrix, 1).tocoo()
+    depth = min(n_bits, max(0, int(np.ceil(np.log2(max(len(points) / leaf_size, 1.0))))))
+    level = _separator_levels(code, n_bits, depth, upper.row, upper.col)
+    piece = (code >> (np.uint64(n_bits) - level.astype(np.uint64))).astype(np.int64)
+    post_order = (piece + 1) * (2 ** (depth - level + 1) - 1) - 1
+    return np.lexsort((code, post_order))
+
+
+def _separator_levels(code, n_bits: int, depth: int, i, j) -> np.ndarray:
+    """Dissection level of each vertex: the level whose separator holds it, else `depth`."""
+    level = np.full(len(code), depth, np.int64)
+    ci, cj = code[i], code[j]
+    for lev in range(depth):
+        bit = np.uint64(n_bits - 1 - lev)
+        cut = ((ci >> bit) != (cj >> bit)) & ((ci >> (bit + np.uint64(1))) == (cj >> (bit + np.uint64(1))))
+        lower_i = ((ci[cut] >> bit) & np.uint64(1)) == 0
+        separator = np.where(lower_i, i[cut], j[cut])
+        level[separator] = lev
+        keep = (level[i] == depth) & (level[j] == depth)
+        i, j, ci, cj = i[keep], j[keep], ci[keep], cj[keep]
+    return level
 
 
 @eqx.filter_jit

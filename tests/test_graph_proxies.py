@@ -2,6 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.sparse
+import scipy.sparse.linalg
 
 import jaxgeom
 
@@ -62,6 +64,40 @@ def test_lobpcg_flags_non_convergence_with_nan(rng):
     tess = jaxgeom.delaunay(rng.random((2000, 2)))
     out = np.asarray(jaxgeom.spectral_gap(tess, method="lobpcg", maxiter=5))
     assert out[0] == 0.0 and np.isnan(out[1:]).any()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_nested_dissection_eliminates_every_separator_after_its_pieces(rng, d):
+    """Fill-reducing invariant: an edge never joins two different pieces of the same
+    level, and a separator vertex comes after every vertex of the piece it splits."""
+    from jaxgeom._delaunay import morton_codes
+    from jaxgeom._spectral import _separator_levels, nested_dissection_order
+
+    x = rng.random((5000, d))
+    matrix = jaxgeom.graph_laplacian(jaxgeom.delaunay(x)).to_scipy()
+    order = nested_dissection_order(x, matrix)
+    assert np.array_equal(np.sort(order), np.arange(len(x)))
+    position = np.argsort(order)
+    code, n_bits = morton_codes(x)
+    edges = scipy.sparse.triu(matrix, 1).tocoo()
+    depth = int(np.ceil(np.log2(len(x) / 32)))
+    level = _separator_levels(code, n_bits, depth, edges.row, edges.col)
+    assert 0 < np.sum(level < depth) < len(x)
+    a, b = np.where(level[edges.row] <= level[edges.col], (edges.row, edges.col), (edges.col, edges.row))
+    shift = (n_bits - level[a]).astype(np.uint64)
+    assert np.array_equal(code[a] >> shift, code[b] >> shift)
+    ancestor = level[a] < level[b]
+    assert np.all(position[a][ancestor] > position[b][ancestor])
+
+
+def test_nested_dissection_factor_has_less_fill_than_colamd(rng):
+    x = rng.random((20_000, 2))
+    matrix = jaxgeom.graph_laplacian(jaxgeom.delaunay(x)).to_scipy()
+    shifted = (matrix + 1e-3 * scipy.sparse.identity(len(x))).tocsc()
+    order = jaxgeom._spectral.nested_dissection_order(x, matrix)
+    ours = scipy.sparse.linalg.splu(shifted[order][:, order].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0)
+    colamd = scipy.sparse.linalg.splu(shifted)
+    assert ours.L.nnz + ours.U.nnz < 0.9 * (colamd.L.nnz + colamd.U.nnz)
 
 
 def test_disconnected_knn_graph_has_zero_gap(rng):
