@@ -22,11 +22,7 @@ def plot_estimation_quality(result: dict, path) -> Path:
     error; median error against the number of k-NN neighbours (the fit redone on
     k-NN graphs); histogram of the per-walker errors.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     comparison = result.get("comparison", result)
     truth = result.get("true_hessian")
     points, valid = comparison["points"], comparison["valid"]
@@ -48,12 +44,7 @@ def plot_estimation_quality(result: dict, path) -> Path:
     axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="convergence with neighbours")
     axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
     axes[1, 1].set(xlabel="log10 relative Hessian error", ylabel="walkers", title="error distribution")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _relative_error(estimate, reference):
@@ -78,7 +69,8 @@ def _error_by_neighbour_count(points, values, reference, valid):
     return ks, medians
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,12 +79,13 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path, dpi: int = 100) -> Path:
+def save_figure(fig, path, dpi: int = 100) -> Path:
+    """Lay out, write (creating the folder) and close a figure; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
-    fig.clf()
+    pyplot().close(fig)
     return path
 
 
@@ -110,7 +103,7 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
     """Walkers coloured by their Ricci scalar over the contours of V (first two coordinates,
     other coordinates 0), one panel per snapshot `{"step", "positions", "ricci"}`, each
     zoomed to the swarm (the central 98% of walkers) within `box`."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(snapshots), figsize=(4.4 * len(snapshots), 4.2), squeeze=False)
     for ax, snap in zip(axes[0], snapshots):
         x, ricci = snap["positions"], snap["ricci"]
@@ -127,12 +120,12 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
             sc = ax.scatter(x[ok, 0], x[ok, 1], s=3, c=ricci[ok], cmap="coolwarm", vmin=-scale, vmax=scale)
             fig.colorbar(sc, ax=ax, label="Ricci scalar (Hessian metric)")
         ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"step {snap['step']}")
-    return _save(fig, path, dpi=72)
+    return save_figure(fig, path, dpi=72)
 
 
 def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
     """Every observable of a `jaxgeom.simulate` history against time, one panel each."""
-    plt = _pyplot()
+    plt = pyplot()
     names = [n for n in series if n != "time"] + (["spectral_gap"] if len(gaps) else [])
     cols = 3
     rows = -(-len(names) // cols)
@@ -147,4 +140,4 @@ def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
         ax.set(title=name, xlabel="time")
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -218,12 +218,9 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
 
 def write_maps(a: Analysis, path: Path) -> None:
     """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates)."""
-    import matplotlib
+    from ._plots import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5))
+    fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
     for ax, key, title, cmap in [(axes[0], "ricci", "Ricci scalar", "coolwarm"),
                                  (axes[1], "shape", "shape distortion r_in / r_circ", "viridis")]:
@@ -237,9 +234,7 @@ def write_maps(a: Analysis, path: Path) -> None:
         fig.colorbar(sc, ax=ax)
         ax.set_title(f"{title}, metric={a.args.metric}")
         ax.set_aspect("equal")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
