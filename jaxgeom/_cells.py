@@ -5,9 +5,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
+from ._checks import check_positive
 from ._graph import Tessellation, nearest_neighbor_distances, simplex_coords
 from ._simplex import simplex_circumradius
 from ._volumes import voronoi_volumes
@@ -83,8 +83,7 @@ def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> 
 
     (N,) theta, NaN where undefined. Under x -> s x, theta = (s^d - 1) / dt exactly.
     """
-    if not isinstance(dt, jax.core.Tracer) and np.any(np.asarray(dt) <= 0):
-        raise ValueError(f"`dt` must be > 0; got {dt}.")
+    check_positive(dt, "dt")
     before, after = jnp.asarray(volumes_before), jnp.asarray(volumes_after)
     if before.shape != after.shape:
         raise ValueError(f"volume arrays differ in shape: {before.shape} vs {after.shape}; both must be (N,).")

@@ -49,10 +49,10 @@ def check_nonnegative(value, name: str) -> None:
         raise ValueError(f"`{name}` must be a finite number >= 0; got {value}.")
 
 
-def check_positive(value, name: str) -> None:
-    """A parameter that must be > 0 (None and tracers pass)."""
+def check_positive(value, name: str, hint: str = "") -> None:
+    """A parameter that must be > 0 (None and tracers pass); `hint` follows the rule in the message."""
     if value is not None and not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
-        raise ValueError(f"`{name}` must be > 0; got {value}.")
+        raise ValueError(f"`{name}` must be > 0{hint}; got {value}.")
 
 
 def check_min_points(n: int, minimum: int, name: str, why: str) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._graph import Tessellation, edge_slots
-from ._metric import check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths
+from ._metric import check_metric, edge_lengths, edge_pairs, riemannian_mean, riemannian_volumes, simplex_sq_lengths
 from ._simplex import det_entries, safe_sqrt
 
 TWO_PI = 2.0 * math.pi
@@ -210,6 +210,5 @@ def ricci_from_deficits(tess: Tessellation, metric=None, *, mode: str = "full") 
 
 
 def region_average(values, volumes, mask) -> Float[Array, ""]:
-    """sum R_i V_i / sum V_i over `mask` (finite entries only)."""
-    ok = mask & jnp.isfinite(values) & jnp.isfinite(volumes)
-    return jnp.sum(jnp.where(ok, values * volumes, 0.0)) / jnp.sum(jnp.where(ok, volumes, 0.0))
+    """sum R_i V_i / sum V_i over `mask` (finite entries only): `riemannian_mean` with cell volumes."""
+    return riemannian_mean(values, volumes, mask)

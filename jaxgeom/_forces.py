@@ -20,7 +20,7 @@ from ._checks import check_choice, check_nonnegative
 from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements
 from ._metric import edge_sq_lengths
 from ._simplex import safe_sqrt
-from ._spectral import DEFAULT_ALPHA, check_length_scale
+from ._spectral import DEFAULT_ALPHA, check_length_scale, kernel_weights
 
 VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
 # eps of w = 1 / (length + eps), relative to the mean nearest-neighbour length (NOTES 9: no
@@ -58,12 +58,10 @@ def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None,
     if mode.startswith("metric"):
         sq = edge_sq_lengths(tess, metric, mode="diagonal" if mode == "metric_diagonal" else "full")
         return _inverse_length_weights(safe_sqrt(sq), mask)
+    if mode == "kernel":
+        return kernel_weights(tess, length_scale, alpha)
     sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
-    lengths = safe_sqrt(sq)
-    if mode == "inverse_distance":
-        return _inverse_length_weights(lengths, mask)
-    scale = alpha * mean_row_minimum(lengths, mask) if length_scale is None else length_scale
-    return jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
+    return _inverse_length_weights(safe_sqrt(sq), mask)
 
 
 def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,

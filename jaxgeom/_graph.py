@@ -133,12 +133,17 @@ def neighbor_distances(tess: Tessellation) -> Float[Array, "N K"]:
 
 def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
     """Distance from each walker to its nearest neighbour (inf without neighbours)."""
-    return jnp.min(jnp.where(tess.neighbor_mask, neighbor_distances(tess), jnp.inf), axis=1)
+    return row_minimum(neighbor_distances(tess), tess.neighbor_mask)
+
+
+def row_minimum(lengths, mask) -> Float[Array, " N"]:
+    """Smallest edge length of each row over its real slots (inf for a row without any)."""
+    return jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
 
 
 def mean_row_minimum(lengths, mask) -> Float[Array, ""]:
     """Mean over walkers with a neighbour of their smallest edge length (0 if none has one)."""
-    nearest = jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
+    nearest = row_minimum(lengths, mask)
     ok = jnp.isfinite(nearest)
     return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(lengths.dtype)
 

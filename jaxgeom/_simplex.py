@@ -241,15 +241,20 @@ def _dual_pieces_flags(rel):
     return jnp.stack([jnp.where(ok, p * scale, 0.0) for p in pieces])
 
 
-def simplex_circumcenter(coords):
-    """Circumcentre (d,) of one coordinate-major simplex (its first vertex where degenerate)."""
+def _first_vertex_and_offset(coords):
+    """(first vertex, circumcentre - first vertex) of one coordinate-major simplex."""
     verts = _vertices(coords)
     offset, _ = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
-    return jnp.stack([a + b for a, b in zip(verts[0], offset)])
+    return verts[0], offset
+
+
+def simplex_circumcenter(coords):
+    """Circumcentre (d,) of one coordinate-major simplex (its first vertex where degenerate)."""
+    first, offset = _first_vertex_and_offset(coords)
+    return jnp.stack([a + b for a, b in zip(first, offset)])
 
 
 def simplex_circumradius(coords):
     """Circumradius of one coordinate-major simplex (0 where degenerate)."""
-    verts = _vertices(coords)
-    offset, _ = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
+    _, offset = _first_vertex_and_offset(coords)
     return jnp.sqrt(_vdot(offset, offset))

@@ -10,9 +10,10 @@ import scipy.sparse
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ._checks import check_choice
+from ._checks import check_choice, check_positive
 from ._delaunay import morton_codes
-from ._graph import Tessellation, mean_row_minimum, neighbor_distances, padded_to_csr
+from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements, neighbor_distances, padded_to_csr
+from ._simplex import safe_sqrt
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
 SPECTRAL_METHODS = ("scipy", "lobpcg")
@@ -70,10 +71,17 @@ def mean_nearest_neighbor_distance(tess: Tessellation):
     return mean_row_minimum(neighbor_distances(tess), tess.neighbor_mask)
 
 
+def kernel_weights(tess: Tessellation, length_scale=None, alpha=DEFAULT_ALPHA) -> Float[Array, "N K"]:
+    """Gaussian edge weights exp(-|x_j - x_i|^2 / (2 l^2)) per neighbour slot (0 on padding);
+    `length_scale=None` is the adaptive rule l = alpha * mean nearest-neighbour distance."""
+    mask = tess.neighbor_mask
+    sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
+    scale = alpha * mean_row_minimum(safe_sqrt(sq), mask) if length_scale is None else length_scale
+    return jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
+
+
 def check_length_scale(length_scale) -> None:
-    if length_scale is not None and not isinstance(length_scale, jax.core.Tracer):
-        if not np.all(np.asarray(length_scale) > 0):
-            raise ValueError(f"`length_scale` must be > 0 (or None for the adaptive rule); got {length_scale}.")
+    check_positive(length_scale, "length_scale", " (or None for the adaptive rule)")
 
 
 @eqx.filter_jit
@@ -95,13 +103,10 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
     """
     check_choice(weights, "weights", LAPLACIAN_WEIGHTS)
     check_length_scale(length_scale)
-    mask = tess.neighbor_mask
     if weights == "uniform":
-        w = mask.astype(tess.points.dtype)
+        w = tess.neighbor_mask.astype(tess.points.dtype)
     else:
-        scale = alpha * mean_nearest_neighbor_distance(tess) if length_scale is None else length_scale
-        sq = neighbor_distances(tess) ** 2
-        w = jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
+        w = kernel_weights(tess, length_scale, alpha)
     symmetric = tess.simplices is not None
     degree = jnp.sum(w, axis=1)
     if not symmetric:
