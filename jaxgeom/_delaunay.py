@@ -1,12 +1,17 @@
-"""Host-side Delaunay builder: scipy Qhull plus index bookkeeping in numpy.
+"""Delaunay builder: scipy Qhull on the host, the graph derived from its simplices.
 
-Geometry derived from the simplices (tiers from circumcentres, volumes, angles) is
-computed in JAX; the one geometric test done here is the periodic skin check,
-which decides whether Qhull must be run again.
+In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours to
+JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
+same code serves rebuilds inside `jax.pure_callback`). In 3D/4D and on the torus
+the neighbour rows come from numpy index bookkeeping. Geometry derived from the
+simplices (tiers from circumcentres, volumes, angles) is computed in JAX; the one
+geometric test done on the host is the periodic skin check, which decides whether
+Qhull must be run again.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +25,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from ._checks import check_full_rank, check_min_points, host_box, host_points
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
+from ._planar import fan_neighbors
 from ._simplex import simplex_circumcenter
 
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
@@ -80,9 +86,14 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
     check_min_points(n, d + 2, "points", f"a {d}D Delaunay tessellation")
     box_arr = host_box(box, x, periodic=periodic)
     check_full_rank(x)
+    if d == 2 and not periodic:
+        simplices, adjacency, cap = planar_triangles(x, capacity)
+        points = jnp.asarray(x)
+        return planar_tessellation(points, jnp.asarray(simplices), jnp.asarray(adjacency),
+                                   None if box_arr is None else jnp.asarray(box_arr, points.dtype), k_cap=cap.neighbors)
     raw = _periodic_graph(x, box_arr) if periodic else _plain_graph(x)
-    cap = _resolve_capacity(raw, n, d, capacity, periodic)
-    return _assemble(x, raw, cap, box_arr, periodic)
+    need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
+    return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic)
 
 
 def _check_delaunay_dim(d: int) -> None:
@@ -142,6 +153,42 @@ def _raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri: Delaunay) -> 
         f"`points` has {len(tri.coplanar)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
         f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them."
     )
+
+
+def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarray, Capacity]:
+    """Host, 2D: Qhull's counter-clockwise triangles (S, 3) and the triangle across the edge
+    opposite each vertex (-1 on the hull), padded to the capacities (padding rows N and -1).
+    Raises `CapacityError` when the graph does not fit a pinned `capacity`."""
+    tri, perm = _qhull(x)
+    simplices = tri.simplices if perm is None else perm[tri.simplices]  # triangle ids are unchanged
+    n = len(x)
+    cap = _fit_capacity(Capacity(len(simplices), _planar_max_degree(simplices, tri.neighbors, n)), n, 2, capacity)
+    padded = np.full((cap.simplices, 3), n, np.int32)
+    padded[: len(simplices)] = simplices
+    adjacency = np.full((cap.simplices, 3), -1, np.int32)
+    adjacency[: len(simplices)] = tri.neighbors
+    return padded, adjacency, cap
+
+
+def _planar_max_degree(simplices: np.ndarray, adjacency: np.ndarray, n: int) -> int:
+    """Largest vertex degree: the triangles at a vertex, plus one on the hull (an open fan).
+    A hull edge (t[a + 1], t[a + 2]) lies opposite a corner without a neighbour; every hull
+    vertex starts exactly one of them."""
+    degree = np.bincount(simplices.ravel(), minlength=n)
+    degree[np.roll(simplices, -1, axis=1)[adjacency < 0]] += 1
+    return int(degree.max())
+
+
+@functools.partial(jax.jit, static_argnames="k_cap")
+def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tessellation:
+    """Jittable: the 2D `Tessellation` from `planar_triangles`' arrays (neighbour rows by
+    walking each vertex's fan, hull flags, tiers); `overflow` if a row needs more than `k_cap`."""
+    n = points.shape[0]
+    neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap)
+    tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
+                        simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
+                        overflow=~jnp.all(complete), periodic=False)
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess))
 
 
 def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -289,8 +336,8 @@ def _as_capacity(capacity) -> Capacity:
     return Capacity(simplices, neighbors)
 
 
-def _resolve_capacity(raw: RawGraph, n: int, d: int, capacity, periodic: bool) -> Capacity:
-    need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
+def _fit_capacity(need: Capacity, n: int, d: int, capacity) -> Capacity:
+    """`capacity` if the graph needs no more (else `CapacityError`); buckets for None."""
     if capacity is None:
         # In 2D a triangulation has at most 2N triangles (exactly 2N on the torus).
         simplices = 2 * n if d == 2 else bucket_simplices(need.simplices)
