@@ -6,10 +6,12 @@ All in float32 (the library default), 2D rastrigin swarm, default SwarmParams
 (Langevin + kernel viscous force + cloning), in one run:
 
 - steps per second at each N with rebuild every step and every 10 steps, with
-  every observable and with only the fitness observables; `qhull_seconds` is
-  scipy.spatial.Delaunay alone on the same positions, and `rest_over_qhull` =
-  (time per step - Qhull time per step) / Qhull time per step with rebuild every
-  step (target <= 0.3);
+  every observable and with only the fitness observables, and the share of the
+  run's wall time spent inside Qhull (scipy's Delaunay constructor, clocked in
+  the run); `qhull_seconds` is scipy.spatial.Delaunay alone on the final
+  positions (best of 3); with rebuild every step, `rest_over_qhull` = (time per
+  step - qhull_seconds) / qhull_seconds and `rest_over_qhull_in_run` the same
+  with the Qhull time clocked inside the run (target <= 0.3);
 - rebuild strategy at the smallest N: host rebuild between scan chunks against
   a `jax.pure_callback` inside the scan (both rebuild every step);
 - `jaxgeom.viscous_force` alone at N = --force-n (1e6) against a vectorized numpy
@@ -44,14 +46,39 @@ def best_of(fn, repeats=3):
     return min(times)
 
 
+class QhullClock:
+    """Wall time spent inside scipy's Delaunay constructor (Qhull) while enabled."""
+
+    def __init__(self):
+        self.seconds, self.calls, self._real = 0.0, 0, jaxgeom._delaunay.Delaunay
+
+    def __enter__(self):
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return self._real(*args, **kwargs)
+            finally:
+                self.seconds += time.perf_counter() - start
+                self.calls += 1
+
+        jaxgeom._delaunay.Delaunay = timed
+        return self
+
+    def __exit__(self, *exc):
+        jaxgeom._delaunay.Delaunay = self._real
+
+
 def run(state, params, n_steps, rebuild_every, observe, rebuild="host"):
-    jaxgeom.simulate(rastrigin, state, params, n_steps=rebuild_every, rebuild_every=rebuild_every,
-                     observe=observe, rebuild=rebuild)  # warm-up (compile)
-    start = time.perf_counter()
-    final, history = jaxgeom.simulate(rastrigin, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
-                                      observe=observe, rebuild=rebuild)
-    jax.block_until_ready(final.positions)
-    return time.perf_counter() - start, final, history
+    """(seconds, final, history, Qhull seconds inside the run); the warm-up has the same
+    n_steps, since a callback run compiles one scan over all of its steps."""
+    kwargs = dict(n_steps=n_steps, rebuild_every=rebuild_every, observe=observe, rebuild=rebuild)
+    jaxgeom.simulate(rastrigin, state, params, **kwargs)  # warm-up (compile)
+    with QhullClock() as clock:
+        start = time.perf_counter()
+        final, history = jaxgeom.simulate(rastrigin, state, params, **kwargs)
+        jax.block_until_ready(final.positions)
+        seconds = time.perf_counter() - start
+    return seconds, final, history, clock.seconds
 
 
 def throughput(n: int, n_steps: int) -> dict:
@@ -61,16 +88,20 @@ def throughput(n: int, n_steps: int) -> dict:
     row = {"n": n, "n_steps": n_steps}
     for observe, label in ((jaxgeom.OBSERVABLES, "all_observables"), (OBS_FITNESS, "fitness_observables")):
         for every in (1, 10):
-            seconds, final, history = run(state, params, n_steps, every, observe)
+            seconds, final, history, qhull = run(state, params, n_steps, every, observe)
             row[f"{label}_rebuild_every_{every}"] = {
                 "steps_per_second": n_steps / seconds, "seconds_per_step": seconds / n_steps,
                 "seconds_rebuild": history["seconds_rebuild"], "seconds_steps": history["seconds_steps"],
+                "seconds_qhull_in_run": qhull, "qhull_share": qhull / seconds,
                 "n_reallocations": history["n_reallocations"]}
     x = np.asarray(final.positions, np.float64)
     row["qhull_seconds"] = best_of(lambda: scipy.spatial.Delaunay(x, qhull_options="Qbb Qc Qz Q12"))
     for label in ("all_observables", "fitness_observables"):
-        per_step = row[f"{label}_rebuild_every_1"]["seconds_per_step"]
+        timed = row[f"{label}_rebuild_every_1"]
+        per_step = timed["seconds_per_step"]
         row[f"{label}_rest_over_qhull"] = (per_step - row["qhull_seconds"]) / row["qhull_seconds"]
+        in_run = timed["seconds_qhull_in_run"] / n_steps
+        row[f"{label}_rest_over_qhull_in_run"] = (per_step - in_run) / in_run
     print(json.dumps(row))
     return row
 
@@ -81,8 +112,9 @@ def rebuild_strategy(n: int, n_steps: int) -> dict:
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     out = {"n": n, "n_steps": n_steps}
     for rebuild in ("host", "callback"):
-        seconds, _, _ = run(state, params, n_steps, 1, OBS_FITNESS, rebuild)
+        seconds, _, _, qhull = run(state, params, n_steps, 1, OBS_FITNESS, rebuild)
         out[f"{rebuild}_seconds_per_step"] = seconds / n_steps
+        out[f"{rebuild}_qhull_seconds_per_step"] = qhull / n_steps
     x = np.asarray(state.positions, np.float64)
     out["qhull_seconds"] = best_of(lambda: scipy.spatial.Delaunay(x, qhull_options="Qbb Qc Qz Q12"))
     print(json.dumps(out))

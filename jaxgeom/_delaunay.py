@@ -162,7 +162,11 @@ def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarr
     tri, perm = _qhull(x)
     simplices = tri.simplices if perm is None else perm[tri.simplices]  # triangle ids are unchanged
     n = len(x)
-    cap = _fit_capacity(Capacity(len(simplices), _planar_max_degree(simplices, tri.neighbors, n)), n, 2, capacity)
+    triangles_at = np.bincount(simplices.ravel(), minlength=n)
+    bound = int(triangles_at.max()) + 1  # a vertex has one neighbour more than triangles on the hull, else as many
+    if capacity is None or _as_capacity(capacity).neighbors < bound:
+        bound = _planar_max_degree(triangles_at, simplices, tri.neighbors)
+    cap = _fit_capacity(Capacity(len(simplices), bound), n, 2, capacity)
     padded = np.full((cap.simplices, 3), n, np.int32)
     padded[: len(simplices)] = simplices
     adjacency = np.full((cap.simplices, 3), -1, np.int32)
@@ -170,13 +174,14 @@ def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarr
     return padded, adjacency, cap
 
 
-def _planar_max_degree(simplices: np.ndarray, adjacency: np.ndarray, n: int) -> int:
+def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacency: np.ndarray) -> int:
     """Largest vertex degree: the triangles at a vertex, plus one on the hull (an open fan).
     A hull edge (t[a + 1], t[a + 2]) lies opposite a corner without a neighbour; every hull
     vertex starts exactly one of them."""
-    degree = np.bincount(simplices.ravel(), minlength=n)
-    degree[np.roll(simplices, -1, axis=1)[adjacency < 0]] += 1
-    return int(degree.max())
+    triangle, corner = np.nonzero(adjacency < 0)
+    hull = np.zeros(len(triangles_at), np.int64)
+    hull[simplices[triangle, (corner + 1) % 3]] = 1
+    return int((triangles_at + hull).max())
 
 
 @functools.partial(jax.jit, static_argnames="k_cap")

@@ -183,10 +183,10 @@ def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, 
     return normalize_rows(w)
 
 
-def ornstein_uhlenbeck(params: SwarmParams, v, g, key):
-    """Exact O step v -> c v + sqrt(T (1 - c^2)) sigma xi with sigma sigma^T = D (I or g^-1)."""
+def ornstein_uhlenbeck(params: SwarmParams, v, g, xi):
+    """Exact O step v -> c v + sqrt(T (1 - c^2)) sigma xi with sigma sigma^T = D (I or g^-1);
+    `xi` holds standard normals shaped like `v`."""
     c = jnp.exp(-params.gamma * params.dt)
-    xi = jax.random.normal(key, v.shape, v.dtype)
     if params.anisotropic:
         chol = jnp.linalg.cholesky(g)  # g = L L^T, so L^-T xi has covariance g^-1
         xi = jax.vmap(lambda low, e: jax.scipy.linalg.solve_triangular(low, e, trans="T", lower=True))(chol, xi)
@@ -225,37 +225,71 @@ def clone_decisions(params: SwarmParams, state: SwarmState, key):
     return companion, clones
 
 
-def apply_clones(params: SwarmParams, companion, clones, x, v, spacing, key):
-    """Cloned walkers take their companion's velocity and a jittered copy of its position."""
-    jitter = params.clone_jitter * spacing * jax.random.normal(key, x.shape, x.dtype)
+def apply_clones(params: SwarmParams, companion, clones, x, v, spacing, normals):
+    """Cloned walkers take their companion's velocity and a jittered copy of its position
+    (`normals`: standard normals shaped like `x`)."""
+    jitter = params.clone_jitter * spacing * normals
     return (jnp.where(clones[:, None], x[companion] + jitter, x),
             jnp.where(clones[:, None], v[companion], v))
 
 
-def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone) -> SwarmState:
-    """One B A V O V A B step (module docstring) on the state's graph, plus cloning
-    when `do_clone` (cloned walkers jump after the second drift, before the last kick)."""
-    from ._spectral import mean_nearest_neighbor_distance
+class StepStart(eqx.Module):
+    """The opening of a step that does not need the graph, so that it can be computed
+    ahead (`simulate` runs it while Qhull rebuilds the tessellation).
 
+    **Fields:** `velocities` after the first kick, `positions` after the first drift,
+    `noise` (the O step's standard normals), `jitter` (the clone jitter's standard
+    normals), `companion` and `clones` (the clone decisions on the state entering the
+    step; applied only on a step that clones), `key` (the state's next key).
+    """
+
+    velocities: Float[Array, "N d"]
+    positions: Float[Array, "N d"]
+    noise: Float[Array, "N d"]
+    jitter: Float[Array, "N d"]
+    companion: Int[Array, " N"]
+    clones: Bool[Array, " N"]
+    key: PRNGKeyArray
+
+
+def begin_step(params: SwarmParams, state: SwarmState) -> StepStart:
+    """B A of the splitting, the step's random draws and the clone decisions (no graph needed)."""
     half = 0.5 * params.dt
     key, k_noise, k_clone, k_jitter = jax.random.split(state.key, 4)
     v = state.velocities + half * state.force
     x = state.positions + half * v
+    noise = jax.random.normal(k_noise, v.shape, v.dtype)
+    if not params.cloning:
+        n = x.shape[0]
+        return StepStart(v, x, noise, jnp.zeros_like(x), jnp.arange(n, dtype=jnp.int32), jnp.zeros(n, bool), key)
+    # materialise once: XLA otherwise re-derives the clone decisions inside every consumer (2x step time)
+    companion, clones = jax.lax.optimization_barrier(clone_decisions(params, state, k_clone))
+    return StepStart(v, x, noise, jax.random.normal(k_jitter, x.shape, x.dtype), companion, clones, key)
+
+
+def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone,
+               start: StepStart | None = None) -> SwarmState:
+    """One B A V O V A B step (module docstring) on the state's graph, plus cloning
+    when `do_clone` (cloned walkers jump after the second drift, before the last kick).
+    `start` is `begin_step(params, state)` when computed ahead."""
+    from ._spectral import mean_nearest_neighbor_distance
+
+    start = begin_step(params, state) if start is None else start
+    half = 0.5 * params.dt
+    v, x = start.velocities, start.positions
     tess = eqx.tree_at(lambda t: t.points, state.tess, x)
     eps = params.eps_sigma * state.eps_factor
     g = metric_field(fitness, params, eps, x) if params.needs_metric else None
     w, _ = viscous_weights(params, state, tess, g)
     nu = current_nu(params, progress)
     v = v + half * apply_viscous(tess, w, v, nu)
-    v = ornstein_uhlenbeck(params, v, g, k_noise)
+    v = ornstein_uhlenbeck(params, v, g, start.noise)
     v = v + half * apply_viscous(tess, w, v, nu)
     x = x + half * v
     clones = jnp.zeros(x.shape[0], bool)
     if params.cloning:
-        companion, clones = jax.lax.optimization_barrier(clone_decisions(params, state, k_clone))
-        clones = clones & do_clone
-        x, v = apply_clones(params, companion, clones, x, v, mean_nearest_neighbor_distance(tess), k_jitter)
-        # materialise once: XLA otherwise re-derives the clone decisions inside every consumer (2x step time)
+        clones = start.clones & do_clone
+        x, v = apply_clones(params, start.companion, clones, x, v, mean_nearest_neighbor_distance(tess), start.jitter)
         x, v, clones = jax.lax.optimization_barrier((x, v, clones))
     values, force = fitness_and_force(fitness, x)
     v = v + half * force
@@ -263,7 +297,7 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
         lambda s: (s.positions, s.velocities, s.fitness, s.force, s.alive, s.cloned, s.key, s.tess, s.step,
                    s.eps_factor),
         state,
-        (x, v, values, force, jnp.isfinite(values), clones, key, eqx.tree_at(lambda t: t.points, tess, x),
+        (x, v, values, force, jnp.isfinite(values), clones, start.key, eqx.tree_at(lambda t: t.points, tess, x),
          state.step + 1, _raised_eps_factor(params, state, g)),
     )
 

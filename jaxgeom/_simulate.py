@@ -26,7 +26,8 @@ import numpy as np
 
 from ._checks import check_choice, check_min_points, host_points
 from ._delaunay import CapacityError, delaunay, planar_tessellation, planar_triangles
-from ._dynamics import OBSERVABLES, SwarmParams, SwarmState, fitness_and_force, observe_state, swarm_step
+from ._dynamics import (OBSERVABLES, StepStart, SwarmParams, SwarmState, begin_step, fitness_and_force, observe_state,
+                        swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
 from ._spectral import mean_nearest_neighbor_distance, spectral_gap
@@ -180,10 +181,11 @@ def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
                                                             (state.positions, overflow)))
 
 
-def _scan_steps(fitness, params: SwarmParams, state: SwarmState, start, n_total, length: int,
+def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
                 observe: tuple, rebuild_every: int, callback_k: int | None):
     """`length` steps from global step `start` (steps >= n_total are skipped); observes the
-    state entering each step. With `callback_k`, rebuilds in the scan every `rebuild_every` steps."""
+    state entering each step. `first` is `begin_step` of the first step, computed ahead.
+    With `callback_k`, rebuilds in the scan every `rebuild_every` steps."""
     dtype = state.positions.dtype
 
     def body(st, i):
@@ -193,7 +195,8 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, start, n_total,
         chunk_end = ((s + 1) % rebuild_every == 0) | (s == n_total - 1)
 
         def advance(q):
-            q = swarm_step(fitness, params, q, progress, chunk_end)  # clone only before a rebuild
+            opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
+            q = swarm_step(fitness, params, q, progress, chunk_end, opening)  # clone only before a rebuild
             if callback_k is None:
                 return q
             return jax.lax.cond(chunk_end, lambda r: _callback_rebuild(r, callback_k), lambda r: r, q)
@@ -206,6 +209,7 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, start, n_total,
 # jax.jit, not eqx.filter_jit: every leaf is an array and the C++ dispatch path saves
 # ~0.4 ms per call (N = 1e4, rebuild every step); fitness and the loop shape are static.
 _run_chunk = jax.jit(_scan_steps, static_argnames=("fitness", "length", "observe", "rebuild_every", "callback_k"))
+_begin_step = jax.jit(begin_step)
 
 
 @eqx.filter_jit
@@ -302,10 +306,12 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     bar = _ProgressBar(n_steps) if progress else None
     if gap_every:
         gaps.append((0, float(spectral_gap(state.tess, k=2)[1])))
+    opening = _begin_step(params, state)
     for start in range(0, n_steps, rebuild_every):
         t0 = time.perf_counter()
-        state, obs = _run_chunk(fitness, params, state, jnp.asarray(start, jnp.int32), n_total, rebuild_every,
-                                observe, rebuild_every, None)
+        state, obs = _run_chunk(fitness, params, state, opening, jnp.asarray(start, jnp.int32), n_total,
+                                rebuild_every, observe, rebuild_every, None)
+        opening = _begin_step(params, state)  # needs no graph: XLA runs it while the host runs Qhull
         end = min(start + rebuild_every, n_steps)
         chunks.append({name: np.asarray(value)[: end - start] for name, value in obs.items()})
         t1 = time.perf_counter()
@@ -335,7 +341,8 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     zero, total = jnp.asarray(0, jnp.int32), jnp.asarray(n_steps, jnp.int32)
     while True:
-        final, obs = _run_chunk(fitness, params, state, zero, total, n_steps, observe, rebuild_every, k)
+        final, obs = _run_chunk(fitness, params, state, begin_step(params, state), zero, total, n_steps, observe,
+                                rebuild_every, k)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "

@@ -97,7 +97,7 @@ def test_anisotropic_noise_has_covariance_T_inverse_metric():
     g = jnp.array([[4.0, 1.0], [1.0, 2.0]])
     params = jaxgeom.SwarmParams(dt=1.0, gamma=50.0, temperature=0.3, anisotropic=True)
     v = ornstein_uhlenbeck(params, jnp.zeros((200_000, 2)), jnp.broadcast_to(g, (200_000, 2, 2)),
-                           jax.random.PRNGKey(0))
+                           jax.random.normal(jax.random.PRNGKey(0), (200_000, 2)))
     np.testing.assert_allclose(np.cov(np.asarray(v).T), 0.3 * np.linalg.inv(np.asarray(g)), atol=3e-3)
 
 
@@ -125,7 +125,7 @@ def test_callback_rebuild_matches_host_rebuild(rng):
     b, hb = jaxgeom.simulate(bowl, state, params, n_steps=8, rebuild="callback")
     np.testing.assert_allclose(np.asarray(b.positions), np.asarray(a.positions), atol=1e-10)
     assert np.array_equal(np.asarray(a.tess.neighbors), np.asarray(b.tess.neighbors))
-    np.testing.assert_allclose(np.asarray(hb["mean_ricci"]), ha["mean_ricci"], rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(hb["mean_ricci"]), ha["mean_ricci"], rtol=1e-8, atol=1e-12)  # ~0 in a bowl
 
 
 def test_gradient_through_a_whole_simulation_matches_finite_differences(rng):
