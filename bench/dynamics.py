@@ -8,10 +8,11 @@ All in float32 (the library default), 2D rastrigin swarm, default SwarmParams
 - steps per second at each N with rebuild every step and every 10 steps, with
   every observable and with only the fitness observables, and the share of the
   run's wall time spent inside Qhull (scipy's Delaunay constructor, clocked in
-  the run); `qhull_seconds` is scipy.spatial.Delaunay alone on the final
-  positions (best of 3); with rebuild every step, `rest_over_qhull` = (time per
-  step - qhull_seconds) / qhull_seconds and `rest_over_qhull_in_run` the same
-  with the Qhull time clocked inside the run (target <= 0.3);
+  the run). "Everything but Qhull" over Qhull (target <= 0.3 with rebuild every
+  step) two ways: `rest_over_qhull_in_run` = (run time - Qhull time in the run)
+  / Qhull time in the run, and `rest_over_qhull` with Qhull timed alone on each
+  run's final positions instead (median of 5 calls). Medians of 3 timed runs, the
+  runs themselves under "runs";
 - rebuild strategy at the smallest N: host rebuild between scan chunks against
   a `jax.pure_callback` inside the scan (both rebuild every step);
 - `jaxgeom.viscous_force` alone at N = --force-n (1e6) against a vectorized numpy
@@ -32,6 +33,7 @@ import numpy as np
 import scipy.spatial
 
 import jaxgeom
+from jaxgeom._delaunay import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
 from jaxgeom._landscapes import rastrigin
 
 OBS_FITNESS = ("mean_fitness", "best_fitness", "n_clones")
@@ -68,17 +70,45 @@ class QhullClock:
         jaxgeom._delaunay.Delaunay = self._real
 
 
-def run(state, params, n_steps, rebuild_every, observe, rebuild="host"):
-    """(seconds, final, history, Qhull seconds inside the run); the warm-up has the same
-    n_steps, since a callback run compiles one scan over all of its steps."""
-    kwargs = dict(n_steps=n_steps, rebuild_every=rebuild_every, observe=observe, rebuild=rebuild)
-    jaxgeom.simulate(rastrigin, state, params, **kwargs)  # warm-up (compile)
-    with QhullClock() as clock:
+def qhull_alone(positions, repeats=5) -> float:
+    """Median seconds of scipy's Delaunay alone on the points as the builder hands them to
+    Qhull (Morton-sorted from MORTON_MIN_POINTS on)."""
+    x = np.asarray(positions, np.float64)
+    if len(x) >= MORTON_MIN_POINTS:
+        x = np.ascontiguousarray(x[morton_order(x)])
+    times = []
+    for _ in range(repeats):
         start = time.perf_counter()
-        final, history = jaxgeom.simulate(rastrigin, state, params, **kwargs)
-        jax.block_until_ready(final.positions)
-        seconds = time.perf_counter() - start
-    return seconds, final, history, clock.seconds
+        scipy.spatial.Delaunay(x, qhull_options=QHULL_OPTIONS)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def run(state, params, n_steps, rebuild_every, observe, rebuild="host", repeats=3) -> dict:
+    """A warm-up (same n_steps: a callback run compiles one scan over all of its steps), then
+    `repeats` timed runs, each followed by Qhull alone on its final positions; medians and
+    the per-run values (this VM's timings vary by up to ~30%)."""
+    kwargs = dict(n_steps=n_steps, rebuild_every=rebuild_every, observe=observe, rebuild=rebuild)
+    jaxgeom.simulate(rastrigin, state, params, **kwargs)
+    per_step, in_run, alone = [], [], []
+    for _ in range(repeats):
+        with QhullClock() as clock:
+            start = time.perf_counter()
+            final, history = jaxgeom.simulate(rastrigin, state, params, **kwargs)
+            jax.block_until_ready(final.positions)
+            seconds = time.perf_counter() - start
+        per_step.append(seconds / n_steps)
+        in_run.append(clock.seconds / n_steps)
+        alone.append(qhull_alone(final.positions) * clock.calls / n_steps)
+    rest_alone = [(t - q) / q for t, q in zip(per_step, alone)]
+    rest_in_run = [(t - q) / q for t, q in zip(per_step, in_run)]
+    median = lambda values: float(np.median(values))  # noqa: E731
+    return {"steps_per_second": 1.0 / median(per_step), "seconds_per_step": median(per_step),
+            "qhull_seconds_per_step_in_run": median(in_run), "qhull_alone_seconds_per_step": median(alone),
+            "qhull_share": median([q / t for t, q in zip(per_step, in_run)]),
+            "rest_over_qhull": median(rest_alone), "rest_over_qhull_in_run": median(rest_in_run),
+            "runs": {"seconds_per_step": per_step, "rest_over_qhull": rest_alone, "rest_over_qhull_in_run": rest_in_run},
+            "n_reallocations": history["n_reallocations"]}
 
 
 def throughput(n: int, n_steps: int) -> dict:
@@ -88,20 +118,7 @@ def throughput(n: int, n_steps: int) -> dict:
     row = {"n": n, "n_steps": n_steps}
     for observe, label in ((jaxgeom.OBSERVABLES, "all_observables"), (OBS_FITNESS, "fitness_observables")):
         for every in (1, 10):
-            seconds, final, history, qhull = run(state, params, n_steps, every, observe)
-            row[f"{label}_rebuild_every_{every}"] = {
-                "steps_per_second": n_steps / seconds, "seconds_per_step": seconds / n_steps,
-                "seconds_rebuild": history["seconds_rebuild"], "seconds_steps": history["seconds_steps"],
-                "seconds_qhull_in_run": qhull, "qhull_share": qhull / seconds,
-                "n_reallocations": history["n_reallocations"]}
-    x = np.asarray(final.positions, np.float64)
-    row["qhull_seconds"] = best_of(lambda: scipy.spatial.Delaunay(x, qhull_options="Qbb Qc Qz Q12"))
-    for label in ("all_observables", "fitness_observables"):
-        timed = row[f"{label}_rebuild_every_1"]
-        per_step = timed["seconds_per_step"]
-        row[f"{label}_rest_over_qhull"] = (per_step - row["qhull_seconds"]) / row["qhull_seconds"]
-        in_run = timed["seconds_qhull_in_run"] / n_steps
-        row[f"{label}_rest_over_qhull_in_run"] = (per_step - in_run) / in_run
+            row[f"{label}_rebuild_every_{every}"] = run(state, params, n_steps, every, observe)
     print(json.dumps(row))
     return row
 
@@ -112,11 +129,10 @@ def rebuild_strategy(n: int, n_steps: int) -> dict:
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     out = {"n": n, "n_steps": n_steps}
     for rebuild in ("host", "callback"):
-        seconds, _, _, qhull = run(state, params, n_steps, 1, OBS_FITNESS, rebuild)
-        out[f"{rebuild}_seconds_per_step"] = seconds / n_steps
-        out[f"{rebuild}_qhull_seconds_per_step"] = qhull / n_steps
-    x = np.asarray(state.positions, np.float64)
-    out["qhull_seconds"] = best_of(lambda: scipy.spatial.Delaunay(x, qhull_options="Qbb Qc Qz Q12"))
+        timed = run(state, params, n_steps, 1, OBS_FITNESS, rebuild)
+        out[f"{rebuild}_seconds_per_step"] = timed["seconds_per_step"]
+        out[f"{rebuild}_qhull_seconds_per_step_in_run"] = timed["qhull_seconds_per_step_in_run"]
+        out[f"{rebuild}_qhull_alone_seconds_per_step"] = timed["qhull_alone_seconds_per_step"]
     print(json.dumps(out))
     return out
 

@@ -268,10 +268,11 @@ def begin_step(params: SwarmParams, state: SwarmState) -> StepStart:
 
 
 def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone,
-               start: StepStart | None = None) -> SwarmState:
+               start: StepStart | None = None, finish: bool = True) -> SwarmState:
     """One B A V O V A B step (module docstring) on the state's graph, plus cloning
     when `do_clone` (cloned walkers jump after the second drift, before the last kick).
-    `start` is `begin_step(params, state)` when computed ahead."""
+    `start` is `begin_step(params, state)` when computed ahead; `finish=False` stops
+    before the closing kick (then `finish_step` completes the step)."""
     from ._spectral import mean_nearest_neighbor_distance
 
     start = begin_step(params, state) if start is None else start
@@ -291,15 +292,21 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
         clones = start.clones & do_clone
         x, v = apply_clones(params, start.companion, clones, x, v, mean_nearest_neighbor_distance(tess), start.jitter)
         x, v, clones = jax.lax.optimization_barrier((x, v, clones))
-    values, force = fitness_and_force(fitness, x)
-    v = v + half * force
-    return eqx.tree_at(
-        lambda s: (s.positions, s.velocities, s.fitness, s.force, s.alive, s.cloned, s.key, s.tess, s.step,
-                   s.eps_factor),
+    moved = eqx.tree_at(
+        lambda s: (s.positions, s.velocities, s.cloned, s.key, s.tess, s.step, s.eps_factor),
         state,
-        (x, v, values, force, jnp.isfinite(values), clones, start.key, eqx.tree_at(lambda t: t.points, tess, x),
-         state.step + 1, _raised_eps_factor(params, state, g)),
+        (x, v, clones, start.key, eqx.tree_at(lambda t: t.points, tess, x), state.step + 1,
+         _raised_eps_factor(params, state, g)),
     )
+    return finish_step(fitness, params, moved) if finish else moved
+
+
+def finish_step(fitness, params: SwarmParams, state: SwarmState) -> SwarmState:
+    """The closing half kick at the step's final positions (V, -grad V, alive flags; no graph needed)."""
+    values, force = fitness_and_force(fitness, state.positions)
+    v = state.velocities + 0.5 * params.dt * force
+    return eqx.tree_at(lambda s: (s.velocities, s.fitness, s.force, s.alive), state,
+                       (v, values, force, jnp.isfinite(values)))
 
 
 def _raised_eps_factor(params: SwarmParams, state: SwarmState, g):

@@ -15,6 +15,7 @@ simulation with larger capacities when called eagerly and raises under a trace.
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -26,8 +27,8 @@ import numpy as np
 
 from ._checks import check_choice, check_min_points, host_points
 from ._delaunay import CapacityError, delaunay, planar_tessellation, planar_triangles
-from ._dynamics import (OBSERVABLES, StepStart, SwarmParams, SwarmState, begin_step, fitness_and_force, observe_state,
-                        swarm_step)
+from ._dynamics import (OBSERVABLES, StepStart, SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force,
+                        observe_state, swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
 from ._spectral import mean_nearest_neighbor_distance, spectral_gap
@@ -185,7 +186,8 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
                 observe: tuple, rebuild_every: int, callback_k: int | None):
     """`length` steps from global step `start` (steps >= n_total are skipped); observes the
     state entering each step. `first` is `begin_step` of the first step, computed ahead.
-    With `callback_k`, rebuilds in the scan every `rebuild_every` steps."""
+    With `callback_k`, rebuilds in the scan every `rebuild_every` steps; without, the
+    chunk's last step stops before its closing kick (`_finish_and_begin` completes it)."""
     dtype = state.positions.dtype
 
     def body(st, i):
@@ -196,9 +198,10 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
         def advance(q):
             opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
-            q = swarm_step(fitness, params, q, progress, chunk_end, opening)  # clone only before a rebuild
-            if callback_k is None:
-                return q
+            q = swarm_step(fitness, params, q, progress, chunk_end, opening, finish=False)  # clone only before a rebuild
+            if callback_k is None:  # the host finishes the chunk's last step while Qhull runs
+                return jax.lax.cond(chunk_end, lambda r: r, lambda r: finish_step(fitness, params, r), q)
+            q = finish_step(fitness, params, q)
             return jax.lax.cond(chunk_end, lambda r: _callback_rebuild(r, callback_k), lambda r: r, q)
 
         return jax.lax.cond(s < n_total, advance, lambda q: q, st), obs
@@ -210,6 +213,14 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 # ~0.4 ms per call (N = 1e4, rebuild every step); fitness and the loop shape are static.
 _run_chunk = jax.jit(_scan_steps, static_argnames=("fitness", "length", "observe", "rebuild_every", "callback_k"))
 _begin_step = jax.jit(begin_step)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _finish_and_begin(fitness, params: SwarmParams, moved: SwarmState) -> tuple[SwarmState, StepStart]:
+    """The graph-free work between two chunks: the last step's closing kick and the next
+    step's opening. The host runs Qhull meanwhile (XLA executes this asynchronously)."""
+    state = finish_step(fitness, params, moved)
+    return state, begin_step(params, state)
 
 
 @eqx.filter_jit
@@ -272,15 +283,14 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
-def _rebuild_host(state: SwarmState, k: int) -> tuple[SwarmState, bool]:
+def _rebuild_host(state: SwarmState, k: int) -> tuple[Tessellation, bool]:
     x = np.asarray(state.positions)
     if not np.isfinite(x).all():
         bad = np.flatnonzero(~np.isfinite(x).all(axis=1))
         raise FloatingPointError(f"the swarm diverged by step {int(state.step)}: {bad.size} walker(s) have "
                                  "non-finite positions; reduce `dt` or the forces.")
     graph = _graph_kind(state.tess)
-    tess, grew = build_graph(x, graph, k, None if graph == "knn" else state.tess)
-    return eqx.tree_at(lambda s: s.tess, state, tess), grew
+    return build_graph(x, graph, k, None if graph == "knn" else state.tess)
 
 
 class _ProgressBar:
@@ -309,13 +319,14 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     opening = _begin_step(params, state)
     for start in range(0, n_steps, rebuild_every):
         t0 = time.perf_counter()
-        state, obs = _run_chunk(fitness, params, state, opening, jnp.asarray(start, jnp.int32), n_total,
+        moved, obs = _run_chunk(fitness, params, state, opening, jnp.asarray(start, jnp.int32), n_total,
                                 rebuild_every, observe, rebuild_every, None)
-        opening = _begin_step(params, state)  # needs no graph: XLA runs it while the host runs Qhull
+        state, opening = _finish_and_begin(fitness, params, moved)  # dispatched now, runs during Qhull
         end = min(start + rebuild_every, n_steps)
         chunks.append({name: np.asarray(value)[: end - start] for name, value in obs.items()})
         t1 = time.perf_counter()
-        state, grew = _rebuild_host(state, k)
+        tess, grew = _rebuild_host(moved, k)  # the positions are final in `moved`
+        state = eqx.tree_at(lambda s: s.tess, state, tess)
         reallocations += grew
         seconds["steps"] += t1 - t0
         seconds["rebuild"] += time.perf_counter() - t1
