@@ -57,7 +57,9 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
     """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
 
     Host-only (scipy Qhull); not jittable. Points are handed to Qhull in Morton
-    order, which makes it faster; all indices refer to the original order.
+    order, which makes it faster; all indices refer to the original order. In 2D
+    (not periodic) the neighbour rows, hull flags and tiers are derived from Qhull's
+    triangles by the jitted [`planar_tessellation`][jaxgeom._delaunay.planar_tessellation].
 
     **Arguments:**
 

@@ -390,14 +390,24 @@ def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, obs
 
     Returns `(state, {name: scalar})`. Geometric observables are NaN on a k-NN graph.
     """
-    needs_cells = params.volume_weighting or any(name in GEOMETRIC_OBSERVABLES for name in observe)
-    new = state
-    if needs_cells:
-        volumes, interior = cell_volumes(state.tess)
-        new = eqx.tree_at(lambda s: (s.volumes, s.interior), state, (volumes, interior))
-    view, observers = _View(fitness, params, state, new, jnp.asarray(progress)), _observers()
-    dtype = state.positions.dtype
+    new = refresh_cells(params, state, observe)
+    return new, measure(fitness, params, state, new, progress, observe)
+
+
+def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
+    """The state with its cell volumes and tiers on its current graph, where the step
+    (volume weighting) or an observable needs them; else the state unchanged."""
+    if not (params.volume_weighting or any(name in GEOMETRIC_OBSERVABLES for name in observe)):
+        return state
+    volumes, interior = cell_volumes(state.tess)
+    return eqx.tree_at(lambda s: (s.volumes, s.interior), state, (volumes, interior))
+
+
+def measure(fitness, params: SwarmParams, old: SwarmState, new: SwarmState, progress, observe: tuple[str, ...]):
+    """{name: scalar} of `new` (= `refresh_cells` of `old`; the expansion compares their volumes)."""
+    view, observers = _View(fitness, params, old, new, jnp.asarray(progress)), _observers()
+    dtype = new.positions.dtype
     nan = jnp.asarray(jnp.nan, dtype)
-    geometric = state.tess.simplices is not None
-    return new, {name: nan if name in GEOMETRIC_OBSERVABLES and not geometric
-                 else jnp.asarray(observers[name](view), dtype) for name in observe}
+    geometric = new.tess.simplices is not None
+    return {name: nan if name in GEOMETRIC_OBSERVABLES and not geometric
+            else jnp.asarray(observers[name](view), dtype) for name in observe}

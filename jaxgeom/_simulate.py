@@ -1,12 +1,20 @@
 """`jaxgeom.simulate`: jax.lax.scan over swarm steps, with the tessellation rebuilt as walkers move.
 
 Rebuild strategy (measured, bench/results/dynamics.json, N = 1e4 in 2D, float32,
-rebuild every step): the default `rebuild="host"` runs `rebuild_every` steps in one
-jitted `lax.scan` chunk and rebuilds the graph with Qhull on the host between chunks:
-42.9 ms per step against 72.1 ms with the Qhull call inside the scan through
-`jax.pure_callback` (Qhull alone: 24.5 ms). The host loop is also the only place that
-can grow a too-small capacity (a new bucket, one recompilation) instead of truncating,
-compute the spectral gap every M steps, and show a progress bar.
+rebuild every step, fitness observables, medians of 3 runs): the default
+`rebuild="host"` runs `rebuild_every` steps in one jitted `lax.scan` chunk and rebuilds
+the graph with Qhull on the host between chunks: 32.7 ms per step against 34.9 ms with
+the Qhull call inside the scan through `jax.pure_callback` (Qhull alone on the same
+points: 25.2 and 27.1 ms). (An earlier bench warmed the callback run up with another
+n_steps, so it timed a compilation: its 72 ms per step were mostly that.)
+Between chunks the host dispatches the work that needs no new graph (the last step's
+closing kick, the next step's opening with its random draws and clone decisions, and
+the observables of the chunk's first state) and runs Qhull while XLA computes it
+(N = 1e4, rebuild every step: everything but Qhull went from 0.36-0.39x to 0.21x
+Qhull's time with fitness observables, 0.71-0.79x to 0.25x with all of them). The host loop is also the only place that can grow a
+too-small capacity (a new bucket, one recompilation) instead of truncating, compute
+the spectral gap every M steps and show a progress bar, and it compiles per chunk
+length, not per `n_steps`.
 `rebuild="callback"` is kept for what only it can do: the whole simulation is one
 jittable, differentiable function of the parameters (tuning nu and eps_Sigma with
 optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs the
@@ -28,7 +36,7 @@ import numpy as np
 from ._checks import check_choice, check_min_points, host_points
 from ._delaunay import CapacityError, delaunay, planar_tessellation, planar_triangles
 from ._dynamics import (OBSERVABLES, StepStart, SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force,
-                        observe_state, swarm_step)
+                        measure, observe_state, refresh_cells, swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
 from ._spectral import mean_nearest_neighbor_distance, spectral_gap
@@ -184,35 +192,60 @@ def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
 
 def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
                 observe: tuple, rebuild_every: int, callback_k: int | None):
-    """`length` steps from global step `start` (steps >= n_total are skipped); observes the
+    """`length` steps from global step `start` (steps >= n_total are skipped), observing the
     state entering each step. `first` is `begin_step` of the first step, computed ahead.
-    With `callback_k`, rebuilds in the scan every `rebuild_every` steps; without, the
-    chunk's last step stops before its closing kick (`_finish_and_begin` completes it)."""
+    Returns `(state, observables, cells)`, `cells` the first state's refreshed volumes and tiers.
+
+    With `callback_k`, rebuilds in the scan every `rebuild_every` steps. Without (host
+    chunks), the first state's observables are left to `_measure_first` (NaN here) and the
+    last step stops before its closing kick (`_finish_and_begin`): neither needs the next
+    graph, so XLA runs them while the host runs Qhull.
+    """
     dtype = state.positions.dtype
+    host = callback_k is None
+    entering = refresh_cells(params, state, observe)
 
     def body(st, i):
         s = start + i
         progress = s.astype(dtype) / jnp.maximum(n_total - 1, 1).astype(dtype)
-        st, obs = observe_state(fitness, params, st, progress, observe)
+
+        def observed(q):
+            new = refresh_cells(params, q, observe)
+            return new, measure(fitness, params, q, new, progress, observe)
+
+        def first_observed(q):  # q is `entering`
+            return q, ({name: jnp.asarray(jnp.nan, dtype) for name in observe} if host
+                       else measure(fitness, params, state, q, progress, observe))
+
+        st, obs = jax.lax.cond(i == 0, first_observed, observed, st)
         chunk_end = ((s + 1) % rebuild_every == 0) | (s == n_total - 1)
 
         def advance(q):
             opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
             q = swarm_step(fitness, params, q, progress, chunk_end, opening, finish=False)  # clone only before a rebuild
-            if callback_k is None:  # the host finishes the chunk's last step while Qhull runs
+            if host:
                 return jax.lax.cond(chunk_end, lambda r: r, lambda r: finish_step(fitness, params, r), q)
             q = finish_step(fitness, params, q)
             return jax.lax.cond(chunk_end, lambda r: _callback_rebuild(r, callback_k), lambda r: r, q)
 
         return jax.lax.cond(s < n_total, advance, lambda q: q, st), obs
 
-    return jax.lax.scan(body, state, jnp.arange(length, dtype=jnp.int32))
+    final, obs = jax.lax.scan(body, entering, jnp.arange(length, dtype=jnp.int32))
+    return final, obs, (entering.volumes, entering.interior)
 
 
 # jax.jit, not eqx.filter_jit: every leaf is an array and the C++ dispatch path saves
 # ~0.4 ms per call (N = 1e4, rebuild every step); fitness and the loop shape are static.
 _run_chunk = jax.jit(_scan_steps, static_argnames=("fitness", "length", "observe", "rebuild_every", "callback_k"))
 _begin_step = jax.jit(begin_step)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 5))
+def _measure_first(fitness, params: SwarmParams, state: SwarmState, cells, progress, observe: tuple):
+    """The observables of a host chunk's first state (`state` as it entered the chunk, `cells`
+    its refreshed volumes and tiers from `_scan_steps`)."""
+    new = eqx.tree_at(lambda s: (s.volumes, s.interior), state, cells)
+    return measure(fitness, params, state, new, progress, observe)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -312,18 +345,23 @@ class _ProgressBar:
 
 def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_every, k, progress):
     n_total = jnp.asarray(n_steps, jnp.int32)
-    chunks, gaps, reallocations, seconds = [], [], 0, {"rebuild": 0.0, "steps": 0.0}
+    gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
     bar = _ProgressBar(n_steps) if progress else None
     if gap_every:
         gaps.append((0, float(spectral_gap(state.tess, k=2)[1])))
-    opening = _begin_step(params, state)
+    opening, pending = _begin_step(params, state), []
+    dtype = state.positions.dtype
     for start in range(0, n_steps, rebuild_every):
         t0 = time.perf_counter()
-        moved, obs = _run_chunk(fitness, params, state, opening, jnp.asarray(start, jnp.int32), n_total,
-                                rebuild_every, observe, rebuild_every, None)
-        state, opening = _finish_and_begin(fitness, params, moved)  # dispatched now, runs during Qhull
+        entering = state
+        moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32), n_total,
+                                       rebuild_every, observe, rebuild_every, None)
+        # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
+        state, opening = _finish_and_begin(fitness, params, moved)
+        progress = jnp.asarray(start, dtype) / jnp.asarray(max(n_steps - 1, 1), dtype)  # as in the scan
         end = min(start + rebuild_every, n_steps)
-        chunks.append({name: np.asarray(value)[: end - start] for name, value in obs.items()})
+        pending.append((obs, _measure_first(fitness, params, entering, cells, progress, observe), end - start))
+        jax.block_until_ready(moved.positions)
         t1 = time.perf_counter()
         tess, grew = _rebuild_host(moved, k)  # the positions are final in `moved`
         state = eqx.tree_at(lambda s: s.tess, state, tess)
@@ -334,6 +372,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             gaps.append((end, float(spectral_gap(state.tess, k=2)[1])))
         if bar:
             bar.update(end)
+    chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
+               for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)
     history = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
     history.update(spectral_gap_step=np.array([g[0] for g in gaps], int), spectral_gap=np.array([g[1] for g in gaps]),
@@ -352,8 +392,8 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     zero, total = jnp.asarray(0, jnp.int32), jnp.asarray(n_steps, jnp.int32)
     while True:
-        final, obs = _run_chunk(fitness, params, state, begin_step(params, state), zero, total, n_steps, observe,
-                                rebuild_every, k)
+        final, obs, _ = _run_chunk(fitness, params, state, begin_step(params, state), zero, total, n_steps, observe,
+                                   rebuild_every, k)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "
