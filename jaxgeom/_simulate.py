@@ -217,12 +217,15 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
             return q, ({name: jnp.asarray(jnp.nan, dtype) for name in observe} if host
                        else measure(fitness, params, state, q, progress, observe))
 
-        st, obs = jax.lax.cond(i == 0, first_observed, observed, st)
+        # A one-step chunk (rebuild every step) compiles only the branches it takes.
+        st, obs = first_observed(st) if length == 1 else jax.lax.cond(i == 0, first_observed, observed, st)
         chunk_end = ((s + 1) % rebuild_every == 0) | (s == n_total - 1)
 
         def advance(q):
-            opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
+            opening = first if length == 1 else jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
             q = swarm_step(fitness, params, q, progress, chunk_end, opening, finish=False)  # clone only before a rebuild
+            if host and rebuild_every == 1:
+                return q
             if host:
                 return jax.lax.cond(chunk_end, lambda r: r, lambda r: finish_step(fitness, params, r), q)
             q = finish_step(fitness, params, q)
