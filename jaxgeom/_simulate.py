@@ -3,18 +3,19 @@
 Rebuild strategy (measured, bench/results/dynamics.json, N = 1e4 in 2D, float32,
 rebuild every step, fitness observables, medians of 3 runs): the default
 `rebuild="host"` runs `rebuild_every` steps in one jitted `lax.scan` chunk and rebuilds
-the graph with Qhull on the host between chunks: 32.7 ms per step against 34.9 ms with
+the graph with Qhull on the host between chunks: 31.0 ms per step against 33.7 ms with
 the Qhull call inside the scan through `jax.pure_callback` (Qhull alone on the same
-points: 25.2 and 27.1 ms). (An earlier bench warmed the callback run up with another
+points: 24.6 and 29.9 ms). (An earlier bench warmed the callback run up with another
 n_steps, so it timed a compilation: its 72 ms per step were mostly that.)
 Between chunks the host dispatches the work that needs no new graph (the last step's
 closing kick, the next step's opening with its random draws and clone decisions, and
-the observables of the chunk's first state) and runs Qhull while XLA computes it
-(N = 1e4, rebuild every step: everything but Qhull went from 0.36-0.39x to 0.21x
-Qhull's time with fitness observables, 0.71-0.79x to 0.25x with all of them). The host loop is also the only place that can grow a
-too-small capacity (a new bucket, one recompilation) instead of truncating, compute
-the spectral gap every M steps and show a progress bar, and it compiles per chunk
-length, not per `n_steps`.
+the observables of the chunk's first state) and runs Qhull while XLA computes it.
+With it, everything but Qhull at N = 1e4, rebuild every step, went from 0.36-0.39x
+Qhull's time to 0.21-0.32x with fitness observables and from 0.71-0.79x to 0.25-0.33x
+with all of them (Qhull timed alone; two bench runs). The host loop is also the only
+place that can grow a too-small capacity (a new bucket, one recompilation) instead of
+truncating, compute the spectral gap every M steps and show a progress bar, and it
+compiles per chunk length, not per `n_steps`.
 `rebuild="callback"` is kept for what only it can do: the whole simulation is one
 jittable, differentiable function of the parameters (tuning nu and eps_Sigma with
 optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs the
@@ -208,7 +209,7 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
     def body(st, i):
         s = start + i
-        progress = s.astype(dtype) / jnp.maximum(n_total - 1, 1).astype(dtype)
+        progress = _progress(s, n_total, dtype)
 
         def observed(q):
             new = refresh_cells(params, q, observe)
@@ -236,6 +237,11 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
     final, obs = jax.lax.scan(body, entering, jnp.arange(length, dtype=jnp.int32))
     return final, obs, (entering.volumes, entering.interior)
+
+
+def _progress(step, n_total, dtype):
+    """Fraction of the run done when `step` starts (0 ... 1), the schedules' clock."""
+    return jnp.asarray(step).astype(dtype) / jnp.maximum(jnp.asarray(n_total) - 1, 1).astype(dtype)
 
 
 # jax.jit, not eqx.filter_jit: every leaf is an array, and jax.jit's call returns at once
@@ -363,9 +369,9 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
                                        rebuild_every, observe, rebuild_every, None)
         # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
         state, opening = _finish_and_begin(fitness, params, moved)
-        progress = jnp.asarray(start, dtype) / jnp.asarray(max(n_steps - 1, 1), dtype)  # as in the scan
         end = min(start + rebuild_every, n_steps)
-        pending.append((obs, _measure_first(fitness, params, entering, cells, progress, observe), end - start))
+        first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
+        pending.append((obs, first, end - start))
         jax.block_until_ready(moved.positions)
         t1 = time.perf_counter()
         tess, grew = _rebuild_host(moved, k)  # the positions are final in `moved`
@@ -397,7 +403,7 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     zero, total = jnp.asarray(0, jnp.int32), jnp.asarray(n_steps, jnp.int32)
     while True:
-        final, obs, _ = _run_chunk(fitness, params, state, begin_step(params, state), zero, total, n_steps, observe,
+        final, obs, _ = _run_chunk(fitness, params, state, _begin_step(params, state), zero, total, n_steps, observe,
                                    rebuild_every, k)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
