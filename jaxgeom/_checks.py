@@ -60,16 +60,33 @@ def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
 
 
 def check_full_rank(points: np.ndarray, name: str = "points") -> None:
-    """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D)."""
-    spread = np.asarray(points, np.float64) - points[0]  # affine rank = rank of the offsets from one walker
-    sv = np.linalg.svd(spread.T @ spread, compute_uv=False)
-    if sv[-1] <= 1e-12 * sv[0]:
-        d = points.shape[1]
-        what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
-        raise ValueError(
-            f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "
-            "tessellation. Spread the walkers out, or drop the flat coordinate(s)."
-        )
+    """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D).
+
+    Scale-relative: the walkers are centred and scaled to a unit box first (no overflow
+    for huge coordinates), and a thin but genuine sample (a strip [0, 1] x [0, 1e-7]) passes.
+    A set is degenerate when its thinnest direction is at the rounding level of the input
+    coordinates (their float64 resolution at the largest |x|).
+    """
+    x = np.asarray(points, np.float64)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    extent = float(np.max(hi - lo))
+    if extent > 0:
+        centred = (x - 0.5 * (lo + hi)) / extent
+        gram = centred.T @ centred
+        ev = np.linalg.eigvalsh(gram)
+        if ev[0] > 1e-8 * ev[-1]:  # the common case, decided by a cheap (d, d) Gram matrix
+            return
+        # Thin sets: singular values of the centred cloud itself (no squaring of the condition number).
+        sv = np.linalg.svd(centred, compute_uv=False)
+        rounding = 64.0 * np.finfo(np.float64).eps * max(float(np.max(np.abs(x))) / extent, 1.0)
+        if sv[-1] > rounding * np.sqrt(len(x)):
+            return
+    d = x.shape[1]
+    what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
+    raise ValueError(
+        f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "
+        "tessellation. Spread the walkers out, or drop the flat coordinate(s)."
+    )
 
 
 def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:

@@ -126,14 +126,31 @@ def morton_order(x: np.ndarray) -> np.ndarray:
     return np.argsort(morton_codes(x)[0], kind="stable")
 
 
+class CoincidentPointsError(ValueError):
+    """Walkers that coincide (or nearly) for Qhull. `rows` are the walkers it left out of the
+    triangulation and `partners` the vertex each coincides with (original indices)."""
+
+    def __init__(self, message: str, rows: np.ndarray, partners: np.ndarray):
+        super().__init__(message)
+        self.rows, self.partners = rows, partners
+
+
+def qhull_input(x: np.ndarray) -> np.ndarray:
+    """Points as handed to Qhull: centred on their bounding box and scaled to unit size (a
+    similarity, so the Delaunay triangulation is unchanged). Qhull's in-sphere tests lose
+    digits with |x|^2; a grid of spacing 1e-6 centred at 1e6 is otherwise refused."""
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    extent = float(np.max(hi - lo))
+    return np.ascontiguousarray((x - 0.5 * (lo + hi)) / (extent if extent > 0 else 1.0), dtype=np.float64)
+
+
 def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
     """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
     (None where the points were not sorted: sorting pays off only for large inputs,
-    20% faster Qhull at N = 1e5, nothing at 1e4)."""
+    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`."""
     perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
     try:
-        tri = Delaunay(np.ascontiguousarray(x if perm is None else x[perm], dtype=np.float64),
-                       qhull_options=QHULL_OPTIONS)
+        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=QHULL_OPTIONS)
     except QhullError as err:
         first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
         raise ValueError(
@@ -147,14 +164,15 @@ def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
 
 
 def _raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri: Delaunay) -> None:
-    i, j = tri.coplanar[0, 0], tri.coplanar[0, 2]
+    rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
     if perm is not None:
-        i, j = perm[i], perm[j]
+        rows, partners = perm[rows], perm[partners]
+    i, j = rows[0], partners[0]
     kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
-    raise ValueError(
-        f"`points` has {len(tri.coplanar)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
-        f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them."
-    )
+    raise CoincidentPointsError(
+        f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
+        f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them.",
+        rows, partners)
 
 
 def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarray, Capacity]:
@@ -258,7 +276,7 @@ def _periodic_slab(y, lengths, axis: int, start: float, stop: float, skin: float
             ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
         owned = ~shifts.any(axis=1) & (ext[:, axis] >= start) & (ext[:, axis] < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
-        if not owned[tri.convex_hull].any() and _circumballs_empty(tri.points[simp], y, lengths, lo, hi):
+        if not owned[tri.convex_hull].any() and _circumballs_empty(ext[simp], y, lengths, lo, hi):
             break
         skin *= SKIN_GROWTH
     else:

@@ -92,6 +92,9 @@ class SwarmParams(eqx.Module):
             check_nonnegative(getattr(self, name), name)
         for name in ("dt", "alpha", "length_scale", "clone_jitter"):  # jitter 0 would duplicate walkers
             check_positive(getattr(self, name), name)
+        if self.anisotropic:
+            check_positive(self.eps_sigma, "eps_sigma", " with anisotropic=True (the noise D = g^-1 needs a "
+                           "positive definite metric g = floor(H) + eps_Sigma I)")
 
     @property
     def needs_metric(self) -> bool:
@@ -113,6 +116,10 @@ class SwarmState(eqx.Module):
       `positions` between rebuilds); `step`: int32 step count.
     - `spacing0`: mean nearest-neighbour distance of the initial swarm.
     - `eps_factor`: current eps_Sigma / params.eps_sigma (10^raises).
+    - `status`: int32 bit flags of problems met so far (`REBUILD_FAILED`: a traced
+      rebuild could not triangulate the walkers and kept the previous graph).
+    - `n_separated`: walkers moved apart because they coincided for Qhull (cloning with
+      a tiny jitter); each is moved by `SEPARATION` mean spacings or the dtype's resolution.
     """
 
     positions: Float[Array, "N d"]
@@ -128,6 +135,32 @@ class SwarmState(eqx.Module):
     step: Int[Array, ""]
     spacing0: Float[Array, ""]
     eps_factor: Float[Array, ""]
+    status: Int[Array, ""]
+    n_separated: Int[Array, ""]
+
+
+# Health bits: the state entering a step is checked before it moves (`health`).
+NONFINITE, RUNAWAY, ALL_DEAD, REBUILD_FAILED = 1, 2, 4, 8
+# A walker farther than this many initial swarm radii (N^(1/d) x the initial mean spacing)
+# from the swarm's mean position counts as diverged.
+RUNAWAY_RADII = 1e6
+
+
+def runaway_radius(state: SwarmState):
+    n, d = state.positions.shape
+    return RUNAWAY_RADII * state.spacing0 * n ** (1.0 / d)
+
+
+def health(state: SwarmState):
+    """Bit flags (int32) of a state: non-finite positions/velocities, runaway walkers,
+    no walker with a finite fitness, and any problem recorded in `state.status`."""
+    x, v = state.positions, state.velocities
+    finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(v))
+    centre = jnp.mean(x, axis=0)
+    far = jnp.max(jnp.sum((x - centre) ** 2, axis=1)) > runaway_radius(state) ** 2
+    flags = (jnp.where(finite, 0, NONFINITE) | jnp.where(far, RUNAWAY, 0)
+             | jnp.where(jnp.any(state.alive), 0, ALL_DEAD))
+    return (flags | state.status).astype(jnp.int32)
 
 
 OBSERVABLES = ("mean_fitness", "best_fitness", "velocity_variance", "degree_weighted_variance", "mean_ricci",

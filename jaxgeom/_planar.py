@@ -61,7 +61,7 @@ def fan_neighbors(
     # A while loop stops at the largest degree (14-17 in a swarm), not at the capacity (24).
     columns = jnp.full((k_cap, n_points), n_points, jnp.int32)
     _, _, phase, columns = jax.lax.while_loop(walking, step, (0, first, phase, columns))
-    return sort_rows(list(columns)), hull, phase == DONE
+    return sort_rows(columns), hull, phase == DONE
 
 
 def _fan_starts(simplices, adjacency, n_points: int):
@@ -86,9 +86,18 @@ def _counterclockwise_corners(simplices, adjacency):
     return jnp.where(across >= 0, 3 * across + position, -1).ravel()
 
 
-def sort_rows(columns: list) -> Int[Array, "N K"]:
-    """Stack K columns into rows sorted ascending, with Batcher's odd-even merge network
-    (elementwise min/max that XLA fuses; its CPU sort is ~4x slower on short rows)."""
+# Rows up to this width are sorted by the merge network; wider rows (a walker ringed by many
+# others) by XLA's sort, whose cost and compile time stay flat in the width (the network's
+# comparator count grows like K log^2 K, and each comparator is an op XLA compiles).
+MERGE_NETWORK_MAX_WIDTH = 32
+
+
+def sort_rows(columns) -> Int[Array, "N K"]:
+    """Stack K columns (a list of (N,) arrays, or a (K, N) array) into rows sorted ascending:
+    Batcher's odd-even merge network for K <= `MERGE_NETWORK_MAX_WIDTH` (elementwise
+    min/max that XLA fuses; its CPU sort is ~4x slower on short rows), `jnp.sort` beyond."""
+    if len(columns) > MERGE_NETWORK_MAX_WIDTH:
+        return jnp.sort(jnp.stack(list(columns), axis=1) if isinstance(columns, list) else columns.T, axis=1)
     columns = list(columns)
     for i, j in _merge_network(len(columns)):
         columns[i], columns[j] = jnp.minimum(columns[i], columns[j]), jnp.maximum(columns[i], columns[j])

@@ -35,9 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import check_choice, check_min_points, host_points
-from ._delaunay import CapacityError, delaunay, planar_tessellation, planar_triangles
-from ._dynamics import (OBSERVABLES, StepStart, SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force,
-                        measure, observe_state, refresh_cells, swarm_step)
+from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
+from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart,
+                        SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force, health, measure,
+                        metric_field, observe_state, refresh_cells, runaway_radius, swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
 from ._spectral import mean_nearest_neighbor_distance, spectral_gap
@@ -89,19 +90,66 @@ def pad_to_capacity(tess: Tessellation, cap: Capacity) -> Tessellation:
     return eqx.tree_at(lambda t: (t.neighbors, t.simplices), tess, (jnp.asarray(nbrs), jnp.asarray(simp)))
 
 
-def build_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tessellation, bool]:
-    """(graph, grew): Delaunay at `capacity` (grown to a larger bucket if too small), or k-NN."""
+# Walkers that coincide for Qhull are moved apart by this many mean spacings (at least 1000
+# times the dtype's resolution at the swarm's coordinates), 4x more on each further attempt.
+SEPARATION = 1e-3
+SEPARATION_ATTEMPTS = 4
+
+
+class SimulationDiverged(FloatingPointError):
+    """The swarm left the representable or plausible range (`simulate` names the step and cause)."""
+
+
+def separate_coincident(x: np.ndarray, rows: np.ndarray, partners: np.ndarray, attempt: int = 0) -> np.ndarray:
+    """`x` with walkers `rows` moved away from the walkers `partners` they coincide with (a
+    deterministic direction where they are identical)."""
+    n, d = x.shape
+    spacing = float(np.prod(np.ptp(x, axis=0)) / n) ** (1.0 / d)
+    resolution = 1e3 * np.finfo(x.dtype).eps * float(np.max(np.abs(x)))
+    step = max(SEPARATION * spacing, resolution) * 4.0**attempt
+    direction = (x[rows] - x[partners]).astype(np.float64)
+    norm = np.linalg.norm(direction, axis=1, keepdims=True)
+    fallback = np.random.default_rng(rows).normal(size=direction.shape)
+    direction = np.where(norm > 0, direction, fallback)
+    out = x.copy()
+    out[rows] = x[rows] + (step * direction / np.linalg.norm(direction, axis=1, keepdims=True)).astype(x.dtype)
+    return out
+
+
+def _separated(build, x: np.ndarray):
+    """(build(x), x, n_moved), after moving apart walkers that coincide for Qhull
+    (`separate_coincident`; the dynamics create them, so they are never fatal there)."""
+    moved = 0
+    for attempt in range(SEPARATION_ATTEMPTS + 1):
+        try:
+            return build(x), x, moved
+        except CoincidentPointsError as err:
+            if attempt == SEPARATION_ATTEMPTS:
+                raise
+            x = separate_coincident(x, err.rows, err.partners, attempt)
+            moved += len(err.rows)
+
+
+def delaunay_separating(x: np.ndarray, capacity=None) -> tuple[Tessellation, np.ndarray, int]:
+    """(graph, positions, n_moved): `delaunay(x)` of `x` with coinciding walkers moved apart."""
+    return _separated(lambda y: delaunay(y, capacity=capacity), x)
+
+
+def build_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tessellation, bool, np.ndarray, int]:
+    """(graph, grew, positions, n_moved): Delaunay at `capacity` (grown to a larger bucket if
+    too small; coinciding walkers moved apart), or k-NN."""
     if graph == "knn":
-        return knn_graph(x, k), False
+        return knn_graph(x, k), False, x, 0
     if capacity is not None:
         try:
-            return delaunay(x, capacity=capacity), False
+            tess, x, moved = delaunay_separating(x, capacity)
+            return tess, False, x, moved
         except CapacityError:
             pass
-    fresh = delaunay(x)
+    fresh, x, moved = delaunay_separating(x)
     previous = None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation)
                                               else Capacity(*capacity))
-    return pad_to_capacity(fresh, headroom_capacity(fresh, previous)), capacity is not None
+    return pad_to_capacity(fresh, headroom_capacity(fresh, previous)), capacity is not None, x, moved
 
 
 def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "delaunay", k: int = 12,
@@ -115,7 +163,8 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     - `velocities`: (N, d), default zeros.
     - `key`: int seed or `jax.random` key.
     - `graph`: "delaunay" (d = 2, 3) or "knn" (any d; `k` neighbours).
-    - `capacity`: pin Delaunay capacities (default: buckets with headroom).
+    - `capacity`: pin Delaunay capacities (`CapacityError` if the first graph does not
+      fit; later rebuilds in `simulate` grow them); default: buckets with headroom.
     """
     x = host_points(positions, "positions", func="jaxgeom.init_swarm")
     check_choice(graph, "graph", GRAPHS)
@@ -125,48 +174,79 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
         raise ValueError(f"`velocities` must be a float array of shape (N, d) = {x.shape} like `positions`; "
                          f"got {v.dtype} {v.shape}.")
     check_fitness(fitness, x)
-    tess, _ = build_graph(x, graph, k, capacity)
+    if capacity is not None and graph == "delaunay":
+        tess = delaunay(x, capacity=capacity)  # pinned: raises CapacityError when the graph does not fit
+    else:
+        tess, _, x, _ = build_graph(x, graph, k, None)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
     values, force = fitness_and_force(fitness, xj)
     key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
     n = len(x)
+    zero = jnp.asarray(0, jnp.int32)
     return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
-                      jnp.full(n, jnp.nan, dtype), jnp.zeros(n, bool), key, tess, jnp.asarray(0, jnp.int32),
-                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype))
+                      jnp.full(n, jnp.nan, dtype), jnp.zeros(n, bool), key, tess, zero,
+                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero)
 
 
 def _graph_kind(tess: Tessellation) -> str:
     return "knn" if tess.simplices is None else "delaunay"
 
 
+# Outcome codes of a rebuild inside `jax.pure_callback`.
+REBUILT, OVERFLOWED, FAILED = 0, 1, 2
+
+
+def _attempt(build, x):
+    """(arrays, positions, code, n_moved) of a host rebuild that never raises: an overflow or
+    a failure (non-finite or degenerate walkers) is returned as a code, the old graph kept."""
+    try:
+        arrays, x, moved = _separated(build, x)
+        return arrays, x, REBUILT, moved
+    except CapacityError:
+        return None, x, OVERFLOWED, 0
+    except ValueError:
+        return None, x, FAILED, 0
+
+
+def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved) -> SwarmState:
+    """The state with the rebuilt graph (the old one unless `code == REBUILT`), the positions
+    the callback may have moved apart (gradients pass through unchanged), and the flags."""
+    x = state.positions + jax.lax.stop_gradient(positions.astype(state.positions.dtype) - state.positions)
+    tess = jax.tree_util.tree_map(lambda a, b: jnp.where(code == REBUILT, b, a), state.tess, new)
+    tess = eqx.tree_at(lambda t: (t.points, t.overflow), tess, (x, state.tess.overflow | (code == OVERFLOWED)))
+    status = state.status | jnp.where(code == FAILED, REBUILD_FAILED, 0)
+    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated), state,
+                       (x, tess, status.astype(jnp.int32), state.n_separated + moved))
+
+
 def _callback_rebuild(state: SwarmState, k: int) -> SwarmState:
-    """Rebuild inside a trace with `jax.pure_callback`. A graph that does not fit keeps the
-    old arrays and sets `tess.overflow`. In 2D the callback runs Qhull alone and the
-    neighbour rows are derived in the trace (`planar_tessellation`)."""
+    """Rebuild inside a trace with `jax.pure_callback` (`vmap_method="sequential"`). A graph
+    that does not fit keeps the old arrays and sets `tess.overflow`; walkers Qhull cannot
+    triangulate keep the old graph and set `REBUILD_FAILED` in `state.status`. In 2D the
+    callback runs Qhull alone and the neighbour rows are derived in the trace."""
     tess = state.tess
     if tess.simplices is not None and tess.dim == 2 and not tess.periodic:
         return _callback_planar_rebuild(state)
     graph, cap = _graph_kind(tess), tess.capacity
     old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
 
-    def host(x, *arrays):
-        x = np.asarray(x)
-        try:
-            new = knn_graph(x, k) if graph == "knn" else delaunay(x, capacity=cap)
-        except CapacityError:
-            return tuple(np.asarray(a) for a in arrays) + (np.asarray(True),)
-        fields = (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,))
-        return tuple(np.asarray(a) for a in fields) + (np.asarray(False),)
+    def build(x):
+        new = knn_graph(x, k) if graph == "knn" else delaunay(x, capacity=cap)
+        return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,))
 
-    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old) + (jax.ShapeDtypeStruct((), bool),)
-    out = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions), *old)
-    arrays, overflow = out[:-1], out[-1] | tess.overflow
-    tess = eqx.tree_at(lambda t: (t.points, t.neighbors, t.tier, t.hull, t.overflow), tess,
-                       (state.positions,) + tuple(arrays[:3]) + (overflow,))
+    def host(x, *arrays):
+        new, x, code, moved = _attempt(build, np.asarray(x))
+        return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (x, np.int32(code), np.int32(moved))
+
+    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old + (state.positions,))
+    shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 2
+    *arrays, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions), *old,
+                                                vmap_method="sequential")
+    new = eqx.tree_at(lambda t: (t.neighbors, t.tier, t.hull), tess, tuple(arrays[:3]))
     if len(arrays) == 4:
-        tess = eqx.tree_at(lambda t: t.simplices, tess, arrays[3])
-    return eqx.tree_at(lambda s: s.tess, state, tess)
+        new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
+    return _apply_rebuild(state, new, x, code, moved)
 
 
 def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
@@ -175,21 +255,19 @@ def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
     cap = tess.capacity
 
     def host(x):
-        try:
-            simplices, adjacency, _ = planar_triangles(np.asarray(x), cap)
-        except CapacityError:
-            empty = np.full((cap.simplices, 3), -1, np.int32)  # discarded below
-            return empty, empty, np.True_
-        return simplices, adjacency, np.False_
+        triangles, x, code, moved = _attempt(lambda y: planar_triangles(y, cap)[:2], np.asarray(x))
+        if triangles is None:
+            triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
+        return triangles + (x, np.int32(code), np.int32(moved))
 
     triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
-    simplices, adjacency, too_big = jax.pure_callback(host, (triangles, triangles, jax.ShapeDtypeStruct((), bool)),
-                                                      jax.lax.stop_gradient(state.positions))
-    new = planar_tessellation(state.positions, simplices, adjacency, tess.box, k_cap=cap.neighbors)
-    overflow = too_big | new.overflow | tess.overflow
-    new = jax.tree_util.tree_map(lambda a, b: jnp.where(too_big, a, b), tess, new)  # keep the old graph
-    return eqx.tree_at(lambda s: s.tess, state, eqx.tree_at(lambda t: (t.points, t.overflow), new,
-                                                            (state.positions, overflow)))
+    shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
+              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+    simplices, adjacency, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
+                                                             vmap_method="sequential")
+    new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
+    code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
+    return _apply_rebuild(state, new, x, code, moved)
 
 
 def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
@@ -221,6 +299,7 @@ def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
         # A one-step chunk (rebuild every step) compiles only the branches it takes.
         st, obs = first_observed(st) if length == 1 else jax.lax.cond(i == 0, first_observed, observed, st)
+        obs = dict(obs, _health=health(st))
         chunk_end = ((s + 1) % rebuild_every == 0) | (s == n_total - 1)
 
         def advance(q):
@@ -284,6 +363,10 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     for name in observe:
         check_choice(name, "observable", OBSERVABLES)
     check_choice(rebuild, "rebuild", REBUILD_MODES)
+    if rebuild == "host" and any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params))):
+        raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
+                        "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
+                        "traceable, differentiable simulation.")
     if params.volume_weighting and state.tess.simplices is None:
         raise ValueError("`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
                          "use init_swarm(..., graph='delaunay') or volume_weighting=False.")
@@ -321,20 +404,82 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     """
     observe = tuple(observe)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
-    k = int(np.asarray(state.tess.degree).max())  # a k-NN swarm keeps its k
+    k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     if rebuild == "callback":
         return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
-def _rebuild_host(state: SwarmState, k: int) -> tuple[Tessellation, bool]:
+def _rebuild_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
+    """(state, grew, n_moved): the state with a new graph at its positions (coinciding walkers
+    moved apart), whether the capacity grew, and how many walkers were moved."""
     x = np.asarray(state.positions)
-    if not np.isfinite(x).all():
-        bad = np.flatnonzero(~np.isfinite(x).all(axis=1))
-        raise FloatingPointError(f"the swarm diverged by step {int(state.step)}: {bad.size} walker(s) have "
-                                 "non-finite positions; reduce `dt` or the forces.")
     graph = _graph_kind(state.tess)
-    return build_graph(x, graph, k, None if graph == "knn" else state.tess)
+    try:
+        tess, grew, x_new, moved = build_graph(x, graph, k, None if graph == "knn" else state.tess)
+    except ValueError as err:
+        raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
+    if moved:
+        xj = jnp.asarray(x_new, state.positions.dtype)
+        state = eqx.tree_at(lambda s: (s.positions, s.n_separated), state, (xj, state.n_separated + moved))
+        tess = eqx.tree_at(lambda t: t.points, tess, xj)
+    return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
+
+
+def _host_health(state: SwarmState) -> int:
+    """`health` bits NONFINITE and RUNAWAY of a state's positions, computed on the host."""
+    x, v = np.asarray(state.positions), np.asarray(state.velocities)
+    if not (np.isfinite(x).all() and np.isfinite(v).all()):
+        return NONFINITE
+    far = np.max(np.sum((x - x.mean(axis=0)) ** 2, axis=1)) > float(runaway_radius(state)) ** 2
+    return RUNAWAY if far else 0
+
+
+def check_health(fitness, params: SwarmParams, codes, first_step: int, before: SwarmState) -> None:
+    """Raise `SimulationDiverged` at the first non-zero health code (`codes[i]` belongs to the
+    state entering step `first_step + i`); `before` is the last state known to be sound."""
+    bad = np.flatnonzero(np.asarray(codes))
+    if bad.size:
+        step = first_step + int(bad[0])
+        raise SimulationDiverged(divergence_message(fitness, params, before, step, int(np.asarray(codes)[bad[0]])))
+
+
+def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: int, code: int) -> str:
+    """What went wrong by `step` (health bits `code`) and its likely cause, judged on `before`."""
+    what = []
+    if code & NONFINITE:
+        what.append("walkers have non-finite positions or velocities")
+    if code & RUNAWAY:
+        what.append(f"walkers lie farther than {float(runaway_radius(before)):.3g} ({RUNAWAY_RADII:g} initial "
+                    "swarm radii) from the swarm's centre")
+    if code & ALL_DEAD:
+        what.append("no walker has a finite fitness")
+    if code & REBUILD_FAILED:
+        what.append("Qhull could not triangulate the walkers (degenerate or non-finite positions)")
+    return (f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
+            f"{'; '.join(what)}. {_likely_cause(fitness, params, before)}")
+
+
+def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
+    x = np.asarray(state.positions)
+    x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
+    if params.anisotropic:
+        g = np.asarray(metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
+        lam = np.linalg.eigvalsh(np.where(np.isfinite(g), g, 0.0))[:, 0]
+        if not np.isfinite(g).all() or lam.min() <= 0:
+            return (f"Likely cause: the Hessian metric is singular or not positive definite at "
+                    f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s) "
+                    f"(smallest eigenvalue {lam.min():.3g}), so the anisotropic noise D = g^-1 is undefined; "
+                    "raise eps_sigma or use floor='softabs'.")
+    curvature = np.asarray(jax.vmap(lambda p: jnp.linalg.eigvalsh(jax.hessian(fitness)(p))[-1])(x))
+    curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
+    omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
+    if omega_dt > 2.0:
+        return (f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape: dt * sqrt(largest "
+                f"Hessian eigenvalue) = {omega_dt:.3g} at step {int(state.step)}, and the kicks are stable only "
+                f"below 2; reduce dt below {2.0 / np.sqrt(curvature):.3g}.")
+    return ("Likely cause: the forces grew faster than the step resolves (the landscape is steep or unbounded "
+            f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape.")
 
 
 class _ProgressBar:
@@ -373,9 +518,13 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
         pending.append((obs, first, end - start))
         jax.block_until_ready(moved.positions)
+        check_health(fitness, params, np.asarray(obs["_health"])[: end - start], start, entering)
+        check_health(fitness, params, [_host_health(moved)], end, entering)
         t1 = time.perf_counter()
-        tess, grew = _rebuild_host(moved, k)  # the positions are final in `moved`
-        state = eqx.tree_at(lambda s: s.tess, state, tess)
+        moved, grew, n_moved = _rebuild_host(moved, k)  # the positions are final in `moved`
+        if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
+            state, opening = _finish_and_begin(fitness, params, moved)
+        state = eqx.tree_at(lambda s: s.tess, state, moved.tess)
         reallocations += grew
         seconds["steps"] += t1 - t0
         seconds["rebuild"] += time.perf_counter() - t1
@@ -386,9 +535,11 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
                for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)
+    check_health(fitness, params, [health(state)], n_steps, entering)
     history = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
     history.update(spectral_gap_step=np.array([g[0] for g in gaps], int), spectral_gap=np.array([g[1] for g in gaps]),
-                   n_reallocations=reallocations, seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"])
+                   n_reallocations=reallocations, seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"],
+                   n_separated=int(state.n_separated), diverged_step=-1)
     return state, history
 
 
@@ -413,5 +564,11 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
         if not bool(final.tess.overflow):
             break
         state = eqx.tree_at(lambda s: s.tess, state, _grown(state.tess))
+    codes = jnp.concatenate([obs["_health"], health(final)[None]])
+    if not traced:
+        check_health(fitness, params, codes, 0, state)
     history = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
+    # Under a trace nothing can be raised: the first step whose state failed `health`, or -1.
+    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1).astype(jnp.int32)
+    history.update(n_separated=final.n_separated, diverged_step=diverged)
     return final, history

@@ -1,0 +1,133 @@
+"""Legal input that used to exhaust memory, hang, or return wrong answers silently (issue 12)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxgeom
+from jaxgeom._delaunay import CapacityError
+from jaxgeom._planar import sort_rows
+from jaxgeom._simulate import SimulationDiverged
+from jaxgeom.cli import main
+
+from helpers import padded_sets, scipy_neighbor_sets
+
+
+def ring_with_hub(n):
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return np.vstack([np.c_[np.cos(t), np.sin(t)], [[0.0, 0.0]]])
+
+
+def test_a_walker_ringed_by_200_others(rng):
+    x = ring_with_hub(200)
+    tess = jaxgeom.delaunay(x)
+    assert padded_sets(tess.neighbors, 201) == scipy_neighbor_sets(x)
+    assert int(tess.degree[200]) == 200 and not bool(tess.overflow)
+    area = np.asarray(jaxgeom.voronoi_volumes(tess))[200]
+    # the hub's cell: a regular 200-gon whose apothem is half the distance to the ring
+    np.testing.assert_allclose(area, 200 * 0.5**2 * np.tan(np.pi / 200), rtol=1e-12)
+
+
+@pytest.mark.parametrize("width", [5, 32, 33, 100])
+def test_rows_are_sorted_at_any_width(rng, width):
+    columns = jnp.asarray(rng.integers(0, 50, (width, 40)), jnp.int32)
+    np.testing.assert_array_equal(np.asarray(sort_rows(columns)), np.sort(np.asarray(columns).T, axis=1))
+
+
+def test_a_fine_grid_far_from_the_origin_triangulates_like_at_the_origin():
+    grid = np.stack(np.meshgrid(np.arange(12.0), np.arange(12.0)), -1).reshape(-1, 2) * 1e-6
+    grid += np.random.default_rng(1).uniform(-1e-8, 1e-8, grid.shape)
+    box = (-0.5e-6, 11.5e-6)
+    here, far = jaxgeom.delaunay(grid, box=box), jaxgeom.delaunay(grid + 1e6, box=(box[0] + 1e6, box[1] + 1e6))
+    assert padded_sets(here.neighbors, len(grid)) == padded_sets(far.neighbors, len(grid))
+    interior = np.asarray(far.interior)
+    assert interior.sum() > 50
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(far))[interior], 1e-12, rtol=0.05)
+
+
+def test_a_thin_strip_is_not_collinear(rng):
+    x = rng.random((400, 2)) * [1.0, 1e-7]
+    tess = jaxgeom.delaunay(x)
+    assert padded_sets(tess.neighbors, 400) == scipy_neighbor_sets(x)
+    with pytest.raises(ValueError, match="collinear"):
+        jaxgeom.delaunay(np.c_[np.linspace(0.0, 1.0, 50), 0.3 * np.linspace(0.0, 1.0, 50) + 1e6])
+
+
+def bowl(x):
+    return jnp.sum(x**2 - 2.0 * jnp.cos(3.0 * x))
+
+
+@pytest.fixture
+def bowl_swarm(rng):
+    return jaxgeom.init_swarm(bowl, rng.uniform(-3.0, 3.0, (200, 2)), key=0)
+
+
+@pytest.mark.parametrize("rebuild", ["host", "callback"])
+def test_a_diverging_swarm_stops_with_the_step_and_the_cause(bowl_swarm, rebuild):
+    with pytest.raises(SimulationDiverged, match=r"diverged by step \d+ .*reduce dt below"):
+        jaxgeom.simulate(bowl, bowl_swarm, jaxgeom.SwarmParams(dt=10.0), n_steps=30, rebuild=rebuild,
+                         observe=("mean_fitness",))
+
+
+def test_a_diverging_swarm_is_flagged_under_jit(bowl_swarm):
+    def last_fitness(dt):
+        params = jaxgeom.SwarmParams(dt=dt, cloning=False)
+        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=8, rebuild="callback",
+                                observe=("mean_fitness",))[1]["diverged_step"]
+
+    assert int(jax.jit(last_fitness)(10.0)) > 0 and int(jax.jit(last_fitness)(0.01)) == -1
+
+
+def test_huge_forces_are_a_divergence_not_a_degenerate_swarm(rng):
+    steep = lambda x: 1e30 * jnp.sum(x**2)  # noqa: E731
+    state = jaxgeom.init_swarm(steep, rng.uniform(-1.0, 1.0, (100, 2)))
+    with pytest.raises(SimulationDiverged, match="reduce dt"):
+        jaxgeom.simulate(steep, state, jaxgeom.SwarmParams(), n_steps=5, observe=("mean_fitness",))
+
+
+def test_the_cli_exits_non_zero_on_divergence(capsys):
+    assert main(["simulate", "--n", "100", "--steps", "20", "--dt", "5", "--gap-every", "0", "--no-progress"]) == 2
+    assert "diverged by step" in capsys.readouterr().err
+
+
+def test_anisotropic_noise_needs_a_positive_floor():
+    with pytest.raises(ValueError, match="eps_sigma.*anisotropic"):
+        jaxgeom.SwarmParams(anisotropic=True, eps_sigma=0.0)
+
+
+@pytest.mark.parametrize("rebuild", ["host", "callback"])
+def test_cloning_onto_one_point_separates_the_walkers(bowl_swarm, rebuild):
+    params = jaxgeom.SwarmParams(dt=0.01, clone_rate=1.0, clone_jitter=1e-12, temperature=0.0)
+    final, history = jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=10, rebuild=rebuild, observe=("n_clones",))
+    assert int(history["n_separated"]) > 0 and history["n_clones"].sum() > 0
+    x = np.asarray(final.positions)
+    assert len(np.unique(x, axis=0)) == len(x)
+    assert padded_sets(final.tess.neighbors, len(x)) == scipy_neighbor_sets(x)
+
+
+def test_simulate_jits_vmaps_and_differentiates_with_the_callback_rebuild(bowl_swarm):
+    def loss(nu):
+        params = jaxgeom.SwarmParams(nu=nu, cloning=False)
+        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=4, rebuild="callback",
+                                observe=("mean_fitness",))[1]["mean_fitness"][-1]
+
+    eager = [float(loss(nu)) for nu in (0.1, 0.3)]
+    np.testing.assert_allclose(float(jax.jit(loss)(0.1)), eager[0], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(jax.vmap(loss)(jnp.array([0.1, 0.3]))), eager, rtol=1e-12)
+    assert np.isfinite(float(jax.jit(jax.grad(loss))(0.1)))
+
+
+def test_host_rebuild_under_a_trace_points_to_the_callback(bowl_swarm):
+    def loss(nu):
+        return jaxgeom.simulate(bowl, bowl_swarm, jaxgeom.SwarmParams(nu=nu), n_steps=2)[1]["mean_fitness"][-1]
+
+    with pytest.raises(TypeError, match="rebuild='callback'"):
+        jax.grad(loss)(0.1)
+
+
+def test_init_swarm_keeps_a_pinned_capacity_or_raises(rng):
+    x = rng.uniform(-1.0, 1.0, (300, 2))
+    with pytest.raises(CapacityError, match="too small"):
+        jaxgeom.init_swarm(bowl, x, capacity=(10, 4))
+    assert jaxgeom.init_swarm(bowl, x, capacity=(640, 24)).tess.capacity == (640, 24)
