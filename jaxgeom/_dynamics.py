@@ -32,7 +32,8 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from ._checks import check_choice, check_nonnegative, check_positive
 from ._forces import VISCOUS_MODES, apply_viscous, edge_weights
 from ._graph import Tessellation
-from ._metric import HESSIAN_FLOORS, hessian_metric
+from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
+from ._simplex import small_cholesky
 from ._spectral import DEFAULT_ALPHA
 
 COND_LIMIT = 1e6  # chapter: raise eps_Sigma 10x when cond(g) exceeds this
@@ -221,7 +222,7 @@ def ornstein_uhlenbeck(params: SwarmParams, v, g, xi):
     `xi` holds standard normals shaped like `v`."""
     c = jnp.exp(-params.gamma * params.dt)
     if params.anisotropic:
-        chol = jnp.linalg.cholesky(g)  # g = L L^T, so L^-T xi has covariance g^-1
+        chol = small_cholesky(g) if g.shape[-1] <= 4 else jnp.linalg.cholesky(g)  # L^-T xi has covariance g^-1
         xi = jax.vmap(lambda low, e: jax.scipy.linalg.solve_triangular(low, e, trans="T", lower=True))(chol, xi)
     return c * v + jnp.sqrt(params.temperature * (1.0 - c * c)) * xi
 
@@ -346,7 +347,7 @@ def _raised_eps_factor(params: SwarmParams, state: SwarmState, g):
     """The chapter's rule: eps_Sigma x10 for the next step when max cond(g) > 1e6."""
     if not params.adapt_eps_sigma:
         return state.eps_factor
-    lam = jnp.linalg.eigvalsh(jax.lax.stop_gradient(g))
+    lam = eigh(jax.lax.stop_gradient(g))[0]
     cond = jnp.max(lam[:, -1] / jnp.where(lam[:, 0] > 0, lam[:, 0], jnp.nan))
     return jnp.where(cond > COND_LIMIT, EPS_SIGMA_RAISE, 1.0) * state.eps_factor
 

@@ -8,6 +8,7 @@ edge midpoint for a callable and (g_i + g_j) / 2 for an array (spec NOTES 1).
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable
 
@@ -19,7 +20,7 @@ from jaxtyping import Array, Float
 
 from ._checks import check_choice
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords
-from ._simplex import dot, small_adjugate, small_det
+from ._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
 
 METRIC_MODES = ("none", "diagonal", "full")
 HESSIAN_FLOORS = ("clip", "softabs")
@@ -203,6 +204,11 @@ def riemannian_mean(values, weights, mask=None) -> Float[Array, ""]:
     return jnp.sum(w * jnp.where(ok, values, 0.0)) / jnp.sum(w)
 
 
+def eigh(m):
+    """Symmetric eigendecomposition: `small_eigh` (no LAPACK call) up to d = 4."""
+    return small_eigh(m) if m.shape[-1] in JACOBI_SWEEPS else jnp.linalg.eigh(m)
+
+
 def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Callable:
     """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V (Definition 669).
 
@@ -223,6 +229,17 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
     check_choice(floor, "floor", HESSIAN_FLOORS)
     if not isinstance(eps_sigma, jax.core.Tracer) and np.any(np.asarray(eps_sigma) < 0):
         raise ValueError(f"`eps_sigma` must be >= 0 (a spectral floor); got {eps_sigma}.")
+    if isinstance(eps_sigma, (int, float)):  # the same callable for the same arguments: no recompilation
+        return _cached_hessian_metric(fitness, float(eps_sigma), floor)
+    return _hessian_metric(fitness, eps_sigma, floor)
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_hessian_metric(fitness: Callable, eps_sigma: float, floor: str) -> Callable:
+    return _hessian_metric(fitness, eps_sigma, floor)
+
+
+def _hessian_metric(fitness: Callable, eps_sigma, floor: str) -> Callable:
     hess = jax.hessian(fitness)
 
     def clip(x):
@@ -230,13 +247,13 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
         eye = jnp.eye(h.shape[-1], dtype=h.dtype)
         # eigh only where H has a negative eigenvalue: elsewhere its derivative is not
         # needed and can be NaN for repeated eigenvalues, so it sees a safe matrix.
-        psd = jax.lax.stop_gradient(jnp.linalg.eigvalsh(h)[0] >= 0)
-        lam, q = jnp.linalg.eigh(jnp.where(psd, jnp.diag(jnp.arange(1.0, h.shape[-1] + 1, dtype=h.dtype)), h))
+        psd = jax.lax.stop_gradient(eigh(h)[0][0] >= 0)
+        lam, q = eigh(jnp.where(psd, jnp.diag(jnp.arange(1.0, h.shape[-1] + 1, dtype=h.dtype)), h))
         correction = (q * jnp.maximum(-lam, 0.0)) @ q.T
         return h + eps_sigma * eye + jnp.where(psd, 0.0, correction)
 
     def softabs(x):
-        lam, q = jnp.linalg.eigh(hess(x))
+        lam, q = eigh(hess(x))
         small = jnp.abs(lam) < 1e-3 * eps_sigma
         safe = jnp.where(small, 1.0, lam)
         value = jnp.where(small, eps_sigma + lam**2 / (3.0 * eps_sigma), safe / jnp.tanh(safe / eps_sigma))

@@ -258,3 +258,72 @@ def simplex_circumradius(coords):
     """Circumradius of one coordinate-major simplex (0 where degenerate)."""
     _, offset = _first_vertex_and_offset(coords)
     return jnp.sqrt(_vdot(offset, offset))
+
+
+# Cyclic Jacobi sweeps that take a symmetric d x d matrix to machine-precision diagonal form
+# (quadratic convergence; d = 2 is exact after one rotation).
+JACOBI_SWEEPS = {1: 0, 2: 1, 3: 6, 4: 8}
+
+
+def small_eigh(m):
+    """Eigenvalues (ascending) and eigenvectors (columns) of symmetric (..., d, d) arrays,
+    d <= 4, by cyclic Jacobi rotations in plain elementwise arithmetic.
+
+    XLA fuses it (batched LAPACK `syevd` is ~35x slower on millions of 3 x 3 matrices),
+    and it makes no LAPACK call: two batched LAPACK calls running at once on XLA's CPU
+    thread pool deadlocked (jaxlib 0.10, 2 cores), which hung `ricci_scalar` with a
+    Hessian metric.
+    """
+    d = m.shape[-1]
+    a = _entries(m)
+    zero, one = jnp.zeros_like(a[0][0]), jnp.ones_like(a[0][0])
+    v = [[one if i == j else zero for j in range(d)] for i in range(d)]
+    for _ in range(JACOBI_SWEEPS[d]):
+        for p, q in itertools.combinations(range(d), 2):
+            a, v = _jacobi_rotation(a, v, p, q)
+    values = jnp.stack([a[i][i] for i in range(d)], axis=-1)
+    vectors = jnp.stack([jnp.stack(row, axis=-1) for row in v], axis=-2)
+    order = jnp.argsort(values, axis=-1)
+    return jnp.take_along_axis(values, order, axis=-1), jnp.take_along_axis(vectors, order[..., None, :], axis=-1)
+
+
+def _jacobi_rotation(a, v, p: int, q: int):
+    """Rotate rows/columns p, q of the symmetric entries `a` so that a[p][q] = 0; accumulate
+    the rotation in the eigenvector entries `v` (Golub & Van Loan, Algorithm 8.5.1)."""
+    apq = a[p][q]
+    off = apq != 0
+    theta = (a[q][q] - a[p][p]) / (2.0 * jnp.where(off, apq, 1.0))
+    big = jnp.abs(theta) > 1e150  # tan of the angle is 1 / (2 theta) to rounding; theta^2 would overflow
+    tame = jnp.where(big, 1.0, theta)
+    t = jnp.where(big, 0.5 / jnp.where(big, theta, 1.0),
+                  jnp.where(tame >= 0, 1.0, -1.0) / (jnp.abs(tame) + jnp.sqrt(tame * tame + 1.0)))
+    t = jnp.where(off, t, 0.0)
+    c = 1.0 / jnp.sqrt(t * t + 1.0)
+    s = t * c
+    a = [row[:] for row in a]
+    for k in range(len(a)):
+        if k not in (p, q):
+            akp, akq = a[k][p], a[k][q]
+            a[k][p] = a[p][k] = c * akp - s * akq
+            a[k][q] = a[q][k] = s * akp + c * akq
+    a[p][p], a[q][q] = a[p][p] - t * apq, a[q][q] + t * apq
+    a[p][q] = a[q][p] = jnp.zeros_like(apq)
+    v = [row[:] for row in v]
+    for k in range(len(v)):
+        vkp, vkq = v[k][p], v[k][q]
+        v[k][p], v[k][q] = c * vkp - s * vkq, s * vkp + c * vkq
+    return a, v
+
+
+def small_cholesky(m):
+    """Lower Cholesky factor of symmetric positive definite (..., d, d) arrays, written out
+    (no batched LAPACK call; see `small_eigh`). NaN where m is not positive definite."""
+    d = m.shape[-1]
+    a = _entries(m)
+    low = [[jnp.zeros_like(a[0][0]) for _ in range(d)] for _ in range(d)]
+    for j in range(d):
+        pivot = a[j][j] - sum(low[j][k] ** 2 for k in range(j))
+        low[j][j] = jnp.sqrt(pivot)  # NaN for a non-positive pivot
+        for i in range(j + 1, d):
+            low[i][j] = (a[i][j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in low], axis=-2)

@@ -131,3 +131,33 @@ def test_init_swarm_keeps_a_pinned_capacity_or_raises(rng):
     with pytest.raises(CapacityError, match="too small"):
         jaxgeom.init_swarm(bowl, x, capacity=(10, 4))
     assert jaxgeom.init_swarm(bowl, x, capacity=(640, 24)).tess.capacity == (640, 24)
+
+
+@pytest.mark.parametrize("d", [2, 3, 4])
+def test_small_eigh_and_cholesky_match_lapack(rng, d):
+    from jaxgeom._simplex import small_cholesky, small_eigh
+
+    a = rng.normal(size=(500, d, d))
+    a = a + np.swapaxes(a, 1, 2)
+    a[:3] = np.eye(d)  # repeated eigenvalues
+    a[3] = 0.0
+    values, vectors = small_eigh(jnp.asarray(a))
+    np.testing.assert_allclose(np.asarray(values), np.linalg.eigvalsh(a), atol=1e-13)
+    np.testing.assert_allclose(np.einsum("nij,nj,nkj->nik", vectors, values, vectors), a, atol=1e-13)
+    spd = np.einsum("nij,nkj->nik", a, a) + np.eye(d)
+    np.testing.assert_allclose(np.asarray(small_cholesky(jnp.asarray(spd))), np.linalg.cholesky(spd), atol=1e-13)
+
+
+def test_analyze_in_3d_at_its_default_size_never_hangs(tmp_path):
+    """`analyze --dim 3` deadlocked in 4 of 6 runs: two batched LAPACK eigh calls at once on
+    XLA's CPU thread pool. Three runs in one process, each within 150 s (about 30 s for the
+    first, with compilation, and 5 s for the others on 2 cores)."""
+    import threading
+
+    for run in range(3):
+        result = []
+        worker = threading.Thread(target=lambda: result.append(main(["analyze", "--dim", "3"])), daemon=True)
+        worker.start()
+        worker.join(timeout=150)
+        assert not worker.is_alive(), f"analyze --dim 3 hung in run {run}"
+        assert result == [0]
