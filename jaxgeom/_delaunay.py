@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from ._checks import check_full_rank, check_min_points, host_box, host_points
+from ._contacts import drop_contacts, planar_degenerate_corners, positive_measure_contacts
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
 from ._planar import fan_neighbors
 from ._simplex import simplex_circumcenter
@@ -32,10 +33,11 @@ QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
-SKIN_GROWTH = 1.3
+SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
 MORTON_MIN_POINTS = 30_000
-SKIN_ATTEMPTS = 8
+SKIN_ATTEMPTS = 12
+TIE_BREAK = 1e-9  # periodic symbolic perturbation, in mean spacings
 
 
 class CapacityError(ValueError):
@@ -72,6 +74,9 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
       integer image shift of each neighbour and simplex vertex. The skin starts
       at `SKIN_SPACINGS[d]` mean spacings and grows until every circumsphere of
       a simplex with an original vertex lies inside it, so the result is exact.
+      Ties (co-circular walkers, lattices) are broken by a fixed perturbation of
+      1e-9 mean spacings, the same for every image of a walker, so all translates
+      of a periodic simplex are split alike.
     - `capacity`: `Capacity(simplices, neighbors)`, a `(simplices, neighbors)`
       tuple or another `Tessellation` to reuse its capacities. `None` buckets
       them (neighbours to a multiple of 8, simplices on an 8-steps-per-octave
@@ -80,7 +85,8 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
 
     **Returns:**
 
-    A `Tessellation` with simplices, neighbours (ascending index), tiers and hull flags.
+    A `Tessellation` with simplices, neighbours (ascending index; cells sharing a
+    face of positive measure, see `Tessellation.neighbors`), tiers and hull flags.
     """
     x = host_points(points, "points", func="jaxgeom.delaunay")
     n, d = x.shape
@@ -209,7 +215,8 @@ def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tes
     """Jittable: the 2D `Tessellation` from `planar_triangles`' arrays (neighbour rows by
     walking each vertex's fan, hull flags, tiers); `overflow` if a row needs more than `k_cap`."""
     n = points.shape[0]
-    neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap)
+    degenerate = planar_degenerate_corners(points, simplices, adjacency)
+    neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap, degenerate)
     tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
                         simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
                         overflow=~jnp.all(complete), periodic=False)
@@ -249,13 +256,18 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
     """
     n, d = x.shape
     lengths = box[1] - box[0]
-    y = x - box[0]
-    skin = SKIN_SPACINGS[d] * (np.prod(lengths) / n) ** (1.0 / d)
+    spacing = (np.prod(lengths) / n) ** (1.0 / d)
+    # Symbolic perturbation: a tiny fixed displacement per walker, the same for all its images,
+    # makes co-circular input (lattices) generic, so every translate of a periodic simplex is
+    # triangulated alike and the canonical-vertex rule keeps each exactly once.
+    y0 = x - box[0]
+    y = y0 + TIE_BREAK * spacing * np.random.default_rng(0).uniform(-1.0, 1.0, (n, d))
+    skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
     # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.
     n_slabs = max(1, min(2 * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (4 * skin))))
     cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
-    jobs = [(y, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
+    jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
     if n_slabs == 1:
         parts = [_periodic_slab(*jobs[0])]
     else:
@@ -265,7 +277,7 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
     return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool))
 
 
-def _periodic_slab(y, lengths, axis: int, start: float, stop: float, skin: float):
+def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float):
     """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop."""
     for _ in range(SKIN_ATTEMPTS):
         lo, hi = np.full(len(lengths), -skin), lengths + skin
@@ -274,7 +286,8 @@ def _periodic_slab(y, lengths, axis: int, start: float, stop: float, skin: float
         tri, perm = _qhull(ext)
         if perm is not None:
             ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
-        owned = ~shifts.any(axis=1) & (ext[:, axis] >= start) & (ext[:, axis] < stop)
+        home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
+        owned = ~shifts.any(axis=1) & (home >= start) & (home < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
         if not owned[tri.convex_hull].any() and _circumballs_empty(ext[simp], y, lengths, lo, hi):
             break
@@ -421,11 +434,9 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
         overflow=jnp.asarray(False),
         periodic=periodic,
     )
+    tess = drop_contacts(tess, positive_measure_contacts(tess))
     if periodic:
         return tess
-    if box is None:  # hull walkers and their neighbours: index bookkeeping only
-        tier1 = np.append(raw.hull, False)[nbrs].any(axis=1) & ~raw.hull
-        return eqx.tree_at(lambda t: t.tier, tess, jnp.asarray(np.where(raw.hull, 0, np.where(tier1, 1, 2)), jnp.int8))
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess))
 
 

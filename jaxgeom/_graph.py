@@ -36,7 +36,10 @@ class Tessellation(eqx.Module):
 
     - `points`: (N, d) walker positions, as given.
     - `neighbors`: (N, K) int32 neighbour indices, padding = N. Delaunay graphs
-      list neighbours in ascending index order, k-NN graphs nearest first.
+      list, in ascending index order, the cells that share a Voronoi face of positive
+      measure: on degenerate input (lattices) the diagonals Qhull adds to split
+      co-circular cells stay in `simplices` but are not neighbours (contacts between
+      two hull walkers are all kept). k-NN graphs list neighbours nearest first.
     - `tier`: (N,) int8 boundary tier: 0 = unbounded cell or cell touching the
       box, 1 = neighbour of tier 0, 2 = interior. Periodic graphs are all tier 2.
     - `hull`: (N,) bool, the walker's Voronoi cell is unbounded (convex-hull

@@ -23,7 +23,8 @@ WALKING, CLOSING, DONE = 0, 1, 2
 
 
 def fan_neighbors(
-    simplices: Int[Array, "S 3"], adjacency: Int[Array, "S 3"], n_points: int, k_cap: int
+    simplices: Int[Array, "S 3"], adjacency: Int[Array, "S 3"], n_points: int, k_cap: int,
+    degenerate: Bool[Array, "S 3"] | None = None,
 ) -> tuple[Int[Array, "N K"], Bool[Array, " N"], Bool[Array, " N"]]:
     """Neighbour rows of a planar triangulation by walking each vertex's fan.
 
@@ -33,6 +34,8 @@ def fan_neighbors(
     - `adjacency`: (S, 3) triangle across the edge opposite each vertex, -1 for none
       (padding rows: -1).
     - `n_points`, `k_cap`: N and the row capacity K (static).
+    - `degenerate`: (S, 3) edges (t[a], t[a + 1]) to leave out of the rows (contacts of
+      zero measure, `_contacts.planar_degenerate_corners`); they still take a walk step.
 
     **Returns:**
 
@@ -41,6 +44,8 @@ def fan_neighbors(
     walker in no triangle).
     """
     following = jnp.roll(simplices, -1, axis=1).ravel()  # corner (t, a) = 3 t + a -> vertex t[a + 1]
+    if degenerate is not None:
+        following = jnp.where(degenerate.ravel(), n_points, following)
     preceding = jnp.roll(simplices, -2, axis=1).ravel()  # -> vertex t[a + 2]
     turn = _counterclockwise_corners(simplices, adjacency)
     first, hull, isolated = _fan_starts(simplices, adjacency, n_points)

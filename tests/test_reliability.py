@@ -1,5 +1,7 @@
 """Legal input that used to exhaust memory, hang, or return wrong answers silently (issue 12)."""
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -161,3 +163,41 @@ def test_analyze_in_3d_at_its_default_size_never_hangs(tmp_path):
         worker.join(timeout=150)
         assert not worker.is_alive(), f"analyze --dim 3 hung in run {run}"
         assert result == [0]
+
+
+def lattice(m, d, offset):
+    return np.stack(np.meshgrid(*[np.arange(float(m))] * d, indexing="ij"), -1).reshape(-1, d) + offset
+
+
+def face_neighbors(points, m):
+    """{(j, shift)} of the 2d axis neighbours of each lattice walker on the m-periodic torus."""
+    index = {tuple(np.floor(p).astype(int) % m): i for i, p in enumerate(points)}
+    d = points.shape[1]
+    out = []
+    for p in points:
+        cell, row = np.floor(p).astype(int), set()
+        for axis, step in itertools.product(range(d), (-1, 1)):
+            q = cell.copy()
+            q[axis] += step
+            row.add((index[tuple(q % m)], tuple((q // m).tolist())))
+        out.append(row)
+    return out
+
+
+@pytest.mark.parametrize("d, m, offset", [(2, 30, 0.0), (2, 30, 0.5), (2, 16, 0.25), (3, 6, 0.0), (3, 6, 0.5)])
+def test_periodic_lattices_are_exact(d, m, offset):
+    x = lattice(m, d, offset)
+    tess = jaxgeom.delaunay(x, box=(0.0, float(m)), periodic=True)
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess)), 1.0, rtol=1e-12)
+    nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
+    rows = [{(int(j), tuple(s.tolist())) for j, s in zip(nb, sh) if j < len(x)} for nb, sh in zip(nbrs, shifts)]
+    assert rows == face_neighbors(x, m)
+
+
+def test_a_boxed_lattice_has_face_neighbours_and_unit_cells():
+    x = lattice(12, 2, 0.5)
+    tess = jaxgeom.delaunay(x, box=(0.0, 12.0))
+    interior = np.asarray(tess.interior)
+    assert interior.sum() > 50
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess))[interior], 1.0, rtol=1e-12)
+    assert set(np.asarray(tess.degree)[interior].tolist()) == {4}
