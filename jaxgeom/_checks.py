@@ -59,6 +59,26 @@ def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
         raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")
 
 
+def check_representable_spacing(points: np.ndarray, dtype, name: str = "points") -> None:
+    """Cell volumes and circumcentres multiply up to four lengths (spacing^4): reject swarms
+    whose mean spacing puts that outside the dtype's normal range (float32: about 1e-9 to
+    4e9), with the fix, instead of returning zero or infinite volumes."""
+    n, d = points.shape
+    extent = np.ptp(np.asarray(points, np.float64), axis=0)
+    extent = extent[extent > 0]
+    if not extent.size:
+        return
+    spacing = float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d)
+    info = np.finfo(dtype)
+    lo, hi = 10.0 * float(info.tiny) ** 0.25, 0.1 * float(info.max) ** 0.25
+    if not lo <= spacing <= hi:
+        raise ValueError(
+            f"`{name}` has a mean spacing of {spacing:.3g}, outside what {np.dtype(dtype).name} cell volumes "
+            f"and curvature can represent (their products reach spacing^4: spacings in [{lo:.1g}, {hi:.1g}]). "
+            "Rescale the positions (e.g. x / spacing) or use float64 (jax.config.update('jax_enable_x64', True))."
+        )
+
+
 def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D).
 

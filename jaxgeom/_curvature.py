@@ -13,10 +13,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._graph import Tessellation, edge_slots
-from ._metric import check_metric, edge_lengths, edge_pairs, riemannian_mean, riemannian_volumes, simplex_sq_lengths
+from ._metric import (check_metric, edge_lengths, edge_pairs, riemannian_mean, riemannian_volumes, simplex_sq_lengths,
+                      simplex_sq_lengths_with_references)
 from ._simplex import det_entries, safe_sqrt
 
 TWO_PI = 2.0 * math.pi
+# Rounding of one hinge angle in ulps (the metric's own rounding and the length formulas;
+# measured in float32 against float64 on Hessian metrics, tests/test_reliability.py).
+RICCI_ULPS = 64.0
 
 
 @functools.lru_cache(maxsize=None)
@@ -43,22 +47,27 @@ def hinge_angle_vectors(sq_lengths, d: int):
 
     `(x, y, size)`, each (number of hinges,), ordered as `hinges(d)`.
     """
-    index = {p: k for k, p in enumerate(edge_pairs(d))}
+    out = [hinge_angle_vector(sq_lengths, d, k) for k in range(len(hinges(d)))]
+    return tuple(jnp.stack(parts) for parts in zip(*out))
+
+
+def hinge_angle_vector(sq_lengths, d: int, k: int):
+    """`hinge_angle_vectors` of hinge k alone: (x, y, size)."""
+    index = {p: j for j, p in enumerate(edge_pairs(d))}
 
     def sq(p, q):
         return 0.0 if p == q else sq_lengths[index[(min(p, q), max(p, q))]]
 
-    xs, ys, sizes = [], [], []
-    for hinge, (c, e) in hinges(d):
-        base, rest = hinge[0], list(hinge[1:])
-        vecs = rest + [c, e]
-        gram = [[0.5 * (sq(base, p) + sq(base, q) - sq(p, q)) for q in vecs] for p in vecs]
-        k = len(rest)
-        det_hh = det_entries([row[:k] for row in gram[:k]]) if k else 1.0
-        xs.append(det_entries([row[:k] + [row[k + 1]] for row in gram[: k + 1]]))
-        ys.append(safe_sqrt(det_hh * det_entries(gram)))
-        sizes.append(safe_sqrt(det_hh) / math.factorial(k) if k else jnp.ones_like(ys[-1]))
-    return jnp.stack(xs), jnp.stack(ys), jnp.stack(sizes)
+    hinge, (c, e) = hinges(d)[k]
+    base, rest = hinge[0], list(hinge[1:])
+    vecs = rest + [c, e]
+    gram = [[0.5 * (sq(base, p) + sq(base, q) - sq(p, q)) for q in vecs] for p in vecs]
+    m = len(rest)
+    det_hh = det_entries([row[:m] for row in gram[:m]]) if m else 1.0
+    x = det_entries([row[:m] + [row[m + 1]] for row in gram[: m + 1]])
+    y = safe_sqrt(det_hh * det_entries(gram))
+    size = safe_sqrt(det_hh) / math.factorial(m) if m else jnp.ones_like(y)
+    return x, y, size
 
 
 def _safe_atan2(y, x):
@@ -166,10 +175,14 @@ def deficit_angles(tess: Tessellation, metric=None, *, mode: str = "full"):
 def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i (NOTES 2).
 
-    V_i is the Riemannian cell volume `riemannian_volumes(tess, metric)`. Every
-    hinge at a non-hull walker is interior, where the Euclidean angles sum to
-    exactly 2 pi, so delta_h = sum over the simplices around h of (theta_Euclid -
-    theta_metric): this works in any dimension without enumerating hinges.
+    V_i is the Riemannian cell volume `riemannian_volumes(tess, metric)`. The deficit
+    of an interior hinge h is a sum over the simplices around it of theta_ref - theta_g,
+    where theta_ref is the angle in the hinge's own constant metric g_h (the vertex's
+    metric in 2D, the mean metric of the hinge's edges in 3D and up): the angles of a
+    constant metric close up to exactly 2 pi, and each difference is computed in one
+    atan2, so a constant metric gives exactly R = 0 and a slowly varying one adds no
+    cancellation of its own. What limits the precision is the metric's own rounding:
+    see [`jaxgeom.ricci_resolution`][] for the smallest resolvable |R|.
 
     **Arguments:**
 
@@ -182,15 +195,83 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     (N,) Ricci scalar; NaN on tier 0. Pointwise values are noisy on irregular
     points; region averages sum R_i V_i / sum V_i converge (NOTES 2).
     """
+    total, _ = _hinge_sums(tess, metric, mode)
+    return _per_volume(tess, total, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
+
+
+@eqx.filter_jit
+def ricci_resolution(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
+    """The smallest |R_i| that `ricci_scalar` resolves in the points' dtype (N,).
+
+    Every hinge angle carries an absolute error of about `RICCI_ULPS` x eps (the metric
+    and the lengths are rounded), so R_i is uncertain by (2/(d-1)) RICCI_ULPS eps
+    sum_h |h| / V_i: about 400 eps / h^2 in 2D at spacing h (float32, h = 1e-3: 5e1).
+    A metric that varies less than its own rounding over a cell has lost its curvature
+    (float32 may return 0 there); the resolution says so. A constant metric is exact
+    (R = 0). NaN on tier 0. Measured against float64 on a Hessian metric at spacings
+    1e-2 ... 1e-6 (tests/test_reliability.py): the float32 error of 99% of the walkers stays
+    below this (2D: all, at most 0.3x; 3D: slivers, nearly flat tetrahedra whose angles
+    are ill-conditioned, reach a few times it). This is the
+    error of the computation on the given points; points far from the origin (|x| >> h)
+    are themselves rounded to eps |x|, which moves R by about eps |x| / h^3 more.
+    """
+    _, errors = _hinge_sums(tess, metric, mode)
+    return _per_volume(tess, errors, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
+
+
+def _hinge_sums(tess: Tessellation, metric, mode: str):
+    """Per walker: (2/(d-1)) sum over its hinges and their simplices of (theta_ref -
+    theta_g) |h|, and the same sum of its rounding error, RICCI_ULPS eps |h|."""
     d = tess.dim
-    (x_g, y_g, size_g), (x_e, y_e) = _hinge_vectors(tess, metric, mode)
-    # theta_E - theta_g in one atan2: both angles lie in [0, pi]
-    diff = _safe_atan2(y_e * x_g - x_e * y_g, x_e * x_g + y_e * y_g)
-    contrib = jnp.where(tess.simplex_mask[:, None], diff * size_g, 0.0)
-    # sum each vertex's hinges inside the simplex first: d + 1 scattered values per simplex
-    per_vertex = jnp.stack([sum(contrib[:, h] for h in hs) for hs in _hinges_of_vertex(d)], axis=1)
-    total = jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
-    return _per_volume(tess, (2.0 / (d - 1)) * total, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
+    if tess.simplices is None:
+        raise ValueError("curvature needs Delaunay simplices; a k-NN graph has none. Use jaxgeom.delaunay.")
+    sq_g, sq_ref = _metric_and_reference_sq_lengths(tess, metric, mode)
+    # Angles depend on ratios of lengths only: scale each simplex to unit size, so that the
+    # Gram determinants (length^2d) neither underflow nor overflow; |h| scales back below.
+    scale = jnp.max(sq_g, axis=1, keepdims=True)
+    scale = jnp.where(scale > 0, scale, 1.0)
+    sq_g, sq_ref = sq_g / scale, [sq / scale for sq in sq_ref]
+    size_scale = jnp.sqrt(scale[:, 0]) ** (d - 2)
+    eps = jnp.finfo(sq_g.dtype).eps
+    diffs, errors = [], []
+    for k in range(len(hinges(d))):
+        x_g, y_g, size_g = jax.vmap(lambda sq: hinge_angle_vector(sq, d, k))(sq_g)
+        x_r, y_r, _ = jax.vmap(lambda sq: hinge_angle_vector(sq, d, k))(sq_ref[k])
+        diff = _safe_atan2(y_r * x_g - x_r * y_g, x_r * x_g + y_r * y_g)  # both angles lie in [0, pi]
+        same = jnp.all(sq_ref[k] == sq_g, axis=1)  # exactly 0 (XLA's fused multiply-add would leave an ulp)
+        diffs.append(jnp.where(same, 0.0, diff) * size_g * size_scale)
+        # also where `same`: a metric that varies below its rounding has lost its curvature
+        errors.append(RICCI_ULPS * eps * size_g * size_scale)
+    valid = tess.simplex_mask
+    scale = 2.0 / (d - 1)
+    out = []
+    for per_hinge in (diffs, errors):
+        # sum each vertex's hinges inside the simplex first: d + 1 scattered values per simplex
+        per_vertex = jnp.stack([jnp.where(valid, sum(per_hinge[h] for h in hs), 0.0) for hs in _hinges_of_vertex(d)],
+                               axis=1)
+        out.append(scale * jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points))
+    return tuple(out)
+
+
+def _metric_and_reference_sq_lengths(tess: Tessellation, metric, mode: str):
+    """(S, P) squared edge lengths in the metric, and for every hinge k the same lengths in
+    the hinge's reference metric (the metric itself when it is not used: R = 0 exactly)."""
+    if check_metric(tess, metric, mode) is None:
+        sq = jax.lax.optimization_barrier(simplex_sq_lengths(tess))
+        return sq, [sq] * len(hinges(tess.dim))
+    sq_g, sq_ref = simplex_sq_lengths_with_references(tess, metric, mode=mode,
+                                                      hinge_edges=[_hinge_edge_ids(tess.dim, k)
+                                                                   for k in range(len(hinges(tess.dim)))])
+    return jax.lax.optimization_barrier((sq_g, sq_ref))
+
+
+def _hinge_edge_ids(d: int, k: int) -> tuple[int, ...]:
+    """Positions in `edge_pairs(d)` of hinge k's edges; for d = 2 (a vertex hinge) the
+    negative code -1 - vertex, meaning the vertex's own metric."""
+    hinge = hinges(d)[k][0]
+    if len(hinge) == 1:
+        return (-1 - hinge[0],)
+    return tuple(j for j, (a, b) in enumerate(edge_pairs(d)) if a in hinge and b in hinge)
 
 
 def _per_volume(tess: Tessellation, numerator, volumes):

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from ._checks import check_full_rank, check_min_points, host_box, host_points
+from ._checks import check_full_rank, check_min_points, check_representable_spacing, host_box, host_points
 from ._contacts import drop_contacts, planar_degenerate_corners, positive_measure_contacts
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
 from ._planar import fan_neighbors
@@ -94,6 +94,7 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
     check_min_points(n, d + 2, "points", f"a {d}D Delaunay tessellation")
     box_arr = host_box(box, x, periodic=periodic)
     check_full_rank(x)
+    check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
     if d == 2 and not periodic:
         simplices, adjacency, cap = planar_triangles(x, capacity)
         points = jnp.asarray(x)

@@ -165,8 +165,10 @@ def health(state: SwarmState):
 
 
 OBSERVABLES = ("mean_fitness", "best_fitness", "velocity_variance", "degree_weighted_variance", "mean_ricci",
-               "volume_distortion", "mean_shape_distortion", "mean_expansion", "n_clones", "nu", "eps_sigma")
-GEOMETRIC_OBSERVABLES = ("mean_ricci", "volume_distortion", "mean_shape_distortion", "mean_expansion")
+               "ricci_resolution", "volume_distortion", "mean_shape_distortion", "mean_expansion", "n_clones", "nu",
+               "eps_sigma")
+GEOMETRIC_OBSERVABLES = ("mean_ricci", "ricci_resolution", "volume_distortion", "mean_shape_distortion",
+                         "mean_expansion")
 
 
 def fitness_and_force(fitness, x):
@@ -387,6 +389,16 @@ def _mean_ricci(s: _View):
     return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
 
 
+def _ricci_resolution(s: _View):
+    """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
+    from ._curvature import region_average, ricci_resolution
+    from ._metric import riemannian_volumes
+
+    g = _observed_metric(s)
+    floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
+    return region_average(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+
+
 def _mean_expansion(s: _View):
     from ._cells import raychaudhuri_expansion
 
@@ -410,6 +422,7 @@ def _observers():
         "velocity_variance": lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness)),
         "degree_weighted_variance": _degree_weighted_variance,
         "mean_ricci": _mean_ricci,
+        "ricci_resolution": _ricci_resolution,
         "volume_distortion": lambda s: volume_distortion(s.new.tess, s.new.volumes),
         "mean_shape_distortion": lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior),
         "mean_expansion": _mean_expansion,

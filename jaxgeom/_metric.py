@@ -142,6 +142,42 @@ def simplex_sq_length_columns(tess: Tessellation, metric=None, *, mode: str = "f
                  for k, (a, b) in enumerate(pairs))
 
 
+def simplex_sq_lengths_with_references(tess: Tessellation, metric, *, mode: str = "full", hinge_edges=()):
+    """(sq_g (S, P), [sq_ref (S, P) for each entry of `hinge_edges`]): squared simplex edge
+    lengths in the edge metrics, and in each hinge's constant reference metric: the mean
+    of the edge metrics of the edges listed in `hinge_edges[k]` (positions in
+    `edge_pairs(d)`), or the metric at the simplex's vertex v for the entry -1 - v. Both use
+    the same arithmetic, so equal metrics give bitwise equal lengths."""
+    metric = check_metric(tess, metric, mode)
+    coords = simplex_coords(tess)
+    pairs = edge_pairs(tess.dim)
+    dx = [[c[:, b] - c[:, a] for c in coords] for a, b in pairs]
+    if callable(metric):
+        mid = jnp.stack([jnp.stack([0.5 * (c[:, a] + c[:, b]) for c in coords], -1) for a, b in pairs], 1)
+        mid = jnp.where(tess.simplex_mask[:, None, None], mid, tess.points[0])
+        g = _with_mode(_call_metric(metric, _wrap(tess, mid)), mode)
+        edge_g = [_packed_entries(g[:, k]) for k in range(len(pairs))]
+        table = _packed_table(metric_at_walkers(tess, metric, mode=mode))
+    else:
+        table = _packed_table(_with_mode(metric, mode))
+        edge_g = [[0.5 * (row[tess.simplices[:, a]] + row[tess.simplices[:, b]]) for row in table] for a, b in pairs]
+    vertex_g = [[row[tess.simplices[:, v]] for row in table] for v in range(tess.dim + 1)]
+
+    def reference(edges):
+        if edges[0] < 0:
+            return vertex_g[-1 - edges[0]]
+        return [sum(edge_g[j][i] for j in edges) / len(edges) for i in range(len(table))]
+
+    sq_g = jnp.stack([_quad_packed(edge_g[k], dx[k]) for k in range(len(pairs))], axis=1)
+    return sq_g, [jnp.stack([_quad_packed(reference(edges), dx[k]) for k in range(len(pairs))], axis=1)
+                  for edges in hinge_edges]
+
+
+def _packed_entries(g):
+    d = g.shape[-1]
+    return [g[..., i, j] for i in range(d) for j in range(i, d)]
+
+
 def _packed_table(g):
     """Upper-triangle entries of symmetric (N, d, d) tensors as d(d+1)/2 rows of length N + 1
     (a zero column for the sentinel): one 1-D gather per entry is the fast gather on CPU."""

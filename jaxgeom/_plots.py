@@ -126,7 +126,7 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
 def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
     """Every observable of a `jaxgeom.simulate` history against time, one panel each."""
     plt = pyplot()
-    names = [n for n in series if n != "time"] + (["spectral_gap"] if len(gaps) else [])
+    names = [n for n in series if n not in ("time", "ricci_resolution")] + (["spectral_gap"] if len(gaps) else [])
     cols = 3
     rows = -(-len(names) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.8 * rows), squeeze=False)
@@ -137,6 +137,10 @@ def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
             ax.plot(np.asarray(gap_steps) * dt, gaps, "o-")
         else:
             ax.plot(t, series[name], lw=1)
+        if name == "mean_ricci" and "ricci_resolution" in series:  # |R| below this is rounding
+            floor = np.asarray(series["ricci_resolution"])
+            ax.fill_between(t, -floor, floor, color="0.85", label="resolution (+-)")
+            ax.legend(fontsize=7)
         ax.set(title=name, xlabel="time")
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")

@@ -293,7 +293,8 @@ def _jacobi_rotation(a, v, p: int, q: int):
     apq = a[p][q]
     off = apq != 0
     theta = (a[q][q] - a[p][p]) / (2.0 * jnp.where(off, apq, 1.0))
-    big = jnp.abs(theta) > 1e150  # tan of the angle is 1 / (2 theta) to rounding; theta^2 would overflow
+    # tan of the angle is 1 / (2 theta) to rounding where theta^2 would overflow
+    big = jnp.abs(theta) > 0.25 * float(np.sqrt(jnp.finfo(theta.dtype).max))
     tame = jnp.where(big, 1.0, theta)
     t = jnp.where(big, 0.5 / jnp.where(big, theta, 1.0),
                   jnp.where(tame >= 0, 1.0, -1.0) / (jnp.abs(tame) + jnp.sqrt(tame * tame + 1.0)))

@@ -137,10 +137,14 @@ def section_curvature(a: Analysis) -> dict:
     metric, vol = analysis_metric(a), a.cache.get("volumes")
     riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric, volumes=vol))
     ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric, volumes=vol))
+    resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric, volumes=vol))
     a.cache.update(ricci=ricci, riemannian_volumes=riem)
     interior = np.asarray(a.tess.interior)
-    out = {"tier2_volume_weighted_ricci": float(jaxgeom.region_average(ricci, riem, interior))}
+    out = {"tier2_volume_weighted_ricci": float(jaxgeom.region_average(ricci, riem, interior)),
+           "tier2_volume_weighted_ricci_resolution": float(jaxgeom.region_average(resolution, riem, interior)),
+           "precision": str(a.tess.points.dtype)}
     out.update(_stats(ricci[interior], "tier2_ricci"))
+    out["tier2_ricci_resolution_median"] = float(np.nanmedian(resolution[interior])) if interior.any() else np.nan
     if a.tess.dim in (2, 3):
         delta = np.asarray(timed_warm(a, "deficit_angles", jaxgeom.deficit_angles, a.tess, metric))
         out["mean_abs_deficit"] = float(np.abs(delta[delta != 0]).mean()) if np.any(delta != 0) else 0.0
