@@ -31,7 +31,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._checks import check_choice, check_nonnegative, check_positive
 from ._forces import VISCOUS_MODES, apply_viscous, edge_weights
-from ._graph import Tessellation
+from ._graph import Tessellation, neighbor_any
 from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
 from ._simplex import small_cholesky
 from ._spectral import DEFAULT_ALPHA
@@ -402,7 +402,8 @@ def _ricci_resolution(s: _View):
 def _mean_expansion(s: _View):
     from ._cells import raychaudhuri_expansion
 
-    valid = s.old.interior & s.new.interior & ~s.new.cloned
+    # A clone landing next to a walker splits its cell: that change is not the flow's.
+    valid = s.old.interior & s.new.interior & ~s.new.cloned & ~neighbor_any(s.new.tess, s.new.cloned)
     theta = raychaudhuri_expansion(s.old.volumes, s.new.volumes, s.params.dt, valid=valid)
     return _finite_mean(theta, valid)
 

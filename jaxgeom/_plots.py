@@ -44,6 +44,10 @@ def plot_estimation_quality(result: dict, path) -> Path:
     axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="convergence with neighbours")
     axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
     axes[1, 1].set(xlabel="log10 relative Hessian error", ylabel="walkers", title="error distribution")
+    if truth is None:
+        fig.suptitle("reference: the geometric Hessian C^-1 - eps_Sigma I, which measures walker spacing (~1/h^2), "
+                     "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
+                     "errors are expected", fontsize=9)
     return save_figure(fig, path)
 
 

@@ -125,8 +125,10 @@ def _merge(parts, dt: float) -> dict:
     series["time"] = dt * np.arange(len(series[names[0]]))
     gap_steps = np.concatenate([done + h["spectral_gap_step"] for done, h in parts])
     gaps = np.concatenate([h["spectral_gap"] for _, h in parts])
+    components = np.concatenate([h["spectral_components"] for _, h in parts])
     keep = np.r_[True, np.diff(gap_steps) > 0] if gap_steps.size else np.zeros(0, bool)
     return {"series": series, "spectral_gap_step": gap_steps[keep], "spectral_gap": gaps[keep],
+            "spectral_components": components[keep],
             "n_reallocations": sum(h["n_reallocations"] for _, h in parts),
             "seconds_rebuild": sum(h["seconds_rebuild"] for _, h in parts),
             "seconds_steps": sum(h["seconds_steps"] for _, h in parts)}
@@ -141,7 +143,13 @@ def summary_table(result: dict) -> str:
         cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
         rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
     if result["spectral_gap"].size:
-        rows.append(f"{'spectral_gap':<26}{result['spectral_gap'][0]:>12.5g}{result['spectral_gap'][-1]:>12.5g}")
+        gaps, comps = result["spectral_gap"], result["spectral_components"]
+        rows.append(f"{'spectral_gap (largest comp.)':<26}{gaps[0]:>12.5g}{gaps[-1]:>12.5g}")
+        rows.append(f"{'graph components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}")
+    if "mean_expansion" in result["series"]:
+        rows.append("mean_expansion is NaN at step 0: it compares each cell with its volume one step earlier.")
+    if "ricci_resolution" in result["series"]:
+        rows.append("ricci_resolution: |mean_ricci| below it is rounding (jaxgeom.ricci_resolution).")
     rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
                 f"capacity reallocations {result['n_reallocations']}, "
                 f"time {result['seconds_total']:.1f} s (rebuilds {result['seconds_rebuild']:.1f} s, "
@@ -160,7 +168,8 @@ def write_outputs(result: dict, out: Path) -> dict:
     payload = {"config": result["config"], "dtype": result["dtype"],
                "series": {k: _json_ready(v) for k, v in result["series"].items()},
                "spectral_gap": {"step": result["spectral_gap_step"].tolist(),
-                                "value": _json_ready(result["spectral_gap"])},
+                                "value": _json_ready(result["spectral_gap"]),
+                                "components": result["spectral_components"].tolist()},
                "n_reallocations": result["n_reallocations"], "seconds_total": result["seconds_total"],
                "seconds_rebuild": result["seconds_rebuild"], "seconds_steps": result["seconds_steps"]}
     (out / "history.json").write_text(json.dumps(payload, indent=1))

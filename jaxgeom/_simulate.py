@@ -28,11 +28,13 @@ import functools
 import math
 import sys
 import time
+import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse.linalg
 
 from ._checks import check_choice, check_min_points, host_points
 from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
@@ -41,7 +43,7 @@ from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWA
                         metric_field, observe_state, refresh_cells, runaway_radius, swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
-from ._spectral import mean_nearest_neighbor_distance, spectral_gap
+from ._spectral import bulk_spectral_gap, mean_nearest_neighbor_distance
 
 REBUILD_MODES = ("host", "callback")
 GRAPHS = ("delaunay", "knn")
@@ -392,8 +394,9 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       step and for the final state (n_steps + 1 values, times 0, dt, ...).
     - `rebuild`: "host" (default) or "callback" (module docstring: jittable and
       differentiable end to end).
-    - `spectral_gap_every`: M > 0 records `spectral_gap(tess, k=2)[1]` every M
-      steps (host, rebuild="host").
+    - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
+      component (`bulk_spectral_gap`) and the number of components every M steps
+      (host, rebuild="host"); a gap that fails to converge is NaN with a warning.
     - `progress`: print a progress bar to stderr.
 
     **Returns:**
@@ -504,7 +507,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
     bar = _ProgressBar(n_steps) if progress else None
     if gap_every:
-        gaps.append((0, float(spectral_gap(state.tess, k=2)[1])))
+        gaps.append((0,) + _bulk_gap(state.tess))
     opening, pending = _begin_step(params, state), []
     dtype = state.positions.dtype
     for start in range(0, n_steps, rebuild_every):
@@ -529,7 +532,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         seconds["steps"] += t1 - t0
         seconds["rebuild"] += time.perf_counter() - t1
         if gap_every and end % gap_every == 0:
-            gaps.append((end, float(spectral_gap(state.tess, k=2)[1])))
+            gaps.append((end,) + _bulk_gap(state.tess))
         if bar:
             bar.update(end)
     chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
@@ -538,9 +541,22 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     check_health(fitness, params, [health(state)], n_steps, entering)
     history = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
     history.update(spectral_gap_step=np.array([g[0] for g in gaps], int), spectral_gap=np.array([g[1] for g in gaps]),
+                   spectral_components=np.array([g[2] for g in gaps], int),
                    n_reallocations=reallocations, seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"],
                    n_separated=int(state.n_separated), diverged_step=-1)
     return state, history
+
+
+def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
+    """(gap, components) of `bulk_spectral_gap`; a diagnostic never ends a run: a failure
+    (no convergence) is NaN with a warning."""
+    try:
+        gap, n_comp, _ = bulk_spectral_gap(tess)
+        return gap, n_comp
+    except (ArithmeticError, RuntimeError, ValueError, scipy.sparse.linalg.ArpackError) as err:
+        warnings.warn(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
+                      RuntimeWarning, stacklevel=3)
+        return float("nan"), -1
 
 
 def _grown(tess: Tessellation) -> Tessellation:

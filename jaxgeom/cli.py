@@ -205,7 +205,13 @@ def section_estimation(a: Analysis) -> dict:
     out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))
     out.update(_stats(eig[:, -1], "tier2_hessian_max_eigenvalue"))
     out.update({f"agreement_{k}": v for k, v in result["metrics"].items()})
+    out["geometric_reference"] = GEOMETRIC_REFERENCE_NOTE
     return out
+
+
+GEOMETRIC_REFERENCE_NOTE = ("the geometric Hessian C^-1 - eps_Sigma I measures walker spacing (~1/h^2), not V: it "
+                            "matches H only for adaptive-gas equilibrium samples; for a Boltzmann or uniform sample "
+                            "'poor' agreement and relative errors near 1 are expected")
 
 
 REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [

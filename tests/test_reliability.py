@@ -265,3 +265,76 @@ def test_float32_hessians_are_symmetric_at_every_batch_size(n):
     h = np.asarray(jax.jit(jax.vmap(jax.hessian(double_well)))(x))
     np.testing.assert_allclose(h, np.swapaxes(h, 1, 2), atol=0)
     np.testing.assert_allclose(h, np.asarray(jax.vmap(jax.hessian(double_well))(x)), atol=1e-5)
+
+
+def test_the_bulk_gap_ignores_detached_stragglers(rng):
+    from jaxgeom._spectral import bulk_spectral_gap
+
+    cluster = rng.normal(size=(300, 2)) * 0.1
+    stragglers = np.array([[3.0, 0.0], [0.0, 3.0], [-3.0, 0.0], [0.0, -3.0], [2.5, 2.5]])
+    tess = jaxgeom.delaunay(np.vstack([cluster, stragglers]))
+    assert float(jaxgeom.spectral_gap(tess, k=2)[1]) < 1e-5  # the whole graph: weights exp(-160), i.e. 0
+    gap, n_comp, outside = bulk_spectral_gap(tess)
+    assert n_comp == 6 and outside == 5
+    lap = jaxgeom.graph_laplacian(tess)
+    w = np.asarray(lap.weights)
+    dense = np.zeros((305, 305))
+    for i, row in enumerate(np.asarray(tess.neighbors)):
+        for k, j in enumerate(row):
+            if j < 305 and j < 300 and i < 300:
+                dense[i, j] = w[i, k]
+    sub = dense[:300, :300]
+    s = 1.0 / np.sqrt(sub.sum(1))
+    reference = np.linalg.eigvalsh(np.eye(300) - s[:, None] * sub * s[None, :])[1]
+    np.testing.assert_allclose(gap, reference, rtol=1e-8)
+
+
+def test_a_failing_spectral_gap_never_ends_a_run(monkeypatch, bowl_swarm):
+    import scipy.sparse.linalg
+
+    import jaxgeom._simulate as sim
+
+    def broken(tess):
+        raise scipy.sparse.linalg.ArpackNoConvergence("no convergence", np.zeros(0), np.zeros((0, 0)))
+
+    monkeypatch.setattr(sim, "bulk_spectral_gap", broken)
+    with pytest.warns(RuntimeWarning, match="spectral gap failed"):
+        _, history = jaxgeom.simulate(bowl, bowl_swarm, jaxgeom.SwarmParams(), n_steps=2, spectral_gap_every=1,
+                                      observe=("mean_fitness",))
+    assert np.isnan(history["spectral_gap"]).all() and len(history["mean_fitness"]) == 3
+
+
+def test_float32_lobpcg_is_accurate_or_nan(rng):
+    x = rng.random((2000, 2)).astype(np.float32)
+    with jax.experimental.enable_x64(False):
+        tess = jaxgeom.delaunay(x)
+        lam = np.asarray(jaxgeom.spectral_gap(tess, k=3, method="lobpcg", seed=1))
+    reference = np.asarray(jaxgeom.spectral_gap(jaxgeom.delaunay(x.astype(np.float64)), k=3))
+    ok = np.isfinite(lam)
+    np.testing.assert_allclose(lam[ok], reference[ok], rtol=2e-2, atol=1e-6)
+
+
+def test_analyze_periodic_on_its_own_sample_and_notes_the_geometric_reference(tmp_path):
+    assert main(["analyze", "--periodic", "--n", "2000", "--out", str(tmp_path)]) == 0
+    import json
+
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["graph"]["tier2"] == 2000
+    np.testing.assert_allclose(report["volumes"]["total_finite"], 25.0, rtol=1e-9)
+    assert "spacing" in report["estimation"]["geometric_reference"]
+    assert report["curvature"]["tier2_volume_weighted_ricci_resolution"] > 0
+
+
+def test_high_dimensional_default_samples_are_fast_and_exact():
+    import time
+
+    from jaxgeom._landscapes import double_well, sample_boltzmann
+
+    start = time.perf_counter()
+    x, box = sample_boltzmann("double_well", 5000, 10)
+    assert time.perf_counter() - start < 5.0 and x.shape == (5000, 10) and np.all(np.abs(x) <= 2.5)
+    ours, _ = sample_boltzmann("double_well", 20000, 3, seed=1)
+    rng = np.random.default_rng(2)
+    trial = rng.uniform(-2.5, 2.5, (400_000, 3))
+    accepted = trial[rng.random(len(trial)) < np.exp(-2.0 * np.asarray(double_well(trial)))]
+    np.testing.assert_allclose(ours.var(axis=0), accepted.var(axis=0), rtol=0.05)
