@@ -53,6 +53,7 @@ class RawGraph(NamedTuple):
     nbr_cols: np.ndarray  # (E,) its neighbour
     nbr_shifts: np.ndarray | None  # (E, d)
     hull: np.ndarray  # (N,) bool
+    adjacency: np.ndarray | None = None  # (S, d + 1) simplex across the face opposite each vertex, -1 on the hull
 
 
 def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tessellation:
@@ -221,7 +222,7 @@ def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tes
     tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
                         simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
                         overflow=~jnp.all(complete), periodic=False)
-    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess))
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
 
 
 def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -244,7 +245,7 @@ def _plain_graph(x: np.ndarray) -> RawGraph:
         simplices, src, dst, hull_ids = perm[simplices], perm[src], perm[dst], perm[hull_ids]
     hull = np.zeros(len(x), bool)
     hull[hull_ids] = True
-    return RawGraph(simplices, None, src, dst, None, hull)
+    return RawGraph(simplices, None, src, dst, None, hull, tri.neighbors)
 
 
 def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
@@ -438,19 +439,83 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
     tess = drop_contacts(tess, positive_measure_contacts(tess))
     if periodic:
         return tess
-    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess))
+    adjacency = None if raw.adjacency is None else _pad_adjacency(raw.adjacency, cap.simplices)
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+
+
+def _pad_adjacency(adjacency: np.ndarray, s_cap: int):
+    out = np.full((s_cap, adjacency.shape[1]), -1, np.int32)
+    out[: len(adjacency)] = adjacency
+    return jnp.asarray(out)
 
 
 @jax.jit
-def boundary_tiers(tess: Tessellation):
-    """Tier 0: unbounded cell, or a Voronoi vertex (circumcentre) outside the box;
-    tier 1: a neighbour of tier 0; tier 2: the rest."""
+def boundary_tiers(tess: Tessellation, adjacency=None):
+    """Tier 0: an unbounded cell, or a cell reaching outside the domain: a Voronoi vertex
+    (circumcentre) outside the box, or without a box outside the convex hull of the walkers
+    (found by `circumcenters_outside_hull` when the simplex `adjacency` is given: such a
+    cell's extent is set by the missing walkers beyond the sample, 400x the mean volume
+    next to the edge of a Boltzmann sample); tier 1: a neighbour of tier 0; tier 2: the rest."""
     tier0 = tess.hull
+    outside = None
+    centers = jax.vmap(simplex_circumcenter)(simplex_coords(tess))
     if tess.box is not None:
-        centers = jax.vmap(simplex_circumcenter)(simplex_coords(tess))
-        outside = jnp.any((centers < tess.box[0]) | (centers > tess.box[1]), axis=-1) & tess.simplex_mask
-        votes = jnp.broadcast_to(outside[:, None], tess.simplices.shape).astype(jnp.int32)
-        touches = jax.ops.segment_sum(votes.ravel(), tess.simplices.ravel(), num_segments=tess.n_points) > 0
-        tier0 = tier0 | touches
+        outside = jnp.any((centers < tess.box[0]) | (centers > tess.box[1]), axis=-1)
+    elif adjacency is not None:
+        outside = circumcenters_outside_hull(tess, adjacency, centers)
+    if outside is not None:
+        votes = jnp.broadcast_to((outside & tess.simplex_mask)[:, None], tess.simplices.shape).astype(jnp.int32)
+        tier0 = tier0 | (jax.ops.segment_sum(votes.ravel(), tess.simplices.ravel(), num_segments=tess.n_points) > 0)
     tier1 = neighbor_any(tess, tier0) & ~tier0
     return jnp.where(tier0, 0, jnp.where(tier1, 1, 2)).astype(jnp.int8)
+
+
+HULL_WALK_STEPS = 64  # a walk still going after this many simplices counts as outside
+
+
+def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
+    """(S,) bool: whether each simplex's circumcentre lies outside the convex hull, by a
+    visibility walk: from the simplex, step across the face with the most negative
+    barycentric coordinate of the centre until a simplex contains it (inside) or the face
+    is on the hull (outside). Flat simplices stop at once (inside: they have no centre)."""
+    n = tess.n_points
+    table = jnp.concatenate([tess.points, jnp.zeros((1, tess.dim), tess.points.dtype)])
+    s_count = tess.simplices.shape[0]
+    walking, inside, outside = 0, 1, 2
+
+    def step(carry):
+        k, current, state = carry
+        verts = [table[tess.simplices[current, a]] for a in range(tess.dim + 1)]
+        coords = _barycentric(verts, centers)
+        worst = jnp.argmin(coords, axis=0)
+        done = jnp.min(coords, axis=0) >= -1e-9
+        across = adjacency[current, worst]
+        new_state = jnp.where(done, inside, jnp.where(across < 0, outside, walking))
+        state = jnp.where(state == walking, new_state, state)
+        current = jnp.where(state == walking, across, current)
+        return k + 1, current, state
+
+    start = jnp.arange(s_count, dtype=jnp.int32)
+    state0 = jnp.where(tess.simplices[:, 0] < n, walking, inside)
+    _, _, state = jax.lax.while_loop(lambda c: (c[0] < HULL_WALK_STEPS) & jnp.any(c[2] == walking), step,
+                                     (0, start, state0))
+    return state != inside
+
+
+def _barycentric(verts, point):
+    """(d + 1, S) barycentric coordinates of `point` in simplices with vertices `verts`
+    (d + 1 arrays (S, d)); all 1 / (d + 1) for a flat simplex (treated as containing it)."""
+    from ._simplex import det_entries
+
+    d = point.shape[-1]
+    rel = [[verts[a][:, c] - verts[0][:, c] for c in range(d)] for a in range(1, d + 1)]
+    total = det_entries(rel)
+    scale = functools.reduce(jnp.maximum, [sum(r[c] ** 2 for c in range(d)) for r in rel]) ** (0.5 * d)
+    flat = jnp.abs(total) <= 1e-12 * scale
+    safe = jnp.where(flat, 1.0, total)
+    parts = []
+    for a in range(d + 1):
+        replaced = [point if b == a else verts[b] for b in range(d + 1)]
+        rows = [[replaced[b][:, c] - replaced[0][:, c] for c in range(d)] for b in range(1, d + 1)]
+        parts.append(jnp.where(flat, 1.0 / (d + 1), det_entries(rows) / safe))
+    return jnp.stack(parts)

@@ -28,8 +28,10 @@ def scipy_voronoi_volumes(points):
 
 
 def brute_force_tiers(points, box=None):
-    """Tier classification straight from scipy's Voronoi diagram."""
+    """Tier classification straight from scipy's Voronoi diagram: tier 0 for unbounded cells
+    and cells with a vertex outside the box (without a box: outside the convex hull)."""
     vor = Voronoi(points)
+    hull = Delaunay(points)
     tier0 = np.zeros(len(points), bool)
     for i, region_id in enumerate(vor.point_region):
         region = vor.regions[region_id]
@@ -38,6 +40,8 @@ def brute_force_tiers(points, box=None):
         elif box is not None:
             verts = vor.vertices[region]
             tier0[i] = np.any((verts < box[0]) | (verts > box[1]))
+        else:
+            tier0[i] = np.any(hull.find_simplex(vor.vertices[region]) < 0)
     adjacent = np.zeros(len(points), bool)
     for a, b in vor.ridge_points:
         adjacent[a] |= tier0[b]

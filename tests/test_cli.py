@@ -14,7 +14,7 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert report["swarm"]["n_walkers"] == 600 and report["swarm"]["dim"] == 2
     graph = report["graph"]
     assert graph["tier0"] + graph["tier1"] + graph["tier2"] == 600
-    assert graph["tier0"] == report["volumes"]["n_unbounded"] > 0
+    assert graph["tier0"] >= report["volumes"]["n_unbounded"] > 0  # also cells reaching outside the hull
     assert 5.5 < graph["degree_mean"] < 6.0
     assert report["timings_s"]["delaunay"] > 0
     assert report["metric"]["kind"] == "hessian" and report["metric"]["tier2_min_eigenvalue"] >= 0.1 - 1e-12

@@ -306,7 +306,8 @@ def test_a_failing_spectral_gap_never_ends_a_run(monkeypatch, bowl_swarm):
 
 def test_float32_lobpcg_is_accurate_or_nan(rng):
     x = rng.random((2000, 2)).astype(np.float32)
-    with jax.experimental.enable_x64(False):
+    x64 = getattr(jax, "enable_x64", None) or jax.experimental.enable_x64  # jax >= 0.8 / older
+    with x64(False):
         tess = jaxgeom.delaunay(x)
         lam = np.asarray(jaxgeom.spectral_gap(tess, k=3, method="lobpcg", seed=1))
     reference = np.asarray(jaxgeom.spectral_gap(jaxgeom.delaunay(x.astype(np.float64)), k=3))
@@ -338,3 +339,20 @@ def test_high_dimensional_default_samples_are_fast_and_exact():
     trial = rng.uniform(-2.5, 2.5, (400_000, 3))
     accepted = trial[rng.random(len(trial)) < np.exp(-2.0 * np.asarray(double_well(trial)))]
     np.testing.assert_allclose(ours.var(axis=0), accepted.var(axis=0), rtol=0.05)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_without_a_box_cells_reaching_outside_the_hull_are_tier_0(rng, d):
+    from helpers import brute_force_tiers
+
+    x = rng.random((500, d))
+    assert np.array_equal(np.asarray(jaxgeom.delaunay(x).tier), brute_force_tiers(x))
+
+
+def test_volume_distortion_without_a_box_matches_the_boxed_value(rng):
+    """It was 123 without a box and 0.301 with one: second-layer cells at the sample's edge
+    reached 424x the mean volume and counted as interior."""
+    x = rng.uniform(-5.0, 5.0, (5000, 2))
+    free, boxed = jaxgeom.delaunay(x), jaxgeom.delaunay(x, box=(-5.0, 5.0))
+    np.testing.assert_allclose(float(jaxgeom.volume_distortion(free)), float(jaxgeom.volume_distortion(boxed)),
+                               rtol=0.05)
