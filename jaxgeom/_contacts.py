@@ -66,6 +66,13 @@ def _directed_edges(tess: Tessellation):
     return ids, jnp.concatenate([offset, offset]), jnp.concatenate([sq, sq])
 
 
+@jax.jit
+def circumcenters_and_flat(tess: Tessellation):
+    """(S, d) circumcentres (periodic images applied) and (S,) flat flags; padding rows flat=False."""
+    center, flat = jax.vmap(_circumcenter_and_flat)(simplex_coords(tess))
+    return center, flat & tess.simplex_mask
+
+
 def _circumcenter_and_flat(coords):
     verts = [[c[v] for c in coords] for v in range(len(coords) + 1)]
     offset, ok = circumcenter_offset([[a - b for a, b in zip(p, verts[0])] for p in verts[1:]])

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from ._checks import check_full_rank, check_min_points, check_representable_spacing, host_box, host_points
-from ._contacts import drop_contacts, planar_degenerate_corners, positive_measure_contacts
+from ._contacts import circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
 from ._planar import fan_neighbors
 from ._simplex import simplex_circumcenter
@@ -436,11 +436,31 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
         overflow=jnp.asarray(False),
         periodic=periodic,
     )
-    tess = drop_contacts(tess, positive_measure_contacts(tess))
+    if _has_cospherical_simplices(tess, len(raw.simplices)):
+        tess = drop_contacts(tess, positive_measure_contacts(tess))
     if periodic:
         return tess
     adjacency = None if raw.adjacency is None else _pad_adjacency(raw.adjacency, cap.simplices)
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+
+
+def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
+    """Host pre-check for `positive_measure_contacts` (a compilation of seconds per shape):
+    zero-measure contacts exist only inside a Delaunay cell split into several simplices,
+    which then share a circumcentre (or are flat). Centres are compared on a grid of 1e-9
+    mean spacings, modulo the box when periodic."""
+    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(tess))
+    if flat.any():
+        return True
+    x = np.asarray(tess.points, np.float64)
+    if tess.periodic:
+        box = np.asarray(tess.box, np.float64)
+        center = np.mod(center - box[0], box[1] - box[0])
+    n, d = x.shape
+    spacing = float(np.prod(np.ptp(x, axis=0)) / n) ** (1.0 / d)
+    keys = np.round(center / (1e-9 * spacing)).astype(np.int64)
+    hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][:d], np.int64)  # a collision only costs time
+    return len(np.unique(hashed)) < len(hashed)
 
 
 def _pad_adjacency(adjacency: np.ndarray, s_cap: int):
