@@ -521,8 +521,10 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
         pending.append((obs, first, end - start))
         jax.block_until_ready(moved.positions)
-        check_health(fitness, params, np.asarray(obs["_health"])[: end - start], start, entering)
-        check_health(fitness, params, [_host_health(moved)], end, entering)
+        codes = [*np.asarray(obs["_health"])[: end - start], _host_health(moved)]
+        if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
+            jax.block_until_ready((state, opening, first))
+        check_health(fitness, params, codes, start, entering)
         t1 = time.perf_counter()
         moved, grew, n_moved = _rebuild_host(moved, k)  # the positions are final in `moved`
         if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
