@@ -59,16 +59,21 @@ def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
         raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")
 
 
+def mean_spacing(points: np.ndarray) -> float:
+    """Mean walker spacing (bounding-box volume / N)^(1/d), over the axes of non-zero extent."""
+    n, d = points.shape
+    extent = np.ptp(np.asarray(points, np.float64), axis=0)
+    extent = extent[extent > 0]
+    return float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d) if extent.size else 0.0
+
+
 def check_representable_spacing(points: np.ndarray, dtype, name: str = "points") -> None:
     """Cell volumes and circumcentres multiply up to four lengths (spacing^4): reject swarms
     whose mean spacing puts that outside the dtype's normal range (float32: about 1e-9 to
     4e9), with the fix, instead of returning zero or infinite volumes."""
-    n, d = points.shape
-    extent = np.ptp(np.asarray(points, np.float64), axis=0)
-    extent = extent[extent > 0]
-    if not extent.size:
+    spacing = mean_spacing(points)
+    if spacing == 0.0:
         return
-    spacing = float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d)
     info = np.finfo(dtype)
     lo, hi = 10.0 * float(info.tiny) ** 0.25, 0.1 * float(info.max) ** 0.25
     if not lo <= spacing <= hi:

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._graph import Tessellation, edge_slots, simplex_coords
-from ._simplex import circumcenter_offset, simplex_circumcenter, small_det
+from ._simplex import simplex_circumcenter, simplex_circumcenter_and_flat, small_det
 
 
 def contact_rtol(dtype) -> float:
@@ -49,7 +49,7 @@ def _directed_edges(tess: Tessellation):
     (the same in both directions), and the squared edge length."""
     n, k_cap = tess.neighbors.shape
     coords = simplex_coords(tess)
-    center, flat = jax.vmap(_circumcenter_and_flat)(coords)
+    center, flat = jax.vmap(simplex_circumcenter_and_flat)(coords)
     pairs = list(itertools.combinations(range(tess.dim + 1), 2))
     src = jnp.concatenate([tess.simplices[:, a] for a, _ in pairs])
     dst = jnp.concatenate([tess.simplices[:, b] for _, b in pairs])
@@ -69,14 +69,8 @@ def _directed_edges(tess: Tessellation):
 @jax.jit
 def circumcenters_and_flat(tess: Tessellation):
     """(S, d) circumcentres (periodic images applied) and (S,) flat flags; padding rows flat=False."""
-    center, flat = jax.vmap(_circumcenter_and_flat)(simplex_coords(tess))
+    center, flat = jax.vmap(simplex_circumcenter_and_flat)(simplex_coords(tess))
     return center, flat & tess.simplex_mask
-
-
-def _circumcenter_and_flat(coords):
-    verts = [[c[v] for c in coords] for v in range(len(coords) + 1)]
-    offset, ok = circumcenter_offset([[a - b for a, b in zip(p, verts[0])] for p in verts[1:]])
-    return jnp.stack([a + b for a, b in zip(verts[0], offset)]), ~ok
 
 
 @jax.jit

@@ -23,11 +23,12 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from ._checks import check_full_rank, check_min_points, check_representable_spacing, host_box, host_points
+from ._checks import (check_full_rank, check_min_points, check_representable_spacing, host_box, host_points,
+                      mean_spacing)
 from ._contacts import circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords
 from ._planar import fan_neighbors
-from ._simplex import simplex_circumcenter
+from ._simplex import det_entries, simplex_circumcenter
 
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MAX_DELAUNAY_DIM = 4
@@ -197,9 +198,7 @@ def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarr
     cap = _fit_capacity(Capacity(len(simplices), bound), n, 2, capacity)
     padded = np.full((cap.simplices, 3), n, np.int32)
     padded[: len(simplices)] = simplices
-    adjacency = np.full((cap.simplices, 3), -1, np.int32)
-    adjacency[: len(simplices)] = tri.neighbors
-    return padded, adjacency, cap
+    return padded, _pad_adjacency(tri.neighbors, cap.simplices), cap
 
 
 def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacency: np.ndarray) -> int:
@@ -440,7 +439,7 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
         tess = drop_contacts(tess, positive_measure_contacts(tess))
     if periodic:
         return tess
-    adjacency = None if raw.adjacency is None else _pad_adjacency(raw.adjacency, cap.simplices)
+    adjacency = None if raw.adjacency is None else jnp.asarray(_pad_adjacency(raw.adjacency, cap.simplices))
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
 
 
@@ -456,17 +455,16 @@ def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
     if tess.periodic:
         box = np.asarray(tess.box, np.float64)
         center = np.mod(center - box[0], box[1] - box[0])
-    n, d = x.shape
-    spacing = float(np.prod(np.ptp(x, axis=0)) / n) ** (1.0 / d)
-    keys = np.round(center / (1e-9 * spacing)).astype(np.int64)
-    hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][:d], np.int64)  # a collision only costs time
+    keys = np.round(center / (1e-9 * mean_spacing(x))).astype(np.int64)
+    hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][: x.shape[1]], np.int64)  # a collision only costs time
     return len(np.unique(hashed)) < len(hashed)
 
 
-def _pad_adjacency(adjacency: np.ndarray, s_cap: int):
+def _pad_adjacency(adjacency: np.ndarray, s_cap: int) -> np.ndarray:
+    """Simplex adjacency padded to `s_cap` rows of -1 (host)."""
     out = np.full((s_cap, adjacency.shape[1]), -1, np.int32)
     out[: len(adjacency)] = adjacency
-    return jnp.asarray(out)
+    return out
 
 
 @jax.jit
@@ -525,8 +523,6 @@ def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
 def _barycentric(verts, point):
     """(d + 1, S) barycentric coordinates of `point` in simplices with vertices `verts`
     (d + 1 arrays (S, d)); all 1 / (d + 1) for a flat simplex (treated as containing it)."""
-    from ._simplex import det_entries
-
     d = point.shape[-1]
     rel = [[verts[a][:, c] - verts[0][:, c] for c in range(d)] for a in range(1, d + 1)]
     total = det_entries(rel)

@@ -250,8 +250,14 @@ def _first_vertex_and_offset(coords):
 
 def simplex_circumcenter(coords):
     """Circumcentre (d,) of one coordinate-major simplex (its first vertex where degenerate)."""
-    first, offset = _first_vertex_and_offset(coords)
-    return jnp.stack([a + b for a, b in zip(first, offset)])
+    return simplex_circumcenter_and_flat(coords)[0]
+
+
+def simplex_circumcenter_and_flat(coords):
+    """(circumcentre (d,), flat): `simplex_circumcenter` and whether the simplex is degenerate."""
+    verts = _vertices(coords)
+    offset, ok = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
+    return jnp.stack([a + b for a, b in zip(verts[0], offset)]), ~ok
 
 
 def simplex_circumradius(coords):

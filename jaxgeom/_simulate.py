@@ -36,13 +36,14 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg
 
-from ._checks import check_choice, check_min_points, host_points
+from ._checks import check_choice, check_min_points, host_points, mean_spacing
 from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
 from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart,
                         SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force, health, measure,
                         metric_field, observe_state, refresh_cells, runaway_radius, swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
+from ._metric import eigh
 from ._spectral import bulk_spectral_gap, mean_nearest_neighbor_distance
 
 REBUILD_MODES = ("host", "callback")
@@ -105,8 +106,7 @@ class SimulationDiverged(FloatingPointError):
 def separate_coincident(x: np.ndarray, rows: np.ndarray, partners: np.ndarray, attempt: int = 0) -> np.ndarray:
     """`x` with walkers `rows` moved away from the walkers `partners` they coincide with (a
     deterministic direction where they are identical)."""
-    n, d = x.shape
-    spacing = float(np.prod(np.ptp(x, axis=0)) / n) ** (1.0 / d)
+    spacing = mean_spacing(x)
     resolution = 1e3 * np.finfo(x.dtype).eps * float(np.max(np.abs(x)))
     step = max(SEPARATION * spacing, resolution) * 4.0**attempt
     direction = (x[rows] - x[partners]).astype(np.float64)
@@ -429,13 +429,7 @@ def _rebuild_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
     return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
 
 
-def _host_health(state: SwarmState) -> int:
-    """`health` bits NONFINITE and RUNAWAY of a state's positions, computed on the host."""
-    x, v = np.asarray(state.positions), np.asarray(state.velocities)
-    if not (np.isfinite(x).all() and np.isfinite(v).all()):
-        return NONFINITE
-    far = np.max(np.sum((x - x.mean(axis=0)) ** 2, axis=1)) > float(runaway_radius(state)) ** 2
-    return RUNAWAY if far else 0
+_health = jax.jit(health)
 
 
 def check_health(fitness, params: SwarmParams, codes, first_step: int, before: SwarmState) -> None:
@@ -474,7 +468,7 @@ def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
                     f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s) "
                     f"(smallest eigenvalue {lam.min():.3g}), so the anisotropic noise D = g^-1 is undefined; "
                     "raise eps_sigma or use floor='softabs'.")
-    curvature = np.asarray(jax.vmap(lambda p: jnp.linalg.eigvalsh(jax.hessian(fitness)(p))[-1])(x))
+    curvature = np.asarray(jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x))  # no batched LAPACK
     curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
     if omega_dt > 2.0:
@@ -521,7 +515,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
         pending.append((obs, first, end - start))
         jax.block_until_ready(moved.positions)
-        codes = [*np.asarray(obs["_health"])[: end - start], _host_health(moved)]
+        codes = [*np.asarray(obs["_health"])[: end - start], int(_health(moved))]
         if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
             jax.block_until_ready((state, opening, first))
         check_health(fitness, params, codes, start, entering)
