@@ -87,7 +87,7 @@ def check_representable_spacing(points: np.ndarray, dtype, name: str = "points")
 def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D).
 
-    Scale-relative: the walkers are centred and scaled to a unit box first (no overflow
+    Scale-relative: the walkers are scaled to a unit box and centred on their mean first (no overflow
     for huge coordinates), and a thin but genuine sample (a strip [0, 1] x [0, 1e-7]) passes.
     A set is degenerate when its thinnest direction is at the rounding level of the input
     coordinates (their float64 resolution at the largest |x|).
@@ -97,6 +97,7 @@ def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     extent = float(np.max(hi - lo))
     if extent > 0:
         centred = (x - 0.5 * (lo + hi)) / extent
+        centred -= centred.mean(axis=0)  # the rank of the affine hull needs the mean, not the midrange
         gram = centred.T @ centred
         ev = np.linalg.eigvalsh(gram)
         if ev[0] > 1e-8 * ev[-1]:  # the common case, decided by a cheap (d, d) Gram matrix
