@@ -60,14 +60,24 @@ def _relative_error(estimate, reference):
 
 
 def _error_by_neighbour_count(points, values, reference, valid):
+    """Median error of the k-NN fit for each k in NEIGHBOUR_COUNTS. One graph at the largest k,
+    nearest first; the smaller graphs keep its first k columns (the rest at the sentinel N), so
+    every fit has one shape and compiles once."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
     from ._estimation import estimate_hessian
     from ._knn import knn_graph
 
-    d = points.shape[1]
-    ks = [k for k in NEIGHBOUR_COUNTS if d * (d + 3) // 2 <= k < len(points)]
+    n, d = points.shape
+    ks = [k for k in NEIGHBOUR_COUNTS if d * (d + 3) // 2 <= k < n]
+    if not ks:
+        return ks, []
+    full = knn_graph(points, ks[-1])
     medians = []
     for k in ks:
-        est = np.asarray(estimate_hessian(knn_graph(points, k), values))
+        nbrs = jnp.where(jnp.arange(ks[-1]) < k, full.neighbors, n)
+        est = np.asarray(estimate_hessian(eqx.tree_at(lambda t: t.neighbors, full, nbrs), values))
         err = _relative_error(est, reference)[valid]
         medians.append(float(np.nanmedian(err)))
     return ks, medians
