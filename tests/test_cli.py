@@ -40,6 +40,7 @@ def test_analyze_flat_metric_has_zero_curvature(tmp_path):
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
 
 
+@pytest.mark.slow
 def test_analyze_emergent_metric_in_3d(tmp_path):
     assert main(["analyze", "--n", "800", "--dim", "3", "--metric", "emergent", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "summary.json").read_text())
@@ -47,8 +48,9 @@ def test_analyze_emergent_metric_in_3d(tmp_path):
     assert np.isfinite(report["curvature"]["tier2_ricci_median"])
 
 
+@pytest.mark.slow  # test_reliability runs analyze --periodic on its own sample
 def test_analyze_periodic_points_file(tmp_path):
-    pts = np.random.default_rng(0).random((300, 3))
+    pts = np.random.default_rng(0).random((300, 2))  # 3D periodic graphs: test_reliability lattices
     np.save(tmp_path / "pts.npy", pts)
     assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--periodic", "--box", "0", "1",
                  "--out", str(tmp_path)]) == 0

@@ -147,7 +147,7 @@ def test_gradient_through_a_whole_simulation_matches_finite_differences(rng):
     assert abs(float(grad[0])) > 0 and abs(float(grad[1])) > 0
 
 
-@pytest.mark.parametrize("rebuild", ["host", "callback"])
+@pytest.mark.parametrize("rebuild", ["host", pytest.param("callback", marks=pytest.mark.slow)])
 def test_capacity_overflow_reallocates_instead_of_truncating(rng, rebuild):
     x = rng.uniform(-1, 1, (300, 2))
     tess = jaxgeom.delaunay(x)

@@ -152,6 +152,7 @@ def test_small_eigh_and_cholesky_match_lapack(rng, d):
     np.testing.assert_allclose(np.asarray(small_cholesky(jnp.asarray(spd))), np.linalg.cholesky(spd), atol=1e-13)
 
 
+@pytest.mark.slow
 def test_analyze_in_3d_at_its_default_size_never_hangs(tmp_path):
     """`analyze --dim 3` deadlocked in 4 of 6 runs: two batched LAPACK eigh calls at once on
     XLA's CPU thread pool. Three runs in one process, each within 150 s (about 30 s for the
@@ -220,7 +221,7 @@ def test_a_constant_metric_is_flat_at_any_spacing(rng, h, dtype):
     assert np.all(np.asarray(jaxgeom.ricci_scalar(tess, quadratic))[interior] == 0.0)
 
 
-@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.slow)])
 def test_float32_curvature_error_stays_below_the_stated_resolution(rng, d):
     from jaxgeom._landscapes import double_well
 
@@ -255,6 +256,7 @@ def test_float32_curvature_and_volumes_work_at_extreme_but_representable_scales(
     np.testing.assert_allclose(ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric))[interior], rtol=2e-2, atol=2e-2)
 
 
+@pytest.mark.slow  # meaningful at XLA's default optimisation level: CI runs the slow set that way
 @pytest.mark.parametrize("n", [5000, 16384, 30720])
 def test_float32_hessians_are_symmetric_at_every_batch_size(n):
     """jaxlib 0.10 miscompiled this on CPU (asymmetric, entries off by 15% at n = 16384 and

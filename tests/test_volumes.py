@@ -46,6 +46,7 @@ def test_periodic_volumes_sum_to_box_and_match_tiled_copy(rng, d, n):
     np.testing.assert_allclose(vol, tiled_vol[:n], rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_periodic_4d_volumes_sum_to_box(rng):
     x = rng.random((150, 4))
     vol = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)))
