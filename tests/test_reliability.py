@@ -152,20 +152,31 @@ def test_small_eigh_and_cholesky_match_lapack(rng, d):
     np.testing.assert_allclose(np.asarray(small_cholesky(jnp.asarray(spd))), np.linalg.cholesky(spd), atol=1e-13)
 
 
+def run_with_watchdog(argv, seconds: float):
+    import threading
+
+    result = []
+    worker = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
+    worker.start()
+    worker.join(timeout=seconds)
+    assert not worker.is_alive(), f"{' '.join(argv)} hung"
+    assert result == [0]
+
+
+def test_analyze_in_3d_never_hangs():
+    """The normal suite's `analyze --dim 3`: the same code path as the default size (the
+    deadlock needed two batched LAPACK eigh calls at once; the divergence diagnosis and the
+    metric use Jacobi now), at 800 walkers."""
+    run_with_watchdog(["analyze", "--dim", "3", "--n", "800"], 150)
+
+
 @pytest.mark.slow
 def test_analyze_in_3d_at_its_default_size_never_hangs(tmp_path):
     """`analyze --dim 3` deadlocked in 4 of 6 runs: two batched LAPACK eigh calls at once on
     XLA's CPU thread pool. Three runs in one process, each within 150 s (about 30 s for the
     first, with compilation, and 5 s for the others on 2 cores)."""
-    import threading
-
-    for run in range(3):
-        result = []
-        worker = threading.Thread(target=lambda: result.append(main(["analyze", "--dim", "3"])), daemon=True)
-        worker.start()
-        worker.join(timeout=150)
-        assert not worker.is_alive(), f"analyze --dim 3 hung in run {run}"
-        assert result == [0]
+    for _ in range(3):
+        run_with_watchdog(["analyze", "--dim", "3"], 150)
 
 
 def lattice(m, d, offset):
