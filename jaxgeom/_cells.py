@@ -7,12 +7,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._checks import check_positive
+from ._checks import check_positive, takes_tessellation
 from ._graph import Tessellation, nearest_neighbor_distances, simplex_coords
 from ._simplex import simplex_circumradius
 from ._volumes import voronoi_volumes
 
 
+@takes_tessellation
 @eqx.filter_jit
 def volume_distortion(tess: Tessellation, volumes=None) -> Float[Array, ""]:
     """Var(V_i / <V>) over tier-2 walkers with finite volume (proxy 2, Definition 827).
@@ -34,6 +35,7 @@ def _incident_circumradii(tess: Tessellation):
     return jnp.where(tess.simplex_mask, radius, 0.0)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
     """Inradius / circumradius of every Voronoi cell about its generator (proxy 3, NOTES 8).
@@ -51,6 +53,7 @@ def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
     return jnp.where(tess.tier == 0, jnp.nan, r_in / r_circ)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def vertex_distance_variance(tess: Tessellation) -> Float[Array, " N"]:
     """Variance of the distances from x_i to its Voronoi cell's vertices (NOTES 8, secondary).

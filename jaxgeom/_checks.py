@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
 from collections.abc import Iterable
 
 import jax
 import numpy as np
+
+from ._graph import Tessellation
 
 
 def reject_tracer(value, name: str, func: str) -> None:
@@ -19,7 +23,10 @@ def reject_tracer(value, name: str, func: str) -> None:
 def host_points(points, name: str = "points", *, func: str = "jaxgeom") -> np.ndarray:
     """Validate an (N, d) float array of finite coordinates and return it as numpy."""
     reject_tracer(points, name, func)
-    arr = np.asarray(points)
+    try:
+        arr = np.asarray(points)
+    except ValueError as err:
+        raise TypeError(f"`{name}` must be a rectangular (N, d) array; got a ragged sequence ({err}).") from None
     if arr.ndim != 2 or arr.shape[1] < 1:
         raise ValueError(
             f"`{name}` must have shape (N, d) with one row per walker; got shape {arr.shape}. "
@@ -39,19 +46,124 @@ def host_points(points, name: str = "points", *, func: str = "jaxgeom") -> np.nd
     return arr
 
 
-def check_nonnegative(value, name: str) -> None:
-    """A physical parameter that must be finite and >= 0 (tracers pass)."""
+def real_array(value, name: str) -> np.ndarray:
+    """A concrete numeric argument as numpy; TypeError for strings, objects, ragged lists, complex."""
+    try:
+        arr = np.asarray(value)
+    except ValueError as err:  # ragged nested lists
+        raise TypeError(f"`{name}` must be a rectangular numeric array; got a ragged sequence ({err}).") from None
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+        raise TypeError(f"`{name}` must be numeric; got {type(value).__name__} with dtype {arr.dtype}.")
+    if np.iscomplexobj(arr):
+        raise TypeError(f"`{name}` must be real; got complex dtype {arr.dtype}. Pass `x.real` if the "
+                        "imaginary part is meant to be zero.")
+    return arr
+
+
+def check_number(value, name: str, *, low=None, high=None, strict: bool = False, hint: str = "") -> None:
+    """A scalar parameter: real, finite, low <= value (low < value if `strict`) <= high.
+    None and JAX tracers pass (checked only where the value is concrete)."""
     if value is None or isinstance(value, jax.core.Tracer):
         return
-    arr = np.asarray(value)
-    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise ValueError(f"`{name}` must be a finite number >= 0; got {value}.")
+    arr = real_array(value, name)
+    if arr.ndim != 0:
+        raise ValueError(f"`{name}` must be a scalar; got shape {arr.shape}. For an ensemble of values, "
+                         "jax.vmap a function that builds the object from one value.")
+    v = float(arr)
+    below = low is not None and (v <= low if strict else v < low)
+    if not np.isfinite(v) or below or (high is not None and v > high):
+        rule = " and ".join(r for r in (f"{'>' if strict else '>='} {low}" if low is not None else "",
+                                         f"<= {high}" if high is not None else "") if r)
+        raise ValueError(f"`{name}` must be a finite number{' ' + rule if rule else ''}{hint}; got {v:g}.")
+
+
+def check_nonnegative(value, name: str) -> None:
+    """A physical parameter: a finite real scalar >= 0 (None and tracers pass)."""
+    check_number(value, name, low=0)
 
 
 def check_positive(value, name: str, hint: str = "") -> None:
-    """A parameter that must be > 0 (None and tracers pass); `hint` follows the rule in the message."""
-    if value is not None and not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
-        raise ValueError(f"`{name}` must be > 0{hint}; got {value}.")
+    """A finite real scalar > 0 (None and tracers pass); `hint` follows the rule in the message."""
+    check_number(value, name, low=0, strict=True, hint=hint)
+
+
+def takes_tessellation(fn):
+    """Decorator for public kernels: checked outside any jit, on concrete values only, that the
+    first argument is a `jaxgeom.Tessellation` and that `metric`, `values` and `velocities`
+    (where the kernel has them) are real arrays of the right shape; a metric array must
+    also be symmetric positive definite."""
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def call(tess, *args, **kwargs):
+        if not isinstance(tess, Tessellation):
+            raise TypeError(
+                f"jaxgeom.{fn.__name__} takes a jaxgeom.Tessellation as `tess`; got {type(tess).__name__}. "
+                "Build one first: tess = jaxgeom.delaunay(points) or jaxgeom.knn_graph(points, k)."
+            )
+        bound = signature.bind_partial(tess, *args, **kwargs).arguments
+        n, d = tess.points.shape
+        if bound.get("mode", "full") != "none":
+            check_metric_array(bound.get("metric"), n, d)
+        for name, shape in (("values", (n,)), ("velocities", (n, d))):
+            check_walker_array(bound.get(name), name, shape)
+        return fn(tess, *args, **kwargs)
+
+    return call
+
+
+def _concrete(value) -> bool:
+    return value is not None and not callable(value) and not isinstance(value, (str, jax.core.Tracer))
+
+
+def check_walker_array(value, name: str, shape: tuple) -> None:
+    """A per-walker input of a kernel: real, of `shape` (concrete values only)."""
+    if not _concrete(value):
+        return
+    arr = real_array(value, name)
+    if arr.shape != shape:
+        raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {arr.shape}.")
+
+
+def check_metric_array(metric, n: int, d: int) -> None:
+    """A concrete (N, d, d) metric: real, symmetric to rounding and positive definite where it
+    is finite (NaN rows, e.g. the emergent metric of an isolated walker, are left alone).
+    Elementwise numpy over (N,) columns: ~2 ms at N = 1e5 in 3D."""
+    if not _concrete(metric):
+        return
+    g = real_array(metric, "metric")
+    if g.shape != (n, d, d):
+        return  # the kernel's own shape message follows
+    eps = np.finfo(g.dtype).eps if np.issubdtype(g.dtype, np.floating) else np.finfo(np.float64).eps
+    c = {(i, j): g[:, i, j].astype(np.float64) for i in range(d) for j in range(d)}
+    finite = np.logical_and.reduce([np.isfinite(v) for v in c.values()])
+    scale = np.maximum.reduce([np.abs(v) for v in c.values()])
+    skew = np.maximum.reduce([np.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)] or [0 * scale])
+    asym = np.flatnonzero(finite & (skew > 100 * eps * scale))
+    if asym.size:
+        raise ValueError(f"`metric` must be symmetric; {asym.size} walker(s) are not, first rows "
+                         f"{asym[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2)).")
+    bad = np.flatnonzero(finite & ~_positive_definite(c, g, d))
+    if bad.size:
+        raise ValueError(f"`metric` must be positive definite; {bad.size} walker(s) have an eigenvalue <= 0, "
+                         f"first rows {bad[:5].tolist()}. Floor the spectrum, e.g. "
+                         "jaxgeom.hessian_metric(V, eps_sigma) for a Hessian.")
+
+
+def _positive_definite(c: dict, g: np.ndarray, d: int) -> np.ndarray:
+    """(N,) bool: Sylvester's leading minors up to d = 3 from the entry columns `c`,
+    eigenvalues of `g` above (NaN rows come out False and are masked by the caller)."""
+    if d > 3:
+        with np.errstate(invalid="ignore"):
+            return np.linalg.eigvalsh(np.nan_to_num(g.astype(np.float64)))[:, 0] > 0
+    ok = c[0, 0] > 0
+    if d >= 2:
+        ok &= c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0
+    if d == 3:
+        det = (c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1]) - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
+               + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0]))
+        ok &= det > 0
+    return ok
 
 
 def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
@@ -125,7 +237,10 @@ def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:
         return None
     reject_tracer(box, "box", "jaxgeom")
     d = points.shape[1]
-    arr = np.asarray(box, dtype=np.float64)
+    if isinstance(box, str):
+        raise TypeError(f"`box` must be (lower, upper) with scalars or length-{d} vectors, e.g. box=(0.0, 1.0); "
+                        f"got the string {box!r}.")
+    arr = real_array(box, "box").astype(np.float64)
     if arr.ndim == 1 and arr.size == 2:
         arr = np.repeat(arr[:, None], d, axis=1)
     if arr.shape != (2, d):

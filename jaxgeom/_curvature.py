@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._checks import takes_tessellation
 from ._graph import Tessellation, edge_slots
 from ._metric import (check_metric, edge_lengths, edge_pairs, riemannian_mean, riemannian_volumes, simplex_sq_lengths,
                       simplex_sq_lengths_with_references)
@@ -116,6 +117,7 @@ def _hinge_vertex_ids(tess: Tessellation):
     return tess.simplices[:, np.array([h for h, _ in hinges(tess.dim)])]
 
 
+@takes_tessellation
 @eqx.filter_jit
 def angle_sums(tess: Tessellation, metric=None, *, mode: str = "full"):
     """Total hinge angle around each hinge, in the metric.
@@ -153,6 +155,7 @@ def _per_hinge(tess: Tessellation, per_simplex):
     return jnp.where(tess.neighbor_mask, totals[:-1].reshape(n, k_cap), 0.0)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def deficit_angles(tess: Tessellation, metric=None, *, mode: str = "full"):
     """Regge deficit angles 2 pi - sum of hinge angles, with metric edge lengths.
@@ -171,6 +174,7 @@ def deficit_angles(tess: Tessellation, metric=None, *, mode: str = "full"):
     return jnp.where(total_e > 1.5 * math.pi, TWO_PI - total_g, 0.0)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i (NOTES 2).
@@ -199,6 +203,7 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     return _per_volume(tess, total, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
 
 
+@takes_tessellation
 @eqx.filter_jit
 def ricci_resolution(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """The smallest |R_i| that `ricci_scalar` resolves in the points' dtype (N,).
@@ -280,6 +285,7 @@ def _per_volume(tess: Tessellation, numerator, volumes):
     return jnp.where(ok, numerator / jnp.where(ok, volumes, 1.0), jnp.nan)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def ricci_from_deficits(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, " N"]:
     """R_i from `deficit_angles` directly (2D and 3D): the textbook form of `ricci_scalar`."""

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ._checks import check_choice, check_nonnegative, check_positive
+from ._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
 from ._forces import VISCOUS_MODES, apply_viscous, edge_weights
 from ._graph import Tessellation, neighbor_any
 from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
@@ -40,8 +40,17 @@ COND_LIMIT = 1e6  # chapter: raise eps_Sigma 10x when cond(g) exceeds this
 EPS_SIGMA_RAISE = 10.0
 
 
-def _leaf(value):
-    return None if value is None else jnp.asarray(value)
+def _param(name: str, default):
+    """A differentiable scalar field; strings, complex numbers and ragged lists get a TypeError
+    naming the field (before JAX's conversion error)."""
+
+    def convert(value):
+        if value is None or isinstance(value, jax.core.Tracer):
+            return value
+        real_array(value, name)
+        return jnp.asarray(value)
+
+    return eqx.field(converter=convert, default=default)
 
 
 class SwarmParams(eqx.Module):
@@ -65,18 +74,18 @@ class SwarmParams(eqx.Module):
       `adapt_eps_sigma` (x10 whenever max cond(g) > 1e6), `floor` ("clip"/"softabs").
     """
 
-    dt: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.01)
-    gamma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
-    temperature: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
-    nu: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
-    eps_sigma: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
-    length_scale: Float[Array, ""] | None = eqx.field(converter=_leaf, default=None)
-    alpha: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=DEFAULT_ALPHA)
-    clone_rate: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
-    clone_jitter: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.1)
-    reward_power: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
-    distance_power: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
-    nu_initial: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.01)
+    dt: Float[Array, ""] = _param("dt", 0.01)
+    gamma: Float[Array, ""] = _param("gamma", 1.0)
+    temperature: Float[Array, ""] = _param("temperature", 0.1)
+    nu: Float[Array, ""] = _param("nu", 0.1)
+    eps_sigma: Float[Array, ""] = _param("eps_sigma", 0.1)
+    length_scale: Float[Array, ""] | None = _param("length_scale", None)
+    alpha: Float[Array, ""] = _param("alpha", DEFAULT_ALPHA)
+    clone_rate: Float[Array, ""] = _param("clone_rate", 0.1)
+    clone_jitter: Float[Array, ""] = _param("clone_jitter", 0.1)
+    reward_power: Float[Array, ""] = _param("reward_power", 1.0)
+    distance_power: Float[Array, ""] = _param("distance_power", 1.0)
+    nu_initial: Float[Array, ""] = _param("nu_initial", 0.01)
     mode: str = eqx.field(static=True, default="kernel")
     volume_weighting: bool = eqx.field(static=True, default=False)
     anisotropic: bool = eqx.field(static=True, default=False)
@@ -93,6 +102,9 @@ class SwarmParams(eqx.Module):
             check_nonnegative(getattr(self, name), name)
         for name in ("dt", "alpha", "length_scale", "clone_jitter"):  # jitter 0 would duplicate walkers
             check_positive(getattr(self, name), name)
+        check_number(self.clone_rate, "clone_rate", low=0, high=1, hint=" (a probability scale)")
+        for name in ("reward_power", "distance_power"):  # exponents of the virtual reward
+            check_nonnegative(getattr(self, name), name)
         if self.anisotropic:
             check_positive(self.eps_sigma, "eps_sigma", " with anisotropic=True (the noise D = g^-1 needs a "
                            "positive definite metric g = floor(H) + eps_Sigma I)")
@@ -209,10 +221,11 @@ def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
 
 
 def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, g):
-    """Row-normalized weights and the degree (sum of raw weights) used by both V half-steps."""
-    from ._forces import normalize_rows, with_volume_weights
+    """Row-normalized weights (and row sums) used by both V half-steps."""
+    from ._forces import normalize_rows, weights_to_normalize, with_volume_weights
 
-    w = edge_weights(tess, mode=params.mode, length_scale=viscous_length(params, state, tess), metric=g)
+    w = weights_to_normalize(tess, mode=params.mode, length_scale=viscous_length(params, state, tess), metric=g,
+                             alpha=params.alpha)
     if params.volume_weighting:
         sqrt_det = 1.0 if g is None else jnp.sqrt(jnp.maximum(jnp.linalg.det(g), 0.0))
         w = with_volume_weights(tess, w, state.volumes * sqrt_det)  # Riemannian volumes (Def. 833)

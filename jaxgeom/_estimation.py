@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._checks import check_choice
+from ._checks import check_choice, takes_tessellation
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, padded_points
 from ._metric import emergent_metric
 
@@ -87,6 +87,7 @@ def _solve_normal(a, b, rcond: float = RCOND):
     return jnp.where(ok, x, jnp.nan), ok
 
 
+@takes_tessellation
 @eqx.filter_jit
 def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weighting: str = "uniform",
                       order: int = 2, with_info: bool = False):
@@ -215,6 +216,7 @@ def _two_ring(tess: Tessellation, values, walkers):
     return dxs, jnp.where(usable, dv, 0.0), usable
 
 
+@takes_tessellation
 @eqx.filter_jit
 def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_info: bool = False):
     """Hessian of a field sampled at the walkers (local quadratic least squares).
@@ -296,6 +298,7 @@ def _diagonal_hessian(tess: Tessellation, values):
     return jnp.where(ok[:, None], diag, jnp.nan), quality, ok
 
 
+@takes_tessellation
 def geometric_hessian(tess: Tessellation, eps_sigma, *, eps_reg: float = 1e-5) -> Float[Array, "N d d"]:
     """The validation Hessian H_geo = g_emergent - eps_Sigma I (chapter, Method 2).
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import check_choice, check_nonnegative
+from ._checks import check_choice, check_nonnegative, check_positive, takes_tessellation
 from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements
 from ._metric import edge_sq_lengths
 from ._simplex import safe_sqrt
@@ -48,6 +48,7 @@ def _inverse_length_weights(lengths, mask):
     return jnp.where(mask, 1.0 / (lengths + eps), 0.0)
 
 
+@takes_tessellation
 def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
                  alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
     """Raw edge weights w_ij of Definition 835, aligned with `tess.neighbors` (0 on padding)."""
@@ -64,10 +65,20 @@ def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None,
     return _inverse_length_weights(safe_sqrt(sq), mask)
 
 
+def weights_to_normalize(tess: Tessellation, *, mode: str, length_scale=None, metric=None,
+                         alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+    """`edge_weights` up to a per-row factor that row normalisation cancels: kernel weights are
+    divided by each row's largest, so that they tend to nearest-neighbour weighting as l -> 0
+    instead of underflowing to 0 / 0."""
+    if mode == "kernel":
+        return kernel_weights(tess, length_scale, alpha, shift="row")
+    return edge_weights(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
+
+
 def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
                            volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
     """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0."""
-    w = edge_weights(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
+    w = weights_to_normalize(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
     return normalize_rows(with_volume_weights(tess, w, volume_weights))[0]
 
 
@@ -97,6 +108,7 @@ def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Flo
     return nu * jnp.stack(cols, axis=1)
 
 
+@takes_tessellation
 def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", length_scale=None, metric=None,
                   volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N d"]:
     """The scutoidal viscous force of Definition 834, O(N K).
@@ -112,6 +124,8 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
       (1 / (sqrt(dx^T g_edge dx) + eps)); eps = 1e-8 times the mean nearest-neighbour
       length, g_edge as in [`jaxgeom.edge_lengths`][].
     - `length_scale`: l of "kernel"; None = alpha * mean nearest-neighbour distance.
+      The row-normalised kernel is computed relative to each row's nearest neighbour, so
+      l far below the spacing tends to nearest-neighbour weighting (never 0 / 0).
     - `metric`: (N, d, d) array or callable x -> g; required by the metric modes.
     - `volume_weights`: optional (N,) cell volumes V_j; weights become w_ij V_j
       (edges to non-finite volumes are dropped). This breaks w_ij = w_ji.
@@ -123,6 +137,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
     """
     _check_force_inputs(tess, velocities, mode, metric, volume_weights)
     check_nonnegative(nu, "nu")
+    check_positive(alpha, "alpha", " (the adaptive kernel width is alpha x the nearest-neighbour distance)")
     check_length_scale(length_scale)
     scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
     return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), mode, scale, metric, volume_weights, alpha)

@@ -10,13 +10,14 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.sparse.csgraph import dijkstra
 
-from ._checks import check_choice
+from ._checks import check_choice, takes_tessellation
 from ._graph import Tessellation, padded_to_csr
 from ._metric import edge_lengths
 
 GEODESIC_METHODS = ("dijkstra", "bellman_ford")
 
 
+@takes_tessellation
 def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = "full",
                        method: str = "dijkstra") -> Float[Array, "M N"]:
     """Shortest-path distances along graph edges weighted by metric edge lengths.
@@ -34,7 +35,8 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
 
     **Returns:**
 
-    (len(sources), N) distances; unreachable walkers are inf.
+    (len(sources), N) distances; unreachable walkers are inf. Concrete sources outside
+    [0, N) are a ValueError; traced ones (Bellman-Ford under jit) give a row of inf.
     """
     check_choice(method, "method", GEODESIC_METHODS)
     src = _check_sources(sources, tess.n_points)
@@ -95,7 +97,8 @@ def _bellman_ford(lengths, neighbors, source, symmetric: bool):
 
 def _bellman_ford_forward(lengths, neighbors, source, symmetric: bool):
     n = neighbors.shape[0]
-    dist0 = jnp.full((n,), jnp.inf, lengths.dtype).at[source].set(0.0)
+    inside = (source >= 0) & (source < n)  # traced sources are not checked: outside [0, N) is a row of inf
+    dist0 = jnp.full((n,), jnp.inf, lengths.dtype).at[jnp.where(inside, source, n)].set(0.0, mode="drop")
 
     def body(state):
         dist, _, count = state

@@ -36,6 +36,9 @@ def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str =
       `lax.top_k`, memory O(N * TILE_ELEMENTS / N) and time O(N^2 d);
       `"kdtree"` uses scipy's cKDTree on the host (O(N log N), not jittable);
       `"auto"` takes `"kdtree"` for concrete inputs and `"brute"` under a trace.
+      Under a trace inputs cannot be checked: a walker with NaN or inf coordinates
+      gets no neighbours (its row is all at the sentinel N, degree 0) and is nobody's
+      neighbour; periodic walkers outside the box count as their image inside it.
 
     **Returns:**
 
@@ -99,8 +102,9 @@ def _brute_neighbors(x: Float[Array, "N d"], k: int, lengths) -> Int[Array, "N k
 
     def one_block(q):
         d2 = _sq_distances(x, x.at[q].get(mode="fill", fill_value=0.0), lengths)
-        d2 = jnp.where(q[:, None] == jnp.arange(n)[None, :], jnp.inf, d2)
-        return jax.lax.top_k(-d2, k)[1]
+        d2 = jnp.where((q[:, None] == jnp.arange(n)[None, :]) | jnp.isnan(d2), jnp.inf, d2)
+        neg_d2, idx = jax.lax.top_k(-d2, k)
+        return jnp.where(jnp.isfinite(neg_d2), idx, n)  # non-finite walkers: no neighbours, nobody's neighbour
 
     return jax.lax.map(one_block, queries).reshape(-1, k)[:n].astype(jnp.int32)
 
@@ -122,7 +126,7 @@ def _sq_distances(x, q, lengths):
 
 def _knn_tessellation(x, nbrs, box, periodic: bool) -> Tessellation:
     n, d = x.shape
-    dx = x[nbrs] - x[:, None, :]
+    dx = x.at[nbrs].get(mode="fill", fill_value=0.0) - x[:, None, :]  # padding (NaN walkers) at the sentinel N
     shifts, overflow = None, jnp.asarray(False)
     if periodic:
         lengths = box[1] - box[0]
@@ -137,7 +141,7 @@ def _knn_tessellation(x, nbrs, box, periodic: bool) -> Tessellation:
     )
     if box is None or periodic:
         return tess
-    radius = jnp.sqrt(jnp.max(jnp.sum(dx * dx, axis=-1), axis=1))[:, None]
+    radius = jnp.sqrt(jnp.max(jnp.where(nbrs < n, jnp.sum(dx * dx, axis=-1), 0.0), axis=1))[:, None]
     tier0 = jnp.any((x - radius < box[0]) | (x + radius > box[1]), axis=1)
     tier1 = neighbor_any(tess, tier0) & ~tier0
     tier = jnp.where(tier0, 0, jnp.where(tier1, 1, 2)).astype(jnp.int8)

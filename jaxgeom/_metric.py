@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import check_choice
+from ._checks import check_choice, check_nonnegative, real_array, takes_tessellation
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords
 from ._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
 
@@ -33,6 +33,11 @@ def check_metric(tess: Tessellation, metric, mode: str):
         return None
     if callable(metric):
         return metric
+    if isinstance(metric, str):
+        raise TypeError(f"`metric` must be None (Euclidean), a callable x (d,) -> g (d, d), or an (N, d, d) array; "
+                        f"got the string {metric!r}. For the Euclidean metric pass metric=None.")
+    if not isinstance(metric, jax.core.Tracer):
+        real_array(metric, "metric")
     g = jnp.asarray(metric)
     n, d = tess.points.shape
     if g.shape != (n, d, d):
@@ -68,6 +73,7 @@ def _quad(g, dx):
     return sum(g[..., i, j] * dx[..., i] * dx[..., j] for i in range(d) for j in range(d))
 
 
+@takes_tessellation
 @eqx.filter_jit
 def metric_at_walkers(tess: Tessellation, metric, *, mode: str = "full"):
     """(N, d, d) metric at every walker (after `mode`), or None for Euclidean."""
@@ -78,6 +84,7 @@ def metric_at_walkers(tess: Tessellation, metric, *, mode: str = "full"):
     return _with_mode(g, mode)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def edge_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "N K"]:
     """Metric length sqrt(dx^T g_edge dx) of every neighbour edge, aligned with `tess.neighbors`.
@@ -206,6 +213,7 @@ def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> F
     return jnp.where(det > 0, jnp.sqrt(jnp.where(det > 0, det, 1.0)), jnp.nan)
 
 
+@takes_tessellation
 @eqx.filter_jit
 def riemannian_volumes(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Riemannian cell volumes V_i sqrt(det g(x_i)) (proxy 8).
@@ -263,8 +271,7 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
     A callable x (d,) -> g (d, d), usable as `metric=` everywhere.
     """
     check_choice(floor, "floor", HESSIAN_FLOORS)
-    if not isinstance(eps_sigma, jax.core.Tracer) and np.any(np.asarray(eps_sigma) < 0):
-        raise ValueError(f"`eps_sigma` must be >= 0 (a spectral floor); got {eps_sigma}.")
+    check_nonnegative(eps_sigma, "eps_sigma")  # a spectral floor
     if isinstance(eps_sigma, (int, float)):  # the same callable for the same arguments: no recompilation
         return _cached_hessian_metric(fitness, float(eps_sigma), floor)
     return _hessian_metric(fitness, eps_sigma, floor)
@@ -298,6 +305,7 @@ def _hessian_metric(fitness: Callable, eps_sigma, floor: str) -> Callable:
     return clip if floor == "clip" else softabs
 
 
+@takes_tessellation
 @eqx.filter_jit
 def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array, "N d d"]:
     """Emergent metric g_i = inverse(C_i + eps_reg (tr C_i / d) I) (Definition 831, NOTES 6).
@@ -306,8 +314,7 @@ def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array
     regulariser is relative to the local scale, so the metric is scale covariant
     (g -> g / s^2 under x -> s x). Walkers without neighbours get NaN.
     """
-    if not isinstance(eps_reg, jax.core.Tracer) and eps_reg < 0:
-        raise ValueError(f"`eps_reg` must be >= 0; got {eps_reg}.")
+    check_nonnegative(eps_reg, "eps_reg")
     dx = neighbor_coord_displacements(tess)
     degree = tess.degree
     d = tess.dim

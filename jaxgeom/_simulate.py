@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg
 
-from ._checks import check_choice, check_min_points, host_points, mean_spacing
+from ._checks import check_choice, check_min_points, host_points, mean_spacing, real_array
 from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
 from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart,
                         SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force, health, measure,
@@ -154,6 +154,16 @@ def build_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tesse
     return pad_to_capacity(fresh, headroom_capacity(fresh, previous)), capacity is not None, x, moved
 
 
+def _as_key(key):
+    """An int seed or a JAX PRNG key (typed, or the legacy uint32 (2,) array)."""
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        return jax.random.PRNGKey(key)
+    arr = key if isinstance(key, jax.Array) else None
+    if arr is not None and (jnp.issubdtype(arr.dtype, jax.dtypes.prng_key) or (arr.dtype == jnp.uint32 and arr.shape == (2,))):
+        return key
+    raise TypeError(f"`key` must be an int seed or a jax.random key (jax.random.PRNGKey(seed)); got {key!r}.")
+
+
 def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "delaunay", k: int = 12,
                capacity=None) -> SwarmState:
     """The initial [`jaxgeom.SwarmState`][] of a swarm (host: builds its first graph).
@@ -171,10 +181,14 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     x = host_points(positions, "positions", func="jaxgeom.init_swarm")
     check_choice(graph, "graph", GRAPHS)
     check_min_points(len(x), x.shape[1] + 2, "positions", "a swarm")
-    v = np.zeros_like(x) if velocities is None else np.asarray(velocities)
+    v = np.zeros_like(x) if velocities is None else real_array(velocities, "velocities")
     if v.shape != x.shape or not np.issubdtype(v.dtype, np.floating):
         raise ValueError(f"`velocities` must be a float array of shape (N, d) = {x.shape} like `positions`; "
                          f"got {v.dtype} {v.shape}.")
+    if not np.isfinite(v).all():
+        raise ValueError(f"`velocities` has NaN or inf entries in {int((~np.isfinite(v).all(axis=1)).sum())} "
+                         "row(s). Repair them or start from velocities=None (zeros).")
+    key = _as_key(key)
     check_fitness(fitness, x)
     if capacity is not None and graph == "delaunay":
         tess = delaunay(x, capacity=capacity)  # pinned: raises CapacityError when the graph does not fit
@@ -183,7 +197,6 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
     values, force = fitness_and_force(fitness, xj)
-    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
     n = len(x)
     zero = jnp.asarray(0, jnp.int32)
     return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,7 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ._checks import check_choice, check_positive
+from ._checks import check_choice, check_positive, takes_tessellation
 from ._delaunay import morton_codes
 from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements, neighbor_distances, padded_to_csr
 from ._simplex import safe_sqrt
@@ -76,19 +78,31 @@ def mean_nearest_neighbor_distance(tess: Tessellation):
     return mean_row_minimum(neighbor_distances(tess), tess.neighbor_mask)
 
 
-def kernel_weights(tess: Tessellation, length_scale=None, alpha=DEFAULT_ALPHA) -> Float[Array, "N K"]:
+def kernel_weights(tess: Tessellation, length_scale=None, alpha=DEFAULT_ALPHA, *, shift: str = "none"
+                   ) -> Float[Array, "N K"]:
     """Gaussian edge weights exp(-|x_j - x_i|^2 / (2 l^2)) per neighbour slot (0 on padding);
-    `length_scale=None` is the adaptive rule l = alpha * mean nearest-neighbour distance."""
+    `length_scale=None` is the adaptive rule l = alpha * mean nearest-neighbour distance.
+
+    `shift` divides the weights by a constant that normalisation cancels, so that they cannot
+    all underflow when l is far below the spacing: "row" by each row's largest weight (row-
+    normalised uses: the limit l -> 0 is then nearest-neighbour weighting, not 0 / 0), "global"
+    by the largest weight of the graph (keeps w_ij = w_ji, as the Laplacian needs)."""
     mask = tess.neighbor_mask
     sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
     scale = alpha * mean_row_minimum(safe_sqrt(sq), mask) if length_scale is None else length_scale
-    return jnp.where(mask, jnp.exp(-sq / (2.0 * scale**2)), 0.0)
+    exponent = sq / (2.0 * scale**2)
+    if shift != "none":
+        masked = jnp.where(mask, exponent, jnp.inf)
+        smallest = jnp.min(masked, axis=1, keepdims=True) if shift == "row" else jnp.min(masked)
+        exponent = exponent - jax.lax.stop_gradient(jnp.where(jnp.isfinite(smallest), smallest, 0.0))
+    return jnp.where(mask, jnp.exp(-exponent), 0.0)
 
 
 def check_length_scale(length_scale) -> None:
     check_positive(length_scale, "length_scale", " (or None for the adaptive rule)")
 
 
+@takes_tessellation
 @eqx.filter_jit
 def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
                     alpha: float = DEFAULT_ALPHA) -> GraphLaplacian:
@@ -108,10 +122,11 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
     """
     check_choice(weights, "weights", LAPLACIAN_WEIGHTS)
     check_length_scale(length_scale)
+    check_positive(alpha, "alpha", " (the adaptive kernel width is alpha x the nearest-neighbour distance)")
     if weights == "uniform":
         w = tess.neighbor_mask.astype(tess.points.dtype)
     else:
-        w = kernel_weights(tess, length_scale, alpha)
+        w = kernel_weights(tess, length_scale, alpha, shift="global")
     symmetric = tess.simplices is not None
     degree = jnp.sum(w, axis=1)
     if not symmetric:
@@ -120,6 +135,7 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
     return GraphLaplacian(tess.neighbors, w, inv_sqrt, symmetric)
 
 
+@takes_tessellation
 def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: str = "kernel",
                  alpha: float = DEFAULT_ALPHA, method: str = "scipy", tol=None, maxiter: int = 2000,
                  seed: int = 0) -> Float[Array, " k"]:
@@ -146,13 +162,19 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
 
     **Returns:**
 
-    (k,) eigenvalues, ascending; NaN where LOBPCG did not converge.
+    (k,) eigenvalues, ascending; NaN where LOBPCG did not converge. With "scipy", a
+    `UserWarning` says when kernel weights underflowed to 0 (length_scale far below the
+    spacing): the graph has then fallen apart and its small eigenvalues are 0.
     """
     check_choice(method, "method", SPECTRAL_METHODS)
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k < tess.n_points:
         raise ValueError(f"`k` must be an int with 1 <= k < N = {tess.n_points}; got {k!r}.")
+    if method == "lobpcg" and 5 * (k - 1) >= tess.n_points:  # LOBPCG's search block: 5 (k - 1) < N
+        raise ValueError(f"method='lobpcg' needs 5 (k - 1) < N = {tess.n_points}; got k={k}. "
+                         f"Use k <= {(tess.n_points - 1) // 5 + 1} or method='scipy'.")
     lap = graph_laplacian(tess, length_scale=length_scale, weights=weights, alpha=alpha)
     if method == "scipy":
+        warn_if_underflowed(lap, tess)
         matrix = lap.to_scipy()
         order = nested_dissection_order(np.asarray(tess.points, dtype=np.float64), matrix)
         return jnp.asarray(_scipy_smallest(matrix[order][:, order], int(k)), dtype=tess.points.dtype)
@@ -161,6 +183,17 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     return _lobpcg_smallest(lap, int(k), tol, maxiter, seed)
 
 
+def warn_if_underflowed(lap: GraphLaplacian, tess: Tessellation) -> None:
+    """Kernel weights that underflow to 0 cut the graph: its small eigenvalues are then 0 by
+    construction (the symmetric kernel graph's true limit as l -> 0), which is worth saying."""
+    cut = int(np.sum((np.asarray(lap.weights) == 0) & np.asarray(tess.neighbor_mask)))
+    if cut:
+        warnings.warn(f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
+                      "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
+                      "construction. Use a larger length_scale, or None for the adaptive rule.", stacklevel=3)
+
+
+@takes_tessellation
 def bulk_spectral_gap(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
                       alpha: float = DEFAULT_ALPHA) -> tuple[float, int, int]:
     """(gap, n_components, n_outside): the spectral gap of the largest connected component

@@ -6,10 +6,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._checks import takes_tessellation
 from ._graph import Tessellation, simplex_coords
 from ._simplex import dual_pieces, simplex_circumcenter
 
 
+@takes_tessellation
 @jax.jit
 def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
     """Voronoi cell volume (area in 2D) of every walker.
@@ -37,6 +39,7 @@ def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
     return jnp.where(tess.hull, jnp.nan, volumes)
 
 
+@takes_tessellation
 @jax.jit
 def circumcenters(tess: Tessellation) -> Float[Array, "S d"]:
     """Circumcentre of every simplex (the Voronoi vertices); padding rows are zero."""

@@ -70,7 +70,7 @@ def test_raychaudhuri_under_uniform_scaling_is_exact(rng, d):
 
 
 def test_raychaudhuri_bad_input():
-    with pytest.raises(ValueError, match="`dt` must be > 0"):
+    with pytest.raises(ValueError, match="`dt` must be a finite number > 0"):
         jaxgeom.raychaudhuri_expansion(np.ones(3), np.ones(3), 0.0)
     with pytest.raises(ValueError, match="differ in shape"):
         jaxgeom.raychaudhuri_expansion(np.ones(3), np.ones(4), 0.1)

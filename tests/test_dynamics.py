@@ -185,7 +185,7 @@ def test_knn_swarm_in_4d(rng):
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(mode="gauss"), ValueError, "unknown mode 'gauss'; valid values are 'uniform'"),
     (dict(nu=-1.0), ValueError, "`nu` must be a finite number >= 0"),
-    (dict(dt=-0.1), ValueError, "`dt` must be > 0"),
+    (dict(dt=-0.1), ValueError, "`dt` must be a finite number > 0"),
     (dict(temperature=-1.0), ValueError, "`temperature` must be a finite number >= 0"),
     (dict(eps_sigma=-0.1), ValueError, "`eps_sigma` must be a finite number >= 0"),
 ])

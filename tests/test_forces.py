@@ -167,10 +167,10 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
     (dict(mode="gaussian"), "unknown mode 'gaussian'; valid values are 'uniform', 'kernel'"),
     (dict(nu=-0.1), "`nu` must be a finite number >= 0"),
     (dict(mode="metric_full"), "needs `metric`"),
-    (dict(length_scale=0.0), "`length_scale` must be > 0"),
+    (dict(length_scale=0.0), "`length_scale` must be a finite number > 0"),
     (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(N,\)"),
     (dict(volume_weights=-np.ones(50)), "`volume_weights` must be >= 0"),
-    (dict(velocities=np.ones((50, 3))), r"`velocities` must have shape \(N, d\)"),
+    (dict(velocities=np.ones((50, 3))), r"`velocities` must have shape \(50, 2\)"),
 ])
 def test_bad_input_raises(rng, kwargs, match):
     tess = jaxgeom.delaunay(rng.random((50, 2)))

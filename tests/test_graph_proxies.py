@@ -157,7 +157,7 @@ def test_graph_proxy_bad_input(rng):
         jaxgeom.geodesic_distances(tess, 0, mode="half")
     with pytest.raises(ValueError, match=r"1 <= k < N = 40; got 40"):
         jaxgeom.spectral_gap(tess, k=40)
-    with pytest.raises(ValueError, match="`length_scale` must be > 0"):
+    with pytest.raises(ValueError, match="`length_scale` must be a finite number > 0"):
         jaxgeom.spectral_gap(tess, length_scale=0.0)
     with pytest.raises(ValueError, match="unknown weights 'gauss'; valid values are 'kernel', 'uniform'"):
         jaxgeom.graph_laplacian(tess, weights="gauss")

@@ -157,9 +157,9 @@ def test_metric_bad_input(rng):
         jaxgeom.edge_lengths(tess, lambda p: p)
     with pytest.raises(ValueError, match="unknown floor 'abs'"):
         jaxgeom.hessian_metric(rosenbrock, 0.1, floor="abs")
-    with pytest.raises(ValueError, match="`eps_sigma` must be >= 0"):
+    with pytest.raises(ValueError, match="`eps_sigma` must be a finite number >= 0"):
         jaxgeom.hessian_metric(rosenbrock, -0.1)
-    with pytest.raises(ValueError, match="`eps_reg` must be >= 0"):
+    with pytest.raises(ValueError, match="`eps_reg` must be a finite number >= 0"):
         jaxgeom.emergent_metric(tess, eps_reg=-1.0)
 
 
