@@ -58,10 +58,24 @@ def load_landscape(spec: str, dim: int):
                          f"defining V(x); got {spec!r}.")
     module_spec = importlib.util.spec_from_file_location("jaxgeom_user_landscape", path)
     module = importlib.util.module_from_spec(module_spec)
-    module_spec.loader.exec_module(module)
+    try:
+        module_spec.loader.exec_module(module)
+    except Exception as err:  # the user's file: a syntax error, a failing import, ...
+        raise ValueError(f"--landscape {path} could not be loaded: {type(err).__name__}: {err}") from None
     if not callable(getattr(module, "V", None)):
         raise ValueError(f"{path} must define a function V(x) mapping a ({dim},) array to a scalar.")
-    return module.V, tuple(getattr(module, "BOX", (-3.0, 3.0)))
+    return module.V, landscape_box(getattr(module, "BOX", (-3.0, 3.0)), path)
+
+
+def landscape_box(box, path) -> tuple[float, float]:
+    """BOX = (lower, upper) of a landscape file: two finite numbers, lower < upper."""
+    try:
+        lo, hi = (float(b) for b in box)
+    except (TypeError, ValueError):
+        raise ValueError(f"BOX in {path} must be (lower, upper), two numbers; got {box!r}.") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+        raise ValueError(f"BOX in {path} must satisfy lower < upper (finite); got {box!r}.")
+    return lo, hi
 
 
 def _validate(args) -> None:
@@ -70,6 +84,8 @@ def _validate(args) -> None:
                          f"{args.rebuild_every}.")
     if args.graph == "delaunay" and args.dim not in (2, 3):
         raise ValueError(f"--dim {args.dim} needs --graph knn (Delaunay simulations run in 2 or 3 dimensions).")
+    if args.gap_every < 0:
+        raise ValueError(f"--gap-every must be >= 0 (0: no spectral gap); got {args.gap_every}.")
     if args.gap_every % args.rebuild_every:
         raise ValueError("--gap-every must be a multiple of --rebuild-every.")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -253,7 +254,7 @@ def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
     if args.points is None:
         pts, box = sample_boltzmann(args.landscape, args.n, args.dim, beta=args.beta, seed=args.seed)
         return pts, box, f"exp(-{args.beta} V), V = {args.landscape}, seed {args.seed}"
-    pts = np.load(args.points)
+    pts = load_points(args.points)
     box = None
     if args.box is not None:
         box = (np.full(pts.shape[1], args.box[0]), np.full(pts.shape[1], args.box[1]))
@@ -261,6 +262,20 @@ def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
         pad = 0.5 * (np.prod(np.ptp(pts, axis=0)) / len(pts)) ** (1 / pts.shape[1])
         box = (pts.min(axis=0) - pad, pts.max(axis=0) + pad)
     return pts, box, str(args.points)
+
+
+def load_points(path: Path) -> np.ndarray:
+    """An (N, d) float array from a .npy file, or a ValueError saying what the file is not."""
+    try:
+        pts = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as err:
+        raise ValueError(f"--points must be a .npy file written by numpy.save; {path} is not one (for a text "
+                         f"file: numpy.save('points.npy', numpy.loadtxt(...))). numpy said: {err}") from None
+    if not isinstance(pts, np.ndarray) or pts.ndim != 2 or not np.issubdtype(pts.dtype, np.floating):
+        shape = getattr(pts, "shape", None)
+        raise ValueError(f"--points must hold an (N, d) float array; {path} holds shape {shape}, "
+                         f"dtype {getattr(pts, 'dtype', None)}.")
+    return pts
 
 
 def build_graph(a: Analysis):
@@ -333,11 +348,32 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_arguments(parser: argparse.ArgumentParser, args) -> None:
+    """Refuse bad numbers and an unusable --out before any work (argparse's exit code 2)."""
+    rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
+             ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
+             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None)]
+    for attr, flag, low, high in rules:
+        value = getattr(args, attr, None)
+        if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):
+            bounds = f">= {low}" + (f" and <= {high}" if high is not None else "")
+            parser.error(f"{flag} must be a finite number {bounds}; got {value}")
+    if getattr(args, "out", None) is not None:
+        out = args.out
+        if out.exists() and not out.is_dir():
+            parser.error(f"--out {out} is an existing file; give a directory")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            parser.error(f"--out {out} cannot be created: {err.strerror}")
+        if not os.access(out, os.W_OK):
+            parser.error(f"--out {out} is not writable")
+
+
 def main(argv=None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if getattr(args, "eps_sigma", 0.0) < 0:
-        parser.error(f"--eps-sigma must be >= 0; got {args.eps_sigma}")
+    check_arguments(parser, args)
     import jax
 
     if args.command == "simulate":

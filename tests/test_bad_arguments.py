@@ -1,0 +1,238 @@
+"""Every bad argument gets a clear error naming it and the fix (issue 13)."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxgeom
+from jaxgeom.cli import main
+
+
+
+@pytest.fixture(scope="module")
+def tess():
+    return jaxgeom.delaunay(np.random.default_rng(0).random((200, 2)))
+
+
+def bowl(x):
+    return jnp.sum(x**2)
+
+
+@pytest.mark.parametrize("kwargs, error, message", [
+    (dict(dt=float("inf")), ValueError, r"`dt` must be a finite number > 0; got inf"),
+    (dict(clone_rate=2), ValueError, r"`clone_rate` must be a finite number >= 0 and <= 1"),
+    (dict(reward_power=float("nan")), ValueError, r"`reward_power` must be a finite number >= 0; got nan"),
+    (dict(distance_power=-1), ValueError, r"`distance_power` must be a finite number >= 0; got -1"),
+    (dict(clone_jitter=float("inf")), ValueError, r"`clone_jitter` must be a finite number > 0"),
+    (dict(dt=[0.1, 0.2]), ValueError, r"`dt` must be a scalar; got shape \(2,\).*jax.vmap"),
+    (dict(nu="0.1"), TypeError, r"`nu` must be numeric; got str"),
+    (dict(nu=np.ones((2, 2))), ValueError, r"`nu` must be a scalar"),
+    (dict(temperature=1j), TypeError, r"`temperature` must be real; got complex"),
+    (dict(gamma=[[1.0], [2.0, 3.0]]), TypeError, r"`gamma` must be a rectangular numeric array"),
+])
+def test_swarm_params_refuse_bad_values(kwargs, error, message):
+    with pytest.raises(error, match=message):
+        jaxgeom.SwarmParams(**kwargs)
+
+
+def test_swarm_params_stay_differentiable_and_vmappable():
+    assert float(jax.grad(lambda nu: jaxgeom.SwarmParams(nu=nu).nu * 3.0)(1.0)) == 3.0
+    dts = jax.vmap(lambda dt: jaxgeom.SwarmParams(dt=dt).dt)(jnp.asarray([0.1, 0.2]))
+    np.testing.assert_allclose(np.asarray(dts), [0.1, 0.2])
+
+
+@pytest.mark.parametrize("eps", [float("nan"), float("inf"), -0.1])
+def test_metric_floors_must_be_finite_and_nonnegative(tess, eps):
+    with pytest.raises(ValueError, match="`eps_sigma` must be a finite number >= 0"):
+        jaxgeom.hessian_metric(bowl, eps)
+    with pytest.raises(ValueError, match="`eps_reg` must be a finite number >= 0"):
+        jaxgeom.emergent_metric(tess, eps_reg=eps)
+
+
+def test_kernel_factors_and_lobpcg_block_size(tess):
+    v = np.zeros((200, 2))
+    with pytest.raises(ValueError, match="`alpha` must be a finite number > 0"):
+        jaxgeom.viscous_force(tess, v, nu=0.1, alpha=0)
+    with pytest.raises(ValueError, match="`alpha` must be a finite number > 0"):
+        jaxgeom.spectral_gap(tess, alpha=-1)
+    with pytest.raises(ValueError, match=r"method='lobpcg' needs 5 \(k - 1\) < N = 200; got k=150. Use k <= 40"):
+        jaxgeom.spectral_gap(tess, k=150, method="lobpcg")
+
+
+@pytest.mark.parametrize("key", ["abc", 1.5, True, np.zeros(3)])
+def test_init_swarm_refuses_a_key_that_is_no_key(key):
+    x = np.random.default_rng(1).random((30, 2))
+    with pytest.raises(TypeError, match=r"`key` must be an int seed or a jax.random key"):
+        jaxgeom.init_swarm(bowl, x, key=key)
+
+
+def test_init_swarm_refuses_non_finite_or_complex_velocities():
+    x = np.random.default_rng(1).random((30, 2))
+    v = np.zeros_like(x)
+    v[4, 1] = np.nan
+    with pytest.raises(ValueError, match=r"`velocities` has NaN or inf entries in 1 row"):
+        jaxgeom.init_swarm(bowl, x, v)
+    with pytest.raises(TypeError, match="`velocities` must be real"):
+        jaxgeom.init_swarm(bowl, x, v.astype(complex))
+
+
+def test_kernels_take_a_tessellation_and_a_metric_of_the_right_kind(tess):
+    with pytest.raises(TypeError, match=r"jaxgeom.voronoi_volumes takes a jaxgeom.Tessellation .* got ndarray"):
+        jaxgeom.voronoi_volumes(np.asarray(tess.points))
+    with pytest.raises(TypeError, match=r"jaxgeom.ricci_scalar takes a jaxgeom.Tessellation"):
+        jaxgeom.ricci_scalar([[0.0, 1.0]])
+    with pytest.raises(TypeError, match=r"got the string 'euclidean'. For the Euclidean metric pass metric=None"):
+        jaxgeom.ricci_scalar(tess, "euclidean")
+
+
+def test_box_and_ragged_points_are_refused_clearly():
+    x = np.random.default_rng(2).random((30, 2))
+    with pytest.raises(TypeError, match=r"`box` must be \(lower, upper\) .* got the string 'unit'"):
+        jaxgeom.delaunay(x, box="unit")
+    with pytest.raises(TypeError, match=r"`points` must be a rectangular \(N, d\) array; got a ragged sequence"):
+        jaxgeom.delaunay([[0.0, 1.0], [1.0], [2.0, 3.0]])
+    with pytest.raises(TypeError, match=r"`box` must be a rectangular numeric array"):
+        jaxgeom.delaunay(x, box=[[0.0, 0.0], [1.0]])
+
+
+def metric_calls(tess, g):
+    v = np.zeros((tess.n_points, 2))
+    return [lambda: jaxgeom.ricci_scalar(tess, g), lambda: jaxgeom.edge_lengths(tess, g),
+            lambda: jaxgeom.viscous_force(tess, v, nu=0.1, mode="metric_full", metric=g),
+            lambda: jaxgeom.geodesic_distances(tess, 0, g), lambda: jaxgeom.riemannian_volumes(tess, g)]
+
+
+@pytest.mark.parametrize("call", range(5))
+def test_metric_arrays_must_be_symmetric_positive_definite_and_real(tess, call):
+    eye = np.tile(np.eye(2), (200, 1, 1))
+    skew = eye.copy()
+    skew[7, 0, 1] = 0.3
+    with pytest.raises(ValueError, match=r"`metric` must be symmetric; 1 walker\(s\) are not, first rows \[7\]"):
+        metric_calls(tess, skew)[call]()
+    indefinite = eye.copy()
+    indefinite[[3, 9], 1, 1] = -1.0
+    with pytest.raises(ValueError, match=r"`metric` must be positive definite; 2 walker\(s\) .* first rows \[3, 9\]"):
+        metric_calls(tess, indefinite)[call]()
+    with pytest.raises(TypeError, match="`metric` must be real; got complex"):
+        metric_calls(tess, eye.astype(complex))[call]()
+
+
+def test_a_metric_with_nan_rows_of_isolated_walkers_is_accepted(tess):
+    g = np.tile(np.eye(2), (200, 1, 1))
+    g[5] = np.nan  # the emergent metric of a walker without neighbours
+    volumes = np.asarray(jaxgeom.riemannian_volumes(tess, g))
+    others = np.asarray(tess.interior) & (np.arange(200) != 5)
+    assert np.isnan(volumes[5]) and np.isfinite(volumes[others]).all()
+
+
+@pytest.mark.parametrize("estimate", [jaxgeom.estimate_gradient, jaxgeom.estimate_hessian])
+def test_estimates_refuse_values_of_the_wrong_shape_or_kind(tess, estimate):
+    with pytest.raises(ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(199,\)"):
+        estimate(tess, np.zeros(199))
+    with pytest.raises(ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(200, 2\)"):
+        estimate(tess, np.zeros((200, 2)))
+    with pytest.raises(TypeError, match="`values` must be real; got complex"):
+        estimate(tess, np.zeros(200, complex))
+
+
+def test_viscous_velocities_must_be_real_and_per_walker(tess):
+    with pytest.raises(TypeError, match="`velocities` must be real"):
+        jaxgeom.viscous_force(tess, np.zeros((200, 2), complex), nu=0.1)
+    with pytest.raises(ValueError, match=r"`velocities` must have shape \(200, 2\)"):
+        jaxgeom.viscous_force(tess, np.zeros((200, 3)), nu=0.1)
+
+
+def test_a_tiny_kernel_width_tends_to_nearest_neighbour_weighting(tess):
+    """l -> 0: the row-normalised kernel weights keep only each walker's nearest neighbour
+    (they used to underflow to 0 / 0 and the force vanished)."""
+    x = np.asarray(tess.points)
+    v = np.random.default_rng(3).normal(size=(200, 2))
+    nbrs = np.asarray(tess.neighbors)
+    dist = np.where(nbrs < 200, np.linalg.norm(x[np.minimum(nbrs, 199)] - x[:, None], axis=2), np.inf)
+    nearest = nbrs[np.arange(200), dist.argmin(axis=1)]
+    force = np.asarray(jaxgeom.viscous_force(tess, v, nu=2.0, length_scale=1e-30))
+    np.testing.assert_allclose(force, 2.0 * (v[nearest] - v), rtol=1e-12, atol=1e-12)
+    wide = np.asarray(jaxgeom.viscous_force(tess, v, nu=2.0, length_scale=0.05))
+    w = np.where(nbrs < 200, np.exp(-dist**2 / (2 * 0.05**2)), 0.0)  # the unshifted kernel
+    v_pad = np.vstack([v, np.zeros((1, 2))])
+    reference = 2.0 * ((w[:, :, None] * (v_pad[nbrs] - v[:, None])).sum(1) / w.sum(1)[:, None])
+    np.testing.assert_allclose(wide, reference, rtol=1e-10, atol=1e-12)
+
+
+def test_a_kernel_graph_that_underflows_says_so(tess):
+    with pytest.warns(UserWarning, match=r"edge\(s\) of the kernel graph have weight 0"):
+        gaps = np.asarray(jaxgeom.spectral_gap(tess, length_scale=1e-30, k=3))
+    assert np.allclose(gaps, 0.0)  # the graph has fallen apart: 0 is the true limit, now announced
+
+
+@pytest.fixture
+def files(tmp_path):
+    (tmp_path / "syntax.py").write_text("def V(x)\n    return 1\n")
+    for name, box in (("inverted.py", "(3, -3)"), ("scalar.py", "5")):
+        (tmp_path / name).write_text(f"import jax.numpy as jnp\nBOX = {box}\n\ndef V(x):\n    return jnp.sum(x**2)\n")
+    np.save(tmp_path / "flat.npy", np.arange(10.0))
+    np.save(tmp_path / "ints.npy", np.zeros((5, 2), int))
+    (tmp_path / "points.txt").write_text("1 2\n3 4\n")
+    (tmp_path / "a_file").write_text("")
+    return tmp_path
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["simulate", "--landscape", "{}/syntax.py"], "could not be loaded: SyntaxError"),
+    (["simulate", "--landscape", "{}/inverted.py"], r"BOX in .* must satisfy lower < upper"),
+    (["simulate", "--landscape", "{}/scalar.py"], r"BOX in .* must be \(lower, upper\), two numbers; got 5"),
+    (["analyze", "--points", "{}/flat.npy", "--periodic"], r"--points must hold an \(N, d\) float array"),
+    (["analyze", "--points", "{}/flat.npy", "--box", "0", "1"], r"--points must hold an \(N, d\) float array"),
+    (["analyze", "--points", "{}/ints.npy"], r"holds shape \(5, 2\), dtype int64"),
+    (["analyze", "--points", "{}/points.txt"], r"--points must be a .npy file written by numpy.save"),
+])
+def test_cli_input_files_fail_with_one_line_and_exit_2(files, capsys, argv, message):
+    argv = [a.format(files) for a in argv]
+    if argv[0] == "simulate":
+        argv += ["--n", "20", "--steps", "1", "--float64", "--no-progress"]  # the CLI sets x64 for the process
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert re.search(message, err)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["analyze", "--seed", "-1"], "--seed must be a finite number >= 0"),
+    (["analyze", "--n", "0"], "--n must be a finite number >= 1"),
+    (["simulate", "--eps-sigma", "nan"], "--eps-sigma must be a finite number >= 0.0; got nan"),
+    (["simulate", "--clone-rate", "5"], "--clone-rate must be a finite number >= 0.0 and <= 1.0"),
+    (["simulate", "--gap-every", "-2"], "--gap-every must be a finite number >= 0"),
+    (["simulate", "--nu", "-1"], "--nu must be a finite number >= 0.0"),
+    (["analyze", "--out", "{}/a_file"], "is an existing file; give a directory"),
+    (["analyze", "--out", "{}/a_file/sub"], "cannot be created"),
+])
+def test_cli_refuses_bad_numbers_and_outputs_before_any_work(files, capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main([a.format(files) for a in argv])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_traced_knn_gives_non_finite_walkers_no_neighbours_and_wraps_periodic_ones():
+    x = np.random.default_rng(4).random((100, 2))
+    x[7] = np.nan
+    graph = jax.jit(lambda p: jaxgeom.knn_graph(p, 6, method="brute"))(jnp.asarray(x))
+    nbrs = np.asarray(graph.neighbors)
+    assert (nbrs[7] == 100).all() and not (nbrs == 7).any() and int(graph.degree[7]) == 0
+    others = np.delete(np.arange(100), 7)
+    host = jaxgeom.knn_graph(x[others], 6)  # the same graph without the NaN walker
+    np.testing.assert_array_equal(others[np.asarray(host.neighbors)], nbrs[others])
+    p = np.random.default_rng(5).random((100, 2))
+    knn = jax.jit(lambda q: jaxgeom.knn_graph(q, 6, box=(0.0, 1.0), periodic=True, method="brute"))
+    np.testing.assert_array_equal(np.sort(np.asarray(knn(jnp.asarray(p)).neighbors), 1),
+                                  np.sort(np.asarray(knn(jnp.asarray(p + [1.0, -2.0])).neighbors), 1))
+
+
+def test_bellman_ford_sources_outside_the_walkers(tess):
+    with pytest.raises(ValueError, match=r"`sources` must lie in \[0, N\) = \[0, 200\)"):
+        jaxgeom.geodesic_distances(tess, [3, 200], method="bellman_ford")
+    rows = jax.jit(lambda s: jaxgeom.geodesic_distances(tess, s, method="bellman_ford"))(jnp.asarray([250, -1, 3]))
+    rows = np.asarray(rows)
+    assert np.isinf(rows[:2]).all() and np.isfinite(rows[2]).all() and rows[2, 3] == 0.0
