@@ -236,3 +236,14 @@ def test_bellman_ford_sources_outside_the_walkers(tess):
     rows = jax.jit(lambda s: jaxgeom.geodesic_distances(tess, s, method="bellman_ford"))(jnp.asarray([250, -1, 3]))
     rows = np.asarray(rows)
     assert np.isinf(rows[:2]).all() and np.isfinite(rows[2]).all() and rows[2, 3] == 0.0
+
+
+def test_a_checked_jax_metric_is_not_checked_again(tess, monkeypatch):
+    import jaxgeom._checks as checks
+
+    g = jnp.asarray(np.tile(np.eye(2), (200, 1, 1)))
+    jaxgeom.riemannian_volumes(tess, g)
+    monkeypatch.setattr(checks, "_positive_definite", lambda *a: pytest.fail("checked twice"))
+    jaxgeom.ricci_scalar(tess, g)  # the same immutable array: no second O(N) check
+    with pytest.raises(pytest.fail.Exception, match="checked twice"):
+        jaxgeom.ricci_scalar(tess, np.asarray(g))  # numpy arrays can change: checked every call
