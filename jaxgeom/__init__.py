@@ -30,6 +30,7 @@ from ._metric import edge_lengths as edge_lengths
 from ._metric import emergent_metric as emergent_metric
 from ._metric import hessian_metric as hessian_metric
 from ._metric import metric_at_walkers as metric_at_walkers
+from ._metric import metric_defects as metric_defects
 from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
 from ._plots import plot_estimation_quality as plot_estimation_quality

@@ -118,36 +118,32 @@ def _concrete(value) -> bool:
 
 
 def check_walker_array(value, name: str, shape: tuple) -> None:
-    """A per-walker input of a kernel: real, of `shape` (concrete values only)."""
-    if not _concrete(value):
+    """A per-walker input of a kernel: of `shape` (static, so traced values too), and real."""
+    if value is None or callable(value) or isinstance(value, str):
         return
-    arr = real_array(value, name)
-    if arr.shape != shape:
-        raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {arr.shape}.")
+    if not isinstance(value, jax.core.Tracer):
+        value = real_array(value, name)
+    if np.shape(value) != shape:
+        raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {np.shape(value)}.")
 
 
 def check_metric_array(metric, n: int, d: int) -> None:
     """A concrete (N, d, d) metric: real, symmetric to rounding and positive definite where it
-    is finite (NaN rows, e.g. the emergent metric of an isolated walker, are left alone).
-    Elementwise numpy over (N,) columns: ~2 ms at N = 1e5 in 3D."""
+    is finite (NaN rows, e.g. the emergent metric of an isolated walker, are left alone)."""
     if not _concrete(metric) or _already_checked(metric):
         return
     g = real_array(metric, "metric")
     if g.shape != (n, d, d):
         return  # the kernel's own shape message follows
-    eps = np.finfo(g.dtype).eps if np.issubdtype(g.dtype, np.floating) else np.finfo(np.float64).eps
-    c = {(i, j): g[:, i, j].astype(np.float64) for i in range(d) for j in range(d)}
-    finite = np.logical_and.reduce([np.isfinite(v) for v in c.values()])
-    scale = np.maximum.reduce([np.abs(v) for v in c.values()])
-    skew = np.maximum.reduce([np.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)] or [0 * scale])
-    asym = np.flatnonzero(finite & (skew > 100 * eps * scale))
-    if asym.size:
-        raise ValueError(f"`metric` must be symmetric; {asym.size} walker(s) are not, first rows "
-                         f"{asym[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2)).")
-    bad = np.flatnonzero(finite & ~_positive_definite(c, g, d))
-    if bad.size:
-        raise ValueError(f"`metric` must be positive definite; {bad.size} walker(s) have an eigenvalue <= 0, "
-                         f"first rows {bad[:5].tolist()}. Floor the spectrum, e.g. "
+    asym, indefinite = metric_defect_masks(g, np)
+    if asym.any():
+        rows = np.flatnonzero(asym)
+        raise ValueError(f"`metric` must be symmetric; {rows.size} walker(s) are not, first rows "
+                         f"{rows[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2)).")
+    if indefinite.any():
+        rows = np.flatnonzero(indefinite)
+        raise ValueError(f"`metric` must be positive definite; {rows.size} walker(s) have an eigenvalue <= 0, "
+                         f"first rows {rows[:5].tolist()}. Floor the spectrum, e.g. "
                          "jaxgeom.hessian_metric(V, eps_sigma) for a Hessian.")
     _remember_checked(metric)
 
@@ -168,12 +164,29 @@ def _remember_checked(value) -> None:
         _CHECKED[key] = weakref.ref(value, lambda _, key=key: _CHECKED.pop(key, None))
 
 
-def _positive_definite(c: dict, g: np.ndarray, d: int) -> np.ndarray:
+def metric_defect_masks(g, xp):
+    """(asymmetric, not positive definite), each (N,) bool over the finite rows of an
+    (N, d, d) metric `g`; rows with a NaN or inf entry are in neither. `xp` is numpy (the
+    host check) or jax.numpy (the jittable `jaxgeom.metric_defects`). Symmetric means to
+    100 eps of the row's largest entry; definiteness from Sylvester's leading minors up to
+    d = 3 (elementwise over (N,) columns: ~2 ms at N = 1e5 in 3D), eigenvalues above."""
+    d = g.shape[-1]
+    wide = xp.float64 if xp is np else g.dtype
+    eps = float(xp.finfo(g.dtype if xp.issubdtype(g.dtype, xp.floating) else wide).eps)
+    c = {(i, j): g[:, i, j].astype(wide) for i in range(d) for j in range(d)}
+    finite = functools.reduce(xp.logical_and, [xp.isfinite(v) for v in c.values()])
+    scale = functools.reduce(xp.maximum, [xp.abs(v) for v in c.values()])
+    skew = functools.reduce(xp.maximum, [xp.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)],
+                            0 * scale)
+    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(c, g, d, xp)
+
+
+def _positive_definite(c: dict, g, d: int, xp):
     """(N,) bool: Sylvester's leading minors up to d = 3 from the entry columns `c`,
     eigenvalues of `g` above (NaN rows come out False and are masked by the caller)."""
     if d > 3:
-        with np.errstate(invalid="ignore"):
-            return np.linalg.eigvalsh(np.nan_to_num(g.astype(np.float64)))[:, 0] > 0
+        sym = xp.nan_to_num(0.5 * (g + g.swapaxes(-1, -2))).astype(c[0, 0].dtype)
+        return xp.linalg.eigvalsh(sym)[:, 0] > 0
     ok = c[0, 0] > 0
     if d >= 2:
         ok &= c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0

@@ -28,11 +28,9 @@ VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "me
 INVERSE_DISTANCE_EPS = 1e-8
 
 
-def _check_force_inputs(tess: Tessellation, velocities, mode: str, metric, volume_weights) -> None:
+def _check_force_inputs(tess: Tessellation, mode: str, metric, volume_weights) -> None:
     check_choice(mode, "mode", VISCOUS_MODES)
-    n, d = tess.points.shape
-    if jnp.shape(velocities) != (n, d):
-        raise ValueError(f"`velocities` must have shape (N, d) = {(n, d)} like tess.points; got {jnp.shape(velocities)}.")
+    n = tess.points.shape[0]
     if mode.startswith("metric") and metric is None:
         raise ValueError(f"mode {mode!r} needs `metric` (an (N, d, d) array or a callable x -> g); "
                          "pass one, or use mode 'kernel'/'inverse_distance' for Euclidean weights.")
@@ -135,7 +133,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
 
     (N, d) forces; 0 for walkers without neighbours.
     """
-    _check_force_inputs(tess, velocities, mode, metric, volume_weights)
+    _check_force_inputs(tess, mode, metric, volume_weights)
     check_nonnegative(nu, "nu")
     check_positive(alpha, "alpha", " (the adaptive kernel width is alpha x the nearest-neighbour distance)")
     check_length_scale(length_scale)

@@ -1,7 +1,9 @@
 """Metrics: the three accepted forms, metric edge lengths, Hessian and emergent metrics.
 
 A `metric` argument is `None` (Euclidean), an (N, d, d) array of per-walker
-tensors, or a JAX callable x (d,) -> g (d, d). The metric of an edge is g at the
+tensors, or a JAX callable x (d,) -> g (d, d). Arrays are checked on the host
+(symmetric, positive definite); callables are not, and `metric_defects` flags the
+walkers where one is not a metric. The metric of an edge is g at the
 edge midpoint for a callable and (g_i + g_j) / 2 for an array (spec NOTES 1).
 `mode` picks how much of it is used: "none" (Euclidean), "diagonal", "full".
 """
@@ -16,9 +18,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
-from ._checks import check_choice, check_nonnegative, real_array, takes_tessellation
+from ._checks import check_choice, check_nonnegative, metric_defect_masks, real_array, takes_tessellation
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords
 from ._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
 
@@ -82,6 +84,37 @@ def metric_at_walkers(tess: Tessellation, metric, *, mode: str = "full"):
         return None
     g = _call_metric(metric, _wrap(tess, tess.points)) if callable(metric) else metric
     return _with_mode(g, mode)
+
+
+@takes_tessellation
+@eqx.filter_jit
+def metric_defects(tess: Tessellation, metric) -> Bool[Array, " N"]:
+    """Walkers where `metric` is not a valid metric tensor: the flag for callable metrics.
+
+    The kernels check a concrete metric *array* on the host (symmetric, positive definite)
+    and raise a `ValueError`. A *callable* metric is not checked there: that would evaluate
+    it a second time in every call. Where it returns a matrix that is not symmetric
+    positive definite, the kernels use it as given: only its symmetric part enters the
+    quadratic forms, and an indefinite part gives NaN lengths, angles and curvatures at the
+    edges it touches. Call this once (it is jittable) to find such walkers.
+
+    **Arguments:**
+
+    - `tess`: any [`jaxgeom.Tessellation`][].
+    - `metric`: None, (N, d, d) array, or callable x (d,) -> g (d, d).
+
+    **Returns:**
+
+    (N,) bool, True where g at the walker is finite but not symmetric (to 100 eps) or
+    not positive definite. Rows with a NaN or inf entry are not flagged (they mark
+    walkers without a metric, e.g. isolated walkers of the emergent metric); all False
+    for the Euclidean metric.
+    """
+    g = metric_at_walkers(tess, metric)
+    if g is None:
+        return jnp.zeros(tess.points.shape[0], bool)
+    asym, indefinite = metric_defect_masks(g, jnp)
+    return asym | indefinite
 
 
 @takes_tessellation

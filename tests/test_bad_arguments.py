@@ -128,6 +128,28 @@ def test_a_metric_with_nan_rows_of_isolated_walkers_is_accepted(tess):
     assert np.isnan(volumes[5]) and np.isfinite(volumes[others]).all()
 
 
+@pytest.mark.parametrize("d", [2, 4])
+def test_metric_defects_flags_the_walkers_where_a_callable_is_not_a_metric(d):
+    x = np.random.default_rng(1).random((120, d))
+    tess = jaxgeom.knn_graph(x, 6)
+
+    def saddle_left(p):  # indefinite where p[0] < 0.5
+        return jnp.diag(jnp.ones(d).at[-1].set(p[0] - 0.5))
+
+    def sheared(p):  # not symmetric where p[1] > 0.7
+        return jnp.eye(d).at[0, 1].set(jnp.where(p[1] > 0.7, 0.3, 0.0))
+
+    np.testing.assert_array_equal(jaxgeom.metric_defects(tess, saddle_left), x[:, 0] <= 0.5)
+    np.testing.assert_array_equal(jaxgeom.metric_defects(tess, sheared), x[:, 1] > 0.7)
+    assert not jaxgeom.metric_defects(tess, jaxgeom.hessian_metric(bowl, 0.1)).any()
+    assert not jaxgeom.metric_defects(tess, None).any()
+    flags = jax.jit(jaxgeom.metric_defects, static_argnums=1)(tess, saddle_left)
+    np.testing.assert_array_equal(flags, x[:, 0] <= 0.5)
+    # The kernels take the callable as given: a negative definite one gives NaN lengths.
+    lengths = np.asarray(jaxgeom.edge_lengths(tess, lambda p: saddle_left(p) - 2 * jnp.eye(d)))
+    assert np.isnan(lengths[np.asarray(tess.neighbor_mask)]).all()
+
+
 @pytest.mark.parametrize("estimate", [jaxgeom.estimate_gradient, jaxgeom.estimate_hessian])
 def test_estimates_refuse_values_of_the_wrong_shape_or_kind(tess, estimate):
     with pytest.raises(ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(199,\)"):
@@ -143,6 +165,8 @@ def test_viscous_velocities_must_be_real_and_per_walker(tess):
         jaxgeom.viscous_force(tess, np.zeros((200, 2), complex), nu=0.1)
     with pytest.raises(ValueError, match=r"`velocities` must have shape \(200, 2\)"):
         jaxgeom.viscous_force(tess, np.zeros((200, 3)), nu=0.1)
+    with pytest.raises(ValueError, match=r"`velocities` must have shape \(200, 2\).*got \(199, 2\)"):
+        jax.jit(lambda v: jaxgeom.viscous_force(tess, v, nu=0.1))(np.zeros((199, 2)))  # shapes are static
 
 
 def test_a_tiny_kernel_width_tends_to_nearest_neighbour_weighting(tess):
