@@ -30,11 +30,14 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
-from ._forces import VISCOUS_MODES, apply_viscous, edge_weights
+from ._cells import raychaudhuri_expansion, shape_distortion, volume_distortion
+from ._curvature import region_average, ricci_resolution, ricci_scalar
+from ._forces import VISCOUS_MODES, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights
 from ._graph import Tessellation, neighbor_any
-from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
+from ._metric import HESSIAN_FLOORS, eigh, hessian_metric, riemannian_volumes
 from ._simplex import small_cholesky
-from ._spectral import DEFAULT_ALPHA
+from ._volumes import voronoi_volumes
+from ._weights import DEFAULT_ALPHA, mean_nearest_neighbor_distance, weights_on_graph
 
 COND_LIMIT = 1e6  # chapter: raise eps_Sigma 10x when cond(g) exceeds this
 EPS_SIGMA_RAISE = 10.0
@@ -197,8 +200,6 @@ def metric_field(fitness, params: SwarmParams, eps_sigma, x):
 
 def cell_volumes(tess: Tessellation):
     """(volumes, interior): Voronoi volumes and tier-2 flags; NaN volumes on a k-NN graph."""
-    from ._volumes import voronoi_volumes
-
     if tess.simplices is None:
         return jnp.full(tess.n_points, jnp.nan, tess.points.dtype), tess.interior
     return voronoi_volumes(tess), tess.interior
@@ -212,8 +213,6 @@ def current_nu(params: SwarmParams, progress):
 
 
 def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
-    from ._spectral import mean_nearest_neighbor_distance
-
     if params.length_scale is not None:
         return params.length_scale
     spacing = mean_nearest_neighbor_distance(tess) if params.adapt_length_scale else state.spacing0
@@ -222,8 +221,6 @@ def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
 
 def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, g):
     """Row-normalized weights (and row sums) used by both V half-steps."""
-    from ._forces import normalize_rows, weights_to_normalize, with_volume_weights
-
     w = weights_to_normalize(tess, mode=params.mode, length_scale=viscous_length(params, state, tess), metric=g,
                              alpha=params.alpha)
     if params.volume_weighting:
@@ -322,8 +319,6 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
     when `do_clone` (cloned walkers jump after the second drift, before the last kick).
     `start` is `begin_step(params, state)` when computed ahead; `finish=False` stops
     before the closing kick (then `finish_step` completes the step)."""
-    from ._spectral import mean_nearest_neighbor_distance
-
     start = begin_step(params, state) if start is None else start
     half = 0.5 * params.dt
     v, x = start.velocities, start.positions
@@ -394,9 +389,6 @@ def _observed_metric(s: _View):
 
 
 def _mean_ricci(s: _View):
-    from ._curvature import region_average, ricci_scalar
-    from ._metric import riemannian_volumes
-
     g = _observed_metric(s)
     ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
     return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
@@ -404,17 +396,12 @@ def _mean_ricci(s: _View):
 
 def _ricci_resolution(s: _View):
     """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
-    from ._curvature import region_average, ricci_resolution
-    from ._metric import riemannian_volumes
-
     g = _observed_metric(s)
     floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
     return region_average(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
 
 
 def _mean_expansion(s: _View):
-    from ._cells import raychaudhuri_expansion
-
     # A clone landing next to a walker splits its cell: that change is not the flow's.
     valid = s.old.interior & s.new.interior & ~s.new.cloned & ~neighbor_any(s.new.tess, s.new.cloned)
     theta = raychaudhuri_expansion(s.old.volumes, s.new.volumes, s.params.dt, valid=valid)
@@ -423,13 +410,11 @@ def _mean_expansion(s: _View):
 
 def _degree_weighted_variance(s: _View):
     g = _observed_metric(s) if s.params.mode.startswith("metric") else None
-    w = edge_weights(s.new.tess, mode=s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
+    w = weights_on_graph(s.new.tess, s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
     return _variance(s.new.velocities, jnp.sum(w, axis=1))
 
 
 def _observers():
-    from ._cells import shape_distortion, volume_distortion
-
     return {
         "mean_fitness": lambda s: _finite_mean(s.new.fitness, s.new.alive),
         "best_fitness": lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf)),

@@ -19,6 +19,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._checks import check_choice, takes_tessellation
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, padded_points
 from ._metric import emergent_metric
+from ._weights import EDGE_WEIGHTS, check_weights
 
 GRADIENT_METHODS = ("wls", "fd")
 WEIGHTINGS = ("uniform", "inverse_distance", "gaussian")
@@ -63,16 +64,7 @@ def _value_differences(tess: Tessellation, values):
 
 
 def _weights(dx, usable, weighting: str):
-    dist = jnp.sqrt(jnp.sum(dx * dx, axis=-1))
-    safe = jnp.where(usable, dist, 1.0)
-    if weighting == "uniform":
-        w = jnp.ones_like(dist)
-    elif weighting == "inverse_distance":
-        w = 1.0 / safe
-    else:
-        sigma = jnp.nanmedian(jnp.where(usable, dist, jnp.nan), axis=-1, keepdims=True)
-        w = jnp.exp(-(safe**2) / (2.0 * jnp.where(jnp.isfinite(sigma), sigma, 1.0) ** 2))
-    return jnp.where(usable, w, 0.0)
+    return EDGE_WEIGHTS[weighting].fn(jnp.sum(dx * dx, axis=-1), usable, relative_eps=0.0)
 
 
 def _solve_normal(a, b, rcond: float = RCOND):
@@ -116,7 +108,7 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
     On a k-NN graph the remedy is a larger k.
     """
     check_choice(method, "method", GRADIENT_METHODS)
-    check_choice(weighting, "weighting", WEIGHTINGS)
+    check_weights(weighting, "weighting", WEIGHTINGS)
     if order not in (1, 2):
         raise ValueError(f"`order` must be 1 (linear fit) or 2 (quadratic fit); got {order!r}.")
     values = jnp.asarray(values, tess.points.dtype)

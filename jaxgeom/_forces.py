@@ -16,24 +16,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._checks import check_choice, check_nonnegative, check_positive, takes_tessellation
-from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements
-from ._metric import edge_sq_lengths
-from ._simplex import safe_sqrt
-from ._spectral import DEFAULT_ALPHA, check_length_scale, kernel_weights
+from ._checks import check_nonnegative, takes_tessellation
+from ._graph import Tessellation
+from ._weights import DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph
 
 VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
-# eps of w = 1 / (length + eps), relative to the mean nearest-neighbour length (NOTES 9: no
-# absolute regularisers). The chapter's absolute 1e-8 is this at unit spacing.
-INVERSE_DISTANCE_EPS = 1e-8
 
 
 def _check_force_inputs(tess: Tessellation, mode: str, metric, volume_weights) -> None:
-    check_choice(mode, "mode", VISCOUS_MODES)
+    check_weights(mode, "mode", VISCOUS_MODES, metric)
     n = tess.points.shape[0]
-    if mode.startswith("metric") and metric is None:
-        raise ValueError(f"mode {mode!r} needs `metric` (an (N, d, d) array or a callable x -> g); "
-                         "pass one, or use mode 'kernel'/'inverse_distance' for Euclidean weights.")
     if volume_weights is not None:
         if jnp.shape(volume_weights) != (n,):
             raise ValueError(f"`volume_weights` must have shape (N,) = {(n,)}; got {jnp.shape(volume_weights)}.")
@@ -41,26 +33,16 @@ def _check_force_inputs(tess: Tessellation, mode: str, metric, volume_weights) -
             raise ValueError("`volume_weights` must be >= 0 (cell volumes); got negative entries.")
 
 
-def _inverse_length_weights(lengths, mask):
-    eps = INVERSE_DISTANCE_EPS * mean_row_minimum(lengths, mask)
-    return jnp.where(mask, 1.0 / (lengths + eps), 0.0)
-
-
 @takes_tessellation
 def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
                  alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
-    """Raw edge weights w_ij of Definition 835, aligned with `tess.neighbors` (0 on padding)."""
-    mask = tess.neighbor_mask
-    dtype = tess.points.dtype
-    if mode == "uniform":
-        return mask.astype(dtype)
-    if mode.startswith("metric"):
-        sq = edge_sq_lengths(tess, metric, mode="diagonal" if mode == "metric_diagonal" else "full")
-        return _inverse_length_weights(safe_sqrt(sq), mask)
-    if mode == "kernel":
-        return kernel_weights(tess, length_scale, alpha)
-    sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
-    return _inverse_length_weights(safe_sqrt(sq), mask)
+    """Raw edge weights w_ij of the viscous force, aligned with `tess.neighbors` (0 on padding).
+
+    `mode` and the other arguments as in [`jaxgeom.viscous_force`][]."""
+    check_weights(mode, "mode", VISCOUS_MODES, metric)
+    check_length_scale(length_scale)
+    check_alpha(alpha)
+    return weights_on_graph(tess, mode, metric=metric, length_scale=length_scale, alpha=alpha)
 
 
 def weights_to_normalize(tess: Tessellation, *, mode: str, length_scale=None, metric=None,
@@ -68,9 +50,7 @@ def weights_to_normalize(tess: Tessellation, *, mode: str, length_scale=None, me
     """`edge_weights` up to a per-row factor that row normalisation cancels: kernel weights are
     divided by each row's largest, so that they tend to nearest-neighbour weighting as l -> 0
     instead of underflowing to 0 / 0."""
-    if mode == "kernel":
-        return kernel_weights(tess, length_scale, alpha, shift="row")
-    return edge_weights(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
+    return weights_on_graph(tess, mode, metric=metric, length_scale=length_scale, alpha=alpha, shift="row")
 
 
 def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
@@ -135,7 +115,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
     """
     _check_force_inputs(tess, mode, metric, volume_weights)
     check_nonnegative(nu, "nu")
-    check_positive(alpha, "alpha", " (the adaptive kernel width is alpha x the nearest-neighbour distance)")
+    check_alpha(alpha)
     check_length_scale(length_scale)
     scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
     return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), mode, scale, metric, volume_weights, alpha)

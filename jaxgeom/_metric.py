@@ -23,6 +23,7 @@ from jaxtyping import Array, Bool, Float
 from ._checks import check_choice, check_nonnegative, metric_defect_masks, real_array, takes_tessellation
 from ._graph import Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords
 from ._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
+from ._volumes import voronoi_volumes
 
 METRIC_MODES = ("none", "diagonal", "full")
 HESSIAN_FLOORS = ("clip", "softabs")
@@ -261,8 +262,6 @@ def riemannian_volumes(tess: Tessellation, metric=None, *, mode: str = "full", v
 
     (N,) volumes; NaN for unbounded cells.
     """
-    from ._volumes import voronoi_volumes
-
     base = voronoi_volumes(tess) if volumes is None else volumes
     unbounded = jnp.isnan(base)  # keep NaN out of the product so gradients stay finite
     return jnp.where(unbounded, jnp.nan, jnp.where(unbounded, 0.0, base) * sqrt_det_metric(tess, metric, mode=mode))

@@ -44,7 +44,8 @@ from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWA
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
 from ._metric import eigh
-from ._spectral import bulk_spectral_gap, mean_nearest_neighbor_distance
+from ._spectral import bulk_spectral_gap
+from ._weights import mean_nearest_neighbor_distance
 
 REBUILD_MODES = ("host", "callback")
 GRAPHS = ("delaunay", "knn")

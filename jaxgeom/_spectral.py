@@ -13,14 +13,13 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ._checks import check_choice, check_positive, takes_tessellation
+from ._checks import check_choice, takes_tessellation
 from ._delaunay import morton_codes
-from ._graph import Tessellation, mean_row_minimum, neighbor_coord_displacements, neighbor_distances, padded_to_csr
-from ._simplex import safe_sqrt
+from ._graph import Tessellation, padded_to_csr
+from ._weights import DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
 SPECTRAL_METHODS = ("scipy", "lobpcg")
-DEFAULT_ALPHA = 3.0
 LOBPCG_RTOL = 1e-2
 # Edges lighter than this fraction of the heaviest count as absent when the graph is split
 # into connected components (kernel weights of stragglers underflow to 0 in float32).
@@ -73,35 +72,6 @@ class GraphLaplacian(eqx.Module):
         return (active - s @ adj @ s).tocsr()
 
 
-def mean_nearest_neighbor_distance(tess: Tessellation):
-    """Mean over walkers of the distance to their nearest neighbour."""
-    return mean_row_minimum(neighbor_distances(tess), tess.neighbor_mask)
-
-
-def kernel_weights(tess: Tessellation, length_scale=None, alpha=DEFAULT_ALPHA, *, shift: str = "none"
-                   ) -> Float[Array, "N K"]:
-    """Gaussian edge weights exp(-|x_j - x_i|^2 / (2 l^2)) per neighbour slot (0 on padding);
-    `length_scale=None` is the adaptive rule l = alpha * mean nearest-neighbour distance.
-
-    `shift` divides the weights by a constant that normalisation cancels, so that they cannot
-    all underflow when l is far below the spacing: "row" by each row's largest weight (row-
-    normalised uses: the limit l -> 0 is then nearest-neighbour weighting, not 0 / 0), "global"
-    by the largest weight of the graph (keeps w_ij = w_ji, as the Laplacian needs)."""
-    mask = tess.neighbor_mask
-    sq = sum(dx * dx for dx in neighbor_coord_displacements(tess))
-    scale = alpha * mean_row_minimum(safe_sqrt(sq), mask) if length_scale is None else length_scale
-    exponent = sq / (2.0 * scale**2)
-    if shift != "none":
-        masked = jnp.where(mask, exponent, jnp.inf)
-        smallest = jnp.min(masked, axis=1, keepdims=True) if shift == "row" else jnp.min(masked)
-        exponent = exponent - jax.lax.stop_gradient(jnp.where(jnp.isfinite(smallest), smallest, 0.0))
-    return jnp.where(mask, jnp.exp(-exponent), 0.0)
-
-
-def check_length_scale(length_scale) -> None:
-    check_positive(length_scale, "length_scale", " (or None for the adaptive rule)")
-
-
 @takes_tessellation
 @eqx.filter_jit
 def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
@@ -120,13 +90,10 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
 
     A [`jaxgeom.GraphLaplacian`][] with a jittable `matvec` and `to_scipy()`.
     """
-    check_choice(weights, "weights", LAPLACIAN_WEIGHTS)
+    check_weights(weights, "weights", LAPLACIAN_WEIGHTS)
     check_length_scale(length_scale)
-    check_positive(alpha, "alpha", " (the adaptive kernel width is alpha x the nearest-neighbour distance)")
-    if weights == "uniform":
-        w = tess.neighbor_mask.astype(tess.points.dtype)
-    else:
-        w = kernel_weights(tess, length_scale, alpha, shift="global")
+    check_alpha(alpha)
+    w = weights_on_graph(tess, weights, length_scale=length_scale, alpha=alpha, shift="global")
     symmetric = tess.simplices is not None
     degree = jnp.sum(w, axis=1)
     if not symmetric:

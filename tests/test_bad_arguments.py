@@ -271,3 +271,15 @@ def test_a_checked_jax_metric_is_not_checked_again(tess, monkeypatch):
     jaxgeom.ricci_scalar(tess, g)  # the same immutable array: no second O(N) check
     with pytest.raises(pytest.fail.Exception, match="checked twice"):
         jaxgeom.ricci_scalar(tess, np.asarray(g))  # numpy arrays can change: checked every call
+
+
+def test_edge_weights_refuse_an_unknown_mode_instead_of_returning_inverse_distances(tess):
+    with pytest.raises(ValueError, match=r"unknown mode 'kernal'; valid values are 'uniform', 'kernel', "
+                                         r"'inverse_distance', 'metric_diagonal', 'metric_full'"):
+        jaxgeom.edge_weights(tess, mode="kernal")
+    with pytest.raises(ValueError, match=r"mode 'metric_full' needs `metric`"):
+        jaxgeom.edge_weights(tess, mode="metric_full")
+    with pytest.raises(ValueError, match=r"unknown weights 'gaussian'; valid values are 'kernel', 'uniform'"):
+        jaxgeom.graph_laplacian(tess, weights="gaussian")
+    with pytest.raises(ValueError, match=r"unknown weighting 'kernel'; valid values are 'uniform'"):
+        jaxgeom.estimate_gradient(tess, np.zeros(200), method="fd", weighting="kernel")
