@@ -11,7 +11,6 @@ from ._curvature import region_average as region_average
 from ._curvature import ricci_resolution as ricci_resolution
 from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay
-from ._dynamics import OBSERVABLES as OBSERVABLES
 from ._dynamics import SwarmParams as SwarmParams
 from ._dynamics import SwarmState as SwarmState
 from ._estimation import EstimateInfo as EstimateInfo
@@ -33,6 +32,7 @@ from ._metric import metric_at_walkers as metric_at_walkers
 from ._metric import metric_defects as metric_defects
 from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
+from ._observables import OBSERVABLES as OBSERVABLES
 from ._plots import plot_estimation_quality as plot_estimation_quality
 from ._simulate import init_swarm as init_swarm
 from ._simulate import simulate as simulate

@@ -30,14 +30,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
-from ._cells import raychaudhuri_expansion, shape_distortion, volume_distortion
-from ._curvature import region_average, ricci_resolution, ricci_scalar
 from ._forces import VISCOUS_MODES, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights
-from ._graph import Tessellation, neighbor_any
-from ._metric import HESSIAN_FLOORS, eigh, hessian_metric, riemannian_volumes
+from ._graph import Tessellation
+from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
 from ._simplex import small_cholesky
 from ._volumes import voronoi_volumes
-from ._weights import DEFAULT_ALPHA, mean_nearest_neighbor_distance, weights_on_graph
+from ._weights import DEFAULT_ALPHA, mean_nearest_neighbor_distance
 
 COND_LIMIT = 1e6  # chapter: raise eps_Sigma 10x when cond(g) exceeds this
 EPS_SIGMA_RAISE = 10.0
@@ -177,13 +175,6 @@ def health(state: SwarmState):
     flags = (jnp.where(finite, 0, NONFINITE) | jnp.where(far, RUNAWAY, 0)
              | jnp.where(jnp.any(state.alive), 0, ALL_DEAD))
     return (flags | state.status).astype(jnp.int32)
-
-
-OBSERVABLES = ("mean_fitness", "best_fitness", "velocity_variance", "degree_weighted_variance", "mean_ricci",
-               "ricci_resolution", "volume_distortion", "mean_shape_distortion", "mean_expansion", "n_clones", "nu",
-               "eps_sigma")
-GEOMETRIC_OBSERVABLES = ("mean_ricci", "ricci_resolution", "volume_distortion", "mean_shape_distortion",
-                         "mean_expansion")
 
 
 def fitness_and_force(fitness, x):
@@ -360,100 +351,3 @@ def _raised_eps_factor(params: SwarmParams, state: SwarmState, g):
     lam = eigh(jax.lax.stop_gradient(g))[0]
     cond = jnp.max(lam[:, -1] / jnp.where(lam[:, 0] > 0, lam[:, 0], jnp.nan))
     return jnp.where(cond > COND_LIMIT, EPS_SIGMA_RAISE, 1.0) * state.eps_factor
-
-
-def _finite_mean(values, mask):
-    ok = mask & jnp.isfinite(values)
-    return jnp.sum(jnp.where(ok, values, 0.0)) / jnp.sum(ok).astype(values.dtype)
-
-
-def _variance(v, weights):
-    mean = jnp.sum(weights[:, None] * v, axis=0) / jnp.sum(weights)
-    return jnp.sum(weights * jnp.sum((v - mean) ** 2, axis=1)) / jnp.sum(weights)
-
-
-class _View(eqx.Module):
-    """What an observable reads: the state before this observation (`old`, for the
-    expansion) and after refreshing its cell volumes (`new`)."""
-
-    fitness: object = eqx.field(static=True)
-    params: SwarmParams
-    old: SwarmState
-    new: SwarmState
-    progress: Float[Array, ""]
-
-
-def _observed_metric(s: _View):
-    """The Hessian metric at the observed walkers, with the current eps_Sigma."""
-    return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
-
-
-def _mean_ricci(s: _View):
-    g = _observed_metric(s)
-    ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
-    return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
-
-
-def _ricci_resolution(s: _View):
-    """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
-    g = _observed_metric(s)
-    floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
-    return region_average(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
-
-
-def _mean_expansion(s: _View):
-    # A clone landing next to a walker splits its cell: that change is not the flow's.
-    valid = s.old.interior & s.new.interior & ~s.new.cloned & ~neighbor_any(s.new.tess, s.new.cloned)
-    theta = raychaudhuri_expansion(s.old.volumes, s.new.volumes, s.params.dt, valid=valid)
-    return _finite_mean(theta, valid)
-
-
-def _degree_weighted_variance(s: _View):
-    g = _observed_metric(s) if s.params.mode.startswith("metric") else None
-    w = weights_on_graph(s.new.tess, s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
-    return _variance(s.new.velocities, jnp.sum(w, axis=1))
-
-
-def _observers():
-    return {
-        "mean_fitness": lambda s: _finite_mean(s.new.fitness, s.new.alive),
-        "best_fitness": lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf)),
-        "velocity_variance": lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness)),
-        "degree_weighted_variance": _degree_weighted_variance,
-        "mean_ricci": _mean_ricci,
-        "ricci_resolution": _ricci_resolution,
-        "volume_distortion": lambda s: volume_distortion(s.new.tess, s.new.volumes),
-        "mean_shape_distortion": lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior),
-        "mean_expansion": _mean_expansion,
-        "n_clones": lambda s: jnp.sum(s.new.cloned).astype(s.new.fitness.dtype),
-        "nu": lambda s: current_nu(s.params, s.progress),
-        "eps_sigma": lambda s: s.params.eps_sigma * s.new.eps_factor,
-    }
-
-
-def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple[str, ...]):
-    """Refresh the state's cell volumes on its current graph and measure `observe`.
-
-    Returns `(state, {name: scalar})`. Geometric observables are NaN on a k-NN graph.
-    """
-    new = refresh_cells(params, state, observe)
-    return new, measure(fitness, params, state, new, progress, observe)
-
-
-def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
-    """The state with its cell volumes and tiers on its current graph, where the step
-    (volume weighting) or an observable needs them; else the state unchanged."""
-    if not (params.volume_weighting or any(name in GEOMETRIC_OBSERVABLES for name in observe)):
-        return state
-    volumes, interior = cell_volumes(state.tess)
-    return eqx.tree_at(lambda s: (s.volumes, s.interior), state, (volumes, interior))
-
-
-def measure(fitness, params: SwarmParams, old: SwarmState, new: SwarmState, progress, observe: tuple[str, ...]):
-    """{name: scalar} of `new` (= `refresh_cells` of `old`; the expansion compares their volumes)."""
-    view, observers = _View(fitness, params, old, new, jnp.asarray(progress)), _observers()
-    dtype = new.positions.dtype
-    nan = jnp.asarray(jnp.nan, dtype)
-    geometric = new.tess.simplices is not None
-    return {name: nan if name in GEOMETRIC_OBSERVABLES and not geometric
-            else jnp.asarray(observers[name](view), dtype) for name in observe}

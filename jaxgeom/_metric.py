@@ -17,7 +17,6 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._checks import check_choice, check_nonnegative, metric_defect_masks, real_array, takes_tessellation

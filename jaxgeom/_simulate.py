@@ -38,11 +38,12 @@ import scipy.sparse.linalg
 
 from ._checks import check_choice, check_min_points, host_points, mean_spacing, real_array
 from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
-from ._dynamics import (ALL_DEAD, NONFINITE, OBSERVABLES, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart,
-                        SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force, health, measure,
-                        metric_field, observe_state, refresh_cells, runaway_radius, swarm_step)
+from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
+                        SwarmState, begin_step, finish_step, fitness_and_force, health, metric_field, runaway_radius,
+                        swarm_step)
 from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ._knn import knn_graph
+from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
 from ._metric import eigh
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance

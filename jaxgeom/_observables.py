@@ -1,0 +1,125 @@
+"""Swarm observables: one table, name -> (function of a `_View`, whether it needs cells).
+
+An observable is a scalar of the swarm state entering a step (and of the final state),
+recorded by `jaxgeom.simulate` in its history. To add one, add a function of `_View`
+and one row of `OBSERVABLE_TABLE`; "geometric" rows need Voronoi cells (they refresh the
+cell volumes and are NaN on a k-NN graph).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._cells import raychaudhuri_expansion, shape_distortion, volume_distortion
+from ._curvature import region_average, ricci_resolution, ricci_scalar
+from ._dynamics import SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length
+from ._graph import neighbor_any
+from ._metric import riemannian_volumes
+from ._weights import weights_on_graph
+
+
+def _finite_mean(values, mask):
+    ok = mask & jnp.isfinite(values)
+    return jnp.sum(jnp.where(ok, values, 0.0)) / jnp.sum(ok).astype(values.dtype)
+
+
+def _variance(v, weights):
+    mean = jnp.sum(weights[:, None] * v, axis=0) / jnp.sum(weights)
+    return jnp.sum(weights * jnp.sum((v - mean) ** 2, axis=1)) / jnp.sum(weights)
+
+
+class _View(eqx.Module):
+    """What an observable reads: the state before this observation (`old`, for the
+    expansion) and after refreshing its cell volumes (`new`)."""
+
+    fitness: object = eqx.field(static=True)
+    params: SwarmParams
+    old: SwarmState
+    new: SwarmState
+    progress: Float[Array, ""]
+
+
+def _observed_metric(s: _View):
+    """The Hessian metric at the observed walkers, with the current eps_Sigma."""
+    return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+
+
+def _mean_ricci(s: _View):
+    g = _observed_metric(s)
+    ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
+    return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+
+
+def _ricci_resolution(s: _View):
+    """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
+    g = _observed_metric(s)
+    floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
+    return region_average(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+
+
+def _mean_expansion(s: _View):
+    # A clone landing next to a walker splits its cell: that change is not the flow's.
+    valid = s.old.interior & s.new.interior & ~s.new.cloned & ~neighbor_any(s.new.tess, s.new.cloned)
+    theta = raychaudhuri_expansion(s.old.volumes, s.new.volumes, s.params.dt, valid=valid)
+    return _finite_mean(theta, valid)
+
+
+def _degree_weighted_variance(s: _View):
+    g = _observed_metric(s) if s.params.mode.startswith("metric") else None
+    w = weights_on_graph(s.new.tess, s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
+    return _variance(s.new.velocities, jnp.sum(w, axis=1))
+
+
+class Observable(NamedTuple):
+    fn: Callable  # _View -> scalar
+    geometric: bool = False  # needs Voronoi cells: NaN on a k-NN graph
+
+
+OBSERVABLE_TABLE: dict[str, Observable] = {
+    "mean_fitness": Observable(lambda s: _finite_mean(s.new.fitness, s.new.alive)),
+    "best_fitness": Observable(lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf))),
+    "velocity_variance": Observable(lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness))),
+    "degree_weighted_variance": Observable(_degree_weighted_variance),
+    "mean_ricci": Observable(_mean_ricci, True),
+    "ricci_resolution": Observable(_ricci_resolution, True),
+    "volume_distortion": Observable(lambda s: volume_distortion(s.new.tess, s.new.volumes), True),
+    "mean_shape_distortion": Observable(lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior), True),
+    "mean_expansion": Observable(_mean_expansion, True),
+    "n_clones": Observable(lambda s: jnp.sum(s.new.cloned).astype(s.new.fitness.dtype)),
+    "nu": Observable(lambda s: current_nu(s.params, s.progress)),
+    "eps_sigma": Observable(lambda s: s.params.eps_sigma * s.new.eps_factor),
+}
+OBSERVABLES = tuple(OBSERVABLE_TABLE)
+
+
+def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple[str, ...]):
+    """Refresh the state's cell volumes on its current graph and measure `observe`.
+
+    Returns `(state, {name: scalar})`. Geometric observables are NaN on a k-NN graph.
+    """
+    new = refresh_cells(params, state, observe)
+    return new, measure(fitness, params, state, new, progress, observe)
+
+
+def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
+    """The state with its cell volumes and tiers on its current graph, where the step
+    (volume weighting) or an observable needs them; else the state unchanged."""
+    if not (params.volume_weighting or any(OBSERVABLE_TABLE[name].geometric for name in observe)):
+        return state
+    volumes, interior = cell_volumes(state.tess)
+    return eqx.tree_at(lambda s: (s.volumes, s.interior), state, (volumes, interior))
+
+
+def measure(fitness, params: SwarmParams, old: SwarmState, new: SwarmState, progress, observe: tuple[str, ...]):
+    """{name: scalar} of `new` (= `refresh_cells` of `old`; the expansion compares their volumes)."""
+    view = _View(fitness, params, old, new, jnp.asarray(progress))
+    dtype = new.positions.dtype
+    nan = jnp.asarray(jnp.nan, dtype)
+    geometric = new.tess.simplices is not None
+    return {name: nan if OBSERVABLE_TABLE[name].geometric and not geometric
+            else jnp.asarray(OBSERVABLE_TABLE[name].fn(view), dtype) for name in observe}
