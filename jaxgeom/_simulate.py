@@ -25,7 +25,6 @@ simulation with larger capacities when called eagerly and raises under a trace.
 from __future__ import annotations
 
 import functools
-import math
 import sys
 import time
 import warnings
@@ -36,22 +35,19 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg
 
-from ._checks import check_choice, check_min_points, host_points, mean_spacing, real_array
-from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
+from ._checks import check_choice, check_min_points, host_points, real_array
+from ._delaunay import delaunay
 from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
-                        SwarmState, begin_step, finish_step, fitness_and_force, health, metric_field, runaway_radius,
-                        swarm_step)
-from ._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
-from ._knn import knn_graph
-from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
+                        SwarmState, begin_step, finish_step, fitness_and_force, health, metric_field, move_on_graph,
+                        runaway_radius)
+from ._graph import Tessellation
 from ._metric import eigh
+from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
+from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance
 
 REBUILD_MODES = ("host", "callback")
-GRAPHS = ("delaunay", "knn")
-NEIGHBOR_HEADROOM = 8  # cloning puts walkers next to their companions: max degree drifts up by several
-SIMPLEX_HEADROOM = 1.1  # 3D simplex counts drift by a few percent
 
 
 def check_callable_fitness(fitness) -> None:
@@ -76,84 +72,8 @@ def check_fitness(fitness, x: np.ndarray) -> None:
                          f"{bad[:5].tolist()}; move them into the landscape's domain.")
 
 
-def headroom_capacity(tess: Tessellation, previous: Capacity | None = None) -> Capacity:
-    """Capacities with room for a moving swarm (at least `previous`)."""
-    degree = int(np.asarray(tess.degree).max())
-    simplices = tess.capacity.simplices
-    if tess.dim != 2:
-        simplices = bucket_simplices(math.ceil(SIMPLEX_HEADROOM * int(np.asarray(tess.simplex_mask).sum())))
-    cap = Capacity(simplices, bucket_neighbors(degree + NEIGHBOR_HEADROOM))
-    return cap if previous is None else Capacity(*(max(a, b) for a, b in zip(cap, previous)))
-
-
-def pad_to_capacity(tess: Tessellation, cap: Capacity) -> Tessellation:
-    """The same (non-periodic Delaunay) graph with sentinel padding up to `cap`."""
-    n = tess.n_points
-    nbrs, simp = np.asarray(tess.neighbors), np.asarray(tess.simplices)
-    nbrs = np.pad(nbrs, ((0, 0), (0, cap.neighbors - nbrs.shape[1])), constant_values=n)
-    simp = np.pad(simp, ((0, cap.simplices - simp.shape[0]), (0, 0)), constant_values=n)
-    return eqx.tree_at(lambda t: (t.neighbors, t.simplices), tess, (jnp.asarray(nbrs), jnp.asarray(simp)))
-
-
-# Walkers that coincide for Qhull are moved apart by this many mean spacings (at least 1000
-# times the dtype's resolution at the swarm's coordinates), 4x more on each further attempt.
-SEPARATION = 1e-3
-SEPARATION_ATTEMPTS = 4
-
-
 class SimulationDiverged(FloatingPointError):
     """The swarm left the representable or plausible range (`simulate` names the step and cause)."""
-
-
-def separate_coincident(x: np.ndarray, rows: np.ndarray, partners: np.ndarray, attempt: int = 0) -> np.ndarray:
-    """`x` with walkers `rows` moved away from the walkers `partners` they coincide with (a
-    deterministic direction where they are identical)."""
-    spacing = mean_spacing(x)
-    resolution = 1e3 * np.finfo(x.dtype).eps * float(np.max(np.abs(x)))
-    step = max(SEPARATION * spacing, resolution) * 4.0**attempt
-    direction = (x[rows] - x[partners]).astype(np.float64)
-    norm = np.linalg.norm(direction, axis=1, keepdims=True)
-    fallback = np.random.default_rng(rows).normal(size=direction.shape)
-    direction = np.where(norm > 0, direction, fallback)
-    out = x.copy()
-    out[rows] = x[rows] + (step * direction / np.linalg.norm(direction, axis=1, keepdims=True)).astype(x.dtype)
-    return out
-
-
-def _separated(build, x: np.ndarray):
-    """(build(x), x, n_moved), after moving apart walkers that coincide for Qhull
-    (`separate_coincident`; the dynamics create them, so they are never fatal there)."""
-    moved = 0
-    for attempt in range(SEPARATION_ATTEMPTS + 1):
-        try:
-            return build(x), x, moved
-        except CoincidentPointsError as err:
-            if attempt == SEPARATION_ATTEMPTS:
-                raise
-            x = separate_coincident(x, err.rows, err.partners, attempt)
-            moved += len(err.rows)
-
-
-def delaunay_separating(x: np.ndarray, capacity=None) -> tuple[Tessellation, np.ndarray, int]:
-    """(graph, positions, n_moved): `delaunay(x)` of `x` with coinciding walkers moved apart."""
-    return _separated(lambda y: delaunay(y, capacity=capacity), x)
-
-
-def build_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tessellation, bool, np.ndarray, int]:
-    """(graph, grew, positions, n_moved): Delaunay at `capacity` (grown to a larger bucket if
-    too small; coinciding walkers moved apart), or k-NN."""
-    if graph == "knn":
-        return knn_graph(x, k), False, x, 0
-    if capacity is not None:
-        try:
-            tess, x, moved = delaunay_separating(x, capacity)
-            return tess, False, x, moved
-        except CapacityError:
-            pass
-    fresh, x, moved = delaunay_separating(x)
-    previous = None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation)
-                                              else Capacity(*capacity))
-    return pad_to_capacity(fresh, headroom_capacity(fresh, previous)), capacity is not None, x, moved
 
 
 def _as_key(key):
@@ -195,7 +115,7 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     if capacity is not None and graph == "delaunay":
         tess = delaunay(x, capacity=capacity)  # pinned: raises CapacityError when the graph does not fit
     else:
-        tess, _, x, _ = build_graph(x, graph, k, None)
+        tess, _, x, _ = allocate_graph(x, graph, k, None)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
     values, force = fitness_and_force(fitness, xj)
@@ -206,133 +126,58 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
                       jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero)
 
 
-def _graph_kind(tess: Tessellation) -> str:
-    return "knn" if tess.simplices is None else "delaunay"
+def _observed(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple):
+    """(state with refreshed cells, its observables)."""
+    new = refresh_cells(params, state, observe)
+    return new, measure(fitness, params, state, new, progress, observe)
 
 
-# Outcome codes of a rebuild inside `jax.pure_callback`.
-REBUILT, OVERFLOWED, FAILED = 0, 1, 2
-
-
-def _attempt(build, x):
-    """(arrays, positions, code, n_moved) of a host rebuild that never raises: an overflow or
-    a failure (non-finite or degenerate walkers) is returned as a code, the old graph kept."""
-    try:
-        arrays, x, moved = _separated(build, x)
-        return arrays, x, REBUILT, moved
-    except CapacityError:
-        return None, x, OVERFLOWED, 0
-    except ValueError:
-        return None, x, FAILED, 0
-
-
-def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved) -> SwarmState:
-    """The state with the rebuilt graph (the old one unless `code == REBUILT`), the positions
-    the callback may have moved apart (gradients pass through unchanged), and the flags."""
-    x = state.positions + jax.lax.stop_gradient(positions.astype(state.positions.dtype) - state.positions)
-    tess = jax.tree_util.tree_map(lambda a, b: jnp.where(code == REBUILT, b, a), state.tess, new)
-    tess = eqx.tree_at(lambda t: (t.points, t.overflow), tess, (x, state.tess.overflow | (code == OVERFLOWED)))
-    status = state.status | jnp.where(code == FAILED, REBUILD_FAILED, 0)
-    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated), state,
-                       (x, tess, status.astype(jnp.int32), state.n_separated + moved))
-
-
-def _callback_rebuild(state: SwarmState, k: int) -> SwarmState:
-    """Rebuild inside a trace with `jax.pure_callback` (`vmap_method="sequential"`). A graph
-    that does not fit keeps the old arrays and sets `tess.overflow`; walkers Qhull cannot
-    triangulate keep the old graph and set `REBUILD_FAILED` in `state.status`. In 2D the
-    callback runs Qhull alone and the neighbour rows are derived in the trace."""
-    tess = state.tess
-    if tess.simplices is not None and tess.dim == 2 and not tess.periodic:
-        return _callback_planar_rebuild(state)
-    graph, cap = _graph_kind(tess), tess.capacity
-    old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
-
-    def build(x):
-        new = knn_graph(x, k) if graph == "knn" else delaunay(x, capacity=cap)
-        return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,))
-
-    def host(x, *arrays):
-        new, x, code, moved = _attempt(build, np.asarray(x))
-        return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (x, np.int32(code), np.int32(moved))
-
-    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old + (state.positions,))
-    shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 2
-    *arrays, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions), *old,
-                                                vmap_method="sequential")
-    new = eqx.tree_at(lambda t: (t.neighbors, t.tier, t.hull), tess, tuple(arrays[:3]))
-    if len(arrays) == 4:
-        new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
-    return _apply_rebuild(state, new, x, code, moved)
-
-
-def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
-    """2D rebuild in a trace: the callback returns Qhull's triangles, the rows are built here."""
-    tess = state.tess
-    cap = tess.capacity
-
-    def host(x):
-        triangles, x, code, moved = _attempt(lambda y: planar_triangles(y, cap)[:2], np.asarray(x))
-        if triangles is None:
-            triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
-        return triangles + (x, np.int32(code), np.int32(moved))
-
-    triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
-    shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
-              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
-    simplices, adjacency, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
-                                                             vmap_method="sequential")
-    new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
-    code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
-    return _apply_rebuild(state, new, x, code, moved)
-
-
-def _scan_steps(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
-                observe: tuple, rebuild_every: int, callback_k: int | None):
-    """`length` steps from global step `start` (steps >= n_total are skipped), observing the
-    state entering each step. `first` is `begin_step` of the first step, computed ahead.
-    Returns `(state, observables, cells)`, `cells` the first state's refreshed volumes and tiers.
-
-    With `callback_k`, rebuilds in the scan every `rebuild_every` steps. Without (host
-    chunks), the first state's observables are left to `_measure_first` (NaN here) and the
-    last step stops before its closing kick (`_finish_and_begin`): neither needs the next
-    graph, so XLA runs them while the host runs Qhull.
-    """
+def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
+                observe: tuple):
+    """`length` (= rebuild_every) steps on one graph from global step `start`, between two host
+    rebuilds; steps >= n_total are skipped. `first` is `begin_step` of the first step,
+    computed ahead. Two pieces of work need no new graph and are left to the host loop, for
+    XLA to run while Qhull runs: the first state's observables (NaN here, `_measure_first`)
+    and the last step's closing kick (`_finish_and_begin`).
+    Returns `(state, observables, cells)`, `cells` the first state's refreshed volumes and tiers."""
     dtype = state.positions.dtype
-    host = callback_k is None
     entering = refresh_cells(params, state, observe)
+    nan = {name: jnp.asarray(jnp.nan, dtype) for name in observe}
 
     def body(st, i):
         s = start + i
         progress = _progress(s, n_total, dtype)
-
-        def observed(q):
-            new = refresh_cells(params, q, observe)
-            return new, measure(fitness, params, q, new, progress, observe)
-
-        def first_observed(q):  # q is `entering`
-            return q, ({name: jnp.asarray(jnp.nan, dtype) for name in observe} if host
-                       else measure(fitness, params, state, q, progress, observe))
-
-        # A one-step chunk (rebuild every step) compiles only the branches it takes.
-        st, obs = first_observed(st) if length == 1 else jax.lax.cond(i == 0, first_observed, observed, st)
-        obs = dict(obs, _health=health(st))
-        chunk_end = ((s + 1) % rebuild_every == 0) | (s == n_total - 1)
+        if length == 1:  # rebuild every step: compile only the branches taken
+            return move_on_graph(fitness, params, st, first, progress, True), dict(nan, _health=health(st))
+        last = (i == length - 1) | (s == n_total - 1)  # clone only before a rebuild
+        st, obs = jax.lax.cond(i == 0, lambda q: (q, nan), lambda q: _observed(fitness, params, q, progress, observe), st)
 
         def advance(q):
-            opening = first if length == 1 else jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
-            q = swarm_step(fitness, params, q, progress, chunk_end, opening, finish=False)  # clone only before a rebuild
-            if host and rebuild_every == 1:
-                return q
-            if host:
-                return jax.lax.cond(chunk_end, lambda r: r, lambda r: finish_step(fitness, params, r), q)
-            q = finish_step(fitness, params, q)
-            return jax.lax.cond(chunk_end, lambda r: _callback_rebuild(r, callback_k), lambda r: r, q)
+            opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
+            q = move_on_graph(fitness, params, q, opening, progress, last)
+            return jax.lax.cond(last, lambda r: r, lambda r: finish_step(fitness, params, r), q)
 
-        return jax.lax.cond(s < n_total, advance, lambda q: q, st), obs
+        return jax.lax.cond(s < n_total, advance, lambda q: q, st), dict(obs, _health=health(st))
 
     final, obs = jax.lax.scan(body, entering, jnp.arange(length, dtype=jnp.int32))
     return final, obs, (entering.volumes, entering.interior)
+
+
+def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
+                   rebuild_every: int, k: int):
+    """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
+    in the trace (`update_in_trace`) every `rebuild_every` steps. Returns `(state, observables)`."""
+    dtype = state.positions.dtype
+
+    def body(st, i):
+        progress = _progress(i, n_total, dtype)
+        st, obs = _observed(fitness, params, st, progress, observe)
+        rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
+        q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
+        q = jax.lax.cond(rebuild, lambda r: update_in_trace(r, k), lambda r: r, q)
+        return q, dict(obs, _health=health(st))
+
+    return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
 
 
 def _progress(step, n_total, dtype):
@@ -343,7 +188,8 @@ def _progress(step, n_total, dtype):
 # jax.jit, not eqx.filter_jit: every leaf is an array, and jax.jit's call returns at once
 # (eqx.filter_jit's blocked for the whole 3.6 ms chunk at N = 1e4), which the overlap of
 # graph-free work with Qhull relies on; fitness and the loop shape are static.
-_run_chunk = jax.jit(_scan_steps, static_argnames=("fitness", "length", "observe", "rebuild_every", "callback_k"))
+_run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
+_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k"))
 _begin_step = jax.jit(begin_step)
 
 
@@ -428,22 +274,6 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
-def _rebuild_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
-    """(state, grew, n_moved): the state with a new graph at its positions (coinciding walkers
-    moved apart), whether the capacity grew, and how many walkers were moved."""
-    x = np.asarray(state.positions)
-    graph = _graph_kind(state.tess)
-    try:
-        tess, grew, x_new, moved = build_graph(x, graph, k, None if graph == "knn" else state.tess)
-    except ValueError as err:
-        raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
-    if moved:
-        xj = jnp.asarray(x_new, state.positions.dtype)
-        state = eqx.tree_at(lambda s: (s.positions, s.n_separated), state, (xj, state.n_separated + moved))
-        tess = eqx.tree_at(lambda t: t.points, tess, xj)
-    return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
-
-
 _health = jax.jit(health)
 
 
@@ -523,7 +353,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         t0 = time.perf_counter()
         entering = state
         moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32), n_total,
-                                       rebuild_every, observe, rebuild_every, None)
+                                       rebuild_every, observe)
         # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
         state, opening = _finish_and_begin(fitness, params, moved)
         end = min(start + rebuild_every, n_steps)
@@ -535,7 +365,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             jax.block_until_ready((state, opening, first))
         check_health(fitness, params, codes, start, entering)
         t1 = time.perf_counter()
-        moved, grew, n_moved = _rebuild_host(moved, k)  # the positions are final in `moved`
+        moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
         if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
             state, opening = _finish_and_begin(fitness, params, moved)
         state = eqx.tree_at(lambda s: s.tess, state, moved.tess)
@@ -570,19 +400,11 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
         return float("nan"), -1
 
 
-def _grown(tess: Tessellation) -> Tessellation:
-    cap = tess.capacity
-    bigger = Capacity(bucket_simplices(math.ceil(1.25 * cap.simplices)) if tess.dim != 2 else cap.simplices,
-                      cap.neighbors + 8)
-    return pad_to_capacity(eqx.tree_at(lambda t: t.overflow, tess, jnp.asarray(False)), bigger)
-
-
 def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
-    zero, total = jnp.asarray(0, jnp.int32), jnp.asarray(n_steps, jnp.int32)
+    total = jnp.asarray(n_steps, jnp.int32)
     while True:
-        final, obs, _ = _run_chunk(fitness, params, state, _begin_step(params, state), zero, total, n_steps, observe,
-                                   rebuild_every, k)
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "
@@ -590,7 +412,7 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
             break
         if not bool(final.tess.overflow):
             break
-        state = eqx.tree_at(lambda s: s.tess, state, _grown(state.tess))
+        state = eqx.tree_at(lambda s: s.tess, state, grown(state.tess))
     codes = jnp.concatenate([obs["_health"], health(final)[None]])
     if not traced:
         check_health(fitness, params, codes, 0, state)
