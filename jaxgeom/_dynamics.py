@@ -304,13 +304,21 @@ def begin_step(params: SwarmParams, state: SwarmState) -> StepStart:
     return StepStart(v, x, noise, jax.random.normal(k_jitter, x.shape, x.dtype), companion, clones, key)
 
 
-def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone,
-               start: StepStart | None = None, finish: bool = True) -> SwarmState:
-    """One B A V O V A B step (module docstring) on the state's graph, plus cloning
-    when `do_clone` (cloned walkers jump after the second drift, before the last kick).
-    `start` is `begin_step(params, state)` when computed ahead; `finish=False` stops
-    before the closing kick (then `finish_step` completes the step)."""
-    start = begin_step(params, state) if start is None else start
+def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clone) -> SwarmState:
+    """One B A V O V A B step (module docstring) on the state's graph, plus cloning when
+    `do_clone`: the composition of its three phases, `begin_step` (B A and the random
+    draws: no graph), `move_on_graph` (V O V A and the clone jumps) and `finish_step` (B at
+    the final positions: no graph). `simulate` runs the first and last apart, ahead of and
+    after the graph's rebuild."""
+    start = begin_step(params, state)
+    return finish_step(fitness, params, move_on_graph(fitness, params, state, start, progress, do_clone))
+
+
+def move_on_graph(fitness, params: SwarmParams, state: SwarmState, start: StepStart, progress,
+                  do_clone) -> SwarmState:
+    """The part of a step that needs the graph: from `start` = `begin_step(params, state)`,
+    V O V (viscous kicks around the Ornstein-Uhlenbeck step) and the second drift A, then the
+    clone jumps when `do_clone`. The closing kick is left to `finish_step`."""
     half = 0.5 * params.dt
     v, x = start.velocities, start.positions
     tess = eqx.tree_at(lambda t: t.points, state.tess, x)
@@ -327,13 +335,12 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
         clones = start.clones & do_clone
         x, v = apply_clones(params, start.companion, clones, x, v, mean_nearest_neighbor_distance(tess), start.jitter)
         x, v, clones = jax.lax.optimization_barrier((x, v, clones))
-    moved = eqx.tree_at(
+    return eqx.tree_at(
         lambda s: (s.positions, s.velocities, s.cloned, s.key, s.tess, s.step, s.eps_factor),
         state,
         (x, v, clones, start.key, eqx.tree_at(lambda t: t.points, tess, x), state.step + 1,
          _raised_eps_factor(params, state, g)),
     )
-    return finish_step(fitness, params, moved) if finish else moved
 
 
 def finish_step(fitness, params: SwarmParams, state: SwarmState) -> SwarmState:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import jaxgeom
-from jaxgeom._dynamics import ornstein_uhlenbeck, relativize
+from jaxgeom._dynamics import ornstein_uhlenbeck, relativize, swarm_step
 from jaxgeom._landscapes import quadratic, rastrigin
 
 
@@ -116,6 +116,32 @@ def test_schedules(rng):
     np.testing.assert_allclose(history["nu"][:6], np.linspace(0.01, 0.1, 6), rtol=1e-12)
     # cond(g) = (1e7 + eps) / (1 + eps) > 1e6 until eps ~ 9: raised 10x per step up to 10
     np.testing.assert_allclose(history["eps_sigma"][:6], [1e-3, 1e-2, 1e-1, 1.0, 10.0, 10.0], rtol=1e-12)
+
+
+def test_swarm_step_without_friction_viscosity_or_cloning_is_velocity_verlet(rng):
+    state = swarm(rng, n=100, velocities=rng.normal(size=(100, 2)), graph="knn")
+    params = jaxgeom.SwarmParams(dt=0.05, gamma=0.0, nu=0.0, cloning=False)
+    x, v, dt = np.asarray(state.positions), np.asarray(state.velocities), 0.05
+    force = lambda p: -p * np.array([1.0, 2.0])  # -grad bowl
+    half = v + 0.5 * dt * force(x)
+    x1 = x + dt * half
+    new = swarm_step(bowl, params, state, 0.0, True)
+    np.testing.assert_allclose(np.asarray(new.positions), x1, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(new.velocities), half + 0.5 * dt * force(x1), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(new.force), force(x1), rtol=1e-13, atol=1e-15)
+    assert int(new.step) == 1
+
+
+@pytest.mark.parametrize("rebuild", ["host", "callback"])
+def test_simulate_runs_the_phases_of_swarm_step_apart_with_the_same_result(rng, rebuild):
+    state = swarm(rng, n=200)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
+    expected = swarm_step(bowl, params, state, 0.0, True)
+    assert int(np.sum(expected.cloned)) > 0
+    final, _ = jaxgeom.simulate(bowl, state, params, n_steps=1, rebuild=rebuild, observe=())
+    for field in ("positions", "velocities", "fitness", "cloned"):
+        np.testing.assert_allclose(np.asarray(getattr(final, field)), np.asarray(getattr(expected, field)),
+                                   rtol=1e-12, atol=1e-14)
 
 
 def test_callback_rebuild_matches_host_rebuild(rng):
