@@ -1,5 +1,4 @@
-"""`jaxgeom` console script. `jaxgeom simulate` runs a swarm (see _simcli.py); `jaxgeom analyze`
-tessellates a swarm and reports its geometry.
+"""`jaxgeom analyze`: tessellate a swarm and report its geometry.
 
 The report is a list of sections (`REPORT_SECTIONS`); each takes the analysis
 context and returns a flat dict of numbers. New proxies add a section.
@@ -10,15 +9,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from ._simcli import add_simulate_parser, simulate_main
+import jaxgeom
+from .._landscapes import LANDSCAPES, landscape, sample_boltzmann
+from .._plots import pyplot, save_figure
+
 
 
 @dataclasses.dataclass
@@ -36,7 +38,6 @@ class Analysis:
 
 def timed(analysis: Analysis, label: str, fn: Callable, *args, **kwargs):
     """Run fn, block on its JAX outputs, and record the wall time under `label`."""
-    import jax
 
     start = time.perf_counter()
     out = jax.block_until_ready(fn(*args, **kwargs))
@@ -92,8 +93,6 @@ def needs_simplices(section: Callable[[Analysis], dict]) -> Callable[[Analysis],
 
 @needs_simplices
 def section_volumes(a: Analysis) -> dict:
-    import jaxgeom
-
     vol = np.asarray(timed_warm(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
     a.cache["volumes"] = vol
     out = {"total_finite": float(np.nansum(vol)), "n_unbounded": int(np.isnan(vol).sum())}
@@ -103,8 +102,6 @@ def section_volumes(a: Analysis) -> dict:
 
 def analysis_metric(a: Analysis):
     """The metric chosen by --metric: None, the landscape's Hessian metric, or the emergent metric."""
-    import jaxgeom
-    from ._landscapes import landscape
 
     if "metric" not in a.cache:
         kind = a.args.metric
@@ -118,8 +115,6 @@ def analysis_metric(a: Analysis):
 
 
 def section_metric(a: Analysis) -> dict:
-    import jaxgeom
-
     out = {"kind": a.args.metric}
     if a.args.metric == "hessian":
         out.update(landscape=a.args.landscape, eps_sigma=a.args.eps_sigma)
@@ -133,8 +128,6 @@ def section_metric(a: Analysis) -> dict:
 
 @needs_simplices
 def section_curvature(a: Analysis) -> dict:
-    import jaxgeom
-
     metric, vol = analysis_metric(a), a.cache.get("volumes")
     riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric, volumes=vol))
     ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric, volumes=vol))
@@ -154,8 +147,6 @@ def section_curvature(a: Analysis) -> dict:
 
 @needs_simplices
 def section_cells(a: Analysis) -> dict:
-    import jaxgeom
-
     shape = np.asarray(timed_warm(a, "shape_distortion", jaxgeom.shape_distortion, a.tess))
     a.cache["shape"] = shape
     spread = np.asarray(jaxgeom.vertex_distance_variance(a.tess))
@@ -171,8 +162,6 @@ def section_cells(a: Analysis) -> dict:
 
 def section_graph_proxies(a: Analysis) -> dict:
     """Spectral gap of the normalized Laplacian, and geodesics from the best (lowest-V) walker."""
-    import jaxgeom
-    from ._landscapes import landscape
 
     out = {}
     k = min(6, a.tess.n_points - 1)
@@ -193,8 +182,6 @@ def section_graph_proxies(a: Analysis) -> dict:
 def section_estimation(a: Analysis) -> dict:
     """Gradient and Hessian of the fitness field estimated from its values at the walkers,
     and their agreement with the geometric (emergent-metric) Hessian."""
-    import jaxgeom
-    from ._landscapes import landscape
 
     values = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
     result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
@@ -229,7 +216,6 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
 
 def write_maps(a: Analysis, path: Path) -> None:
     """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates)."""
-    from ._plots import pyplot, save_figure
 
     fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
@@ -249,8 +235,6 @@ def write_maps(a: Analysis, path: Path) -> None:
 
 
 def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
-    from ._landscapes import sample_boltzmann
-
     if args.points is None:
         pts, box = sample_boltzmann(args.landscape, args.n, args.dim, beta=args.beta, seed=args.seed)
         return pts, box, f"exp(-{args.beta} V), V = {args.landscape}, seed {args.seed}"
@@ -279,8 +263,6 @@ def load_points(path: Path) -> np.ndarray:
 
 
 def build_graph(a: Analysis):
-    import jaxgeom
-
     use_box = a.box if (a.args.periodic or a.args.box is not None) else None
     if a.args.graph == "knn":
         return timed(a, "knn_graph", jaxgeom.knn_graph, a.points, a.args.k, box=use_box, periodic=a.args.periodic)
@@ -301,8 +283,6 @@ def run_analysis(args) -> dict:
 
 
 def write_figures(a: Analysis, out: Path) -> dict:
-    import jaxgeom
-
     out.mkdir(parents=True, exist_ok=True)
     figures = {}
     if "ricci" in a.cache and "shape" in a.cache:
@@ -323,11 +303,7 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _parser() -> argparse.ArgumentParser:
-    from ._landscapes import LANDSCAPES
-
-    parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
-    sub = parser.add_subparsers(dest="command", required=True)
+def add_analyze_parser(sub) -> None:
     an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry")
     an.add_argument("--points", type=Path, help="(N, d) .npy file; default: sample the built-in landscape")
     an.add_argument("--landscape", default="double_well", choices=sorted(LANDSCAPES))
@@ -344,46 +320,13 @@ def _parser() -> argparse.ArgumentParser:
     an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
     an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
     an.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
-    add_simulate_parser(sub)
-    return parser
 
 
-def check_arguments(parser: argparse.ArgumentParser, args) -> None:
-    """Refuse bad numbers and an unusable --out before any work (argparse's exit code 2)."""
-    rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
-             ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
-             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None)]
-    for attr, flag, low, high in rules:
-        value = getattr(args, attr, None)
-        if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):
-            bounds = f">= {low}" + (f" and <= {high}" if high is not None else "")
-            parser.error(f"{flag} must be a finite number {bounds}; got {value}")
-    if getattr(args, "out", None) is not None:
-        out = args.out
-        if out.exists() and not out.is_dir():
-            parser.error(f"--out {out} is an existing file; give a directory")
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            parser.error(f"--out {out} cannot be created: {err.strerror}")
-        if not os.access(out, os.W_OK):
-            parser.error(f"--out {out} is not writable")
-
-
-def main(argv=None) -> int:
-    parser = _parser()
-    args = parser.parse_args(argv)
-    check_arguments(parser, args)
-    import jax
-
-    if args.command == "simulate":
-        jax.config.update("jax_enable_x64", args.float64)
-        return simulate_main(args)
-    jax.config.update("jax_enable_x64", not args.float32)
+def analyze_main(args) -> int:
     try:
         report = run_analysis(args)
     except (ValueError, TypeError, OSError) as err:
-        print(f"jaxgeom {args.command}: error: {err}", file=sys.stderr)
+        print(f"jaxgeom analyze: error: {err}", file=sys.stderr)
         return 2
     print(format_report(report))
     if args.out is not None:
@@ -391,7 +334,3 @@ def main(argv=None) -> int:
         (args.out / "summary.json").write_text(json.dumps(report, indent=2))
         print(f"wrote {args.out / 'summary.json'}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

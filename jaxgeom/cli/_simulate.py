@@ -10,15 +10,19 @@ import sys
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
+
+import jaxgeom
+from .._dynamics import metric_field
+from .._forces import VISCOUS_MODES
+from .._landscapes import LANDSCAPES
+from .._plots import plot_observables, plot_swarm_snapshots
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 
 
 def add_simulate_parser(sub) -> None:
-    from ._forces import VISCOUS_MODES
-    from ._landscapes import LANDSCAPES
-
     sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape")
     sim.add_argument("--landscape", default="rastrigin",
                      help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
@@ -47,7 +51,6 @@ def add_simulate_parser(sub) -> None:
 
 def load_landscape(spec: str, dim: int):
     """(V, (lower, upper)) for a built-in name or a user .py file defining V."""
-    from ._landscapes import LANDSCAPES
 
     if spec in LANDSCAPES:
         fitness, _, half = LANDSCAPES[spec]
@@ -91,9 +94,7 @@ def _validate(args) -> None:
 
 
 def run_simulation(args) -> dict:
-    import jax.numpy as jnp
 
-    import jaxgeom
 
     _validate(args)
     fitness, (lo, hi) = load_landscape(args.landscape, args.dim)
@@ -124,8 +125,6 @@ def run_simulation(args) -> dict:
 
 def _snapshot(fitness, params, state, step: int) -> dict:
     """Positions and per-walker Ricci scalar (Hessian metric) of one state, for the figure."""
-    import jaxgeom
-    from ._dynamics import metric_field
 
     ricci = None
     if state.tess.simplices is not None:
@@ -178,8 +177,6 @@ def _json_ready(values):
 
 
 def write_outputs(result: dict, out: Path) -> dict:
-    from ._plots import plot_observables, plot_swarm_snapshots
-
     out.mkdir(parents=True, exist_ok=True)
     payload = {"config": result["config"], "dtype": result["dtype"],
                "series": {k: _json_ready(v) for k, v in result["series"].items()},

@@ -1,0 +1,56 @@
+"""The `jaxgeom` console script: `jaxgeom simulate` runs a swarm on a landscape
+(`_simulate.py`); `jaxgeom analyze` tessellates one swarm and reports its geometry
+(`_analyze.py`). Both refuse bad arguments before any work (`check_arguments`)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import jax
+import numpy as np
+
+from ._analyze import add_analyze_parser, analyze_main
+from ._simulate import add_simulate_parser, simulate_main
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_analyze_parser(sub)
+    add_simulate_parser(sub)
+    return parser
+
+
+def check_arguments(parser: argparse.ArgumentParser, args) -> None:
+    """Refuse bad numbers and an unusable --out before any work (argparse's exit code 2)."""
+    rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
+             ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
+             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None)]
+    for attr, flag, low, high in rules:
+        value = getattr(args, attr, None)
+        if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):
+            bounds = f">= {low}" + (f" and <= {high}" if high is not None else "")
+            parser.error(f"{flag} must be a finite number {bounds}; got {value}")
+    if getattr(args, "out", None) is not None:
+        out = args.out
+        if out.exists() and not out.is_dir():
+            parser.error(f"--out {out} is an existing file; give a directory")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            parser.error(f"--out {out} cannot be created: {err.strerror}")
+        if not os.access(out, os.W_OK):
+            parser.error(f"--out {out} is not writable")
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    check_arguments(parser, args)
+
+    if args.command == "simulate":
+        jax.config.update("jax_enable_x64", args.float64)
+        return simulate_main(args)
+    jax.config.update("jax_enable_x64", not args.float32)
+    return analyze_main(args)
