@@ -52,7 +52,7 @@ def curvature_rows(sizes, seed):
             vol = jaxgeom.voronoi_volumes(tess)
             for name, metric, exact in (("sphere", sphere, d * (d - 1.0)), ("hyperbolic", hyperbolic, -d * (d - 1.0))):
                 r = jaxgeom.ricci_scalar(tess, metric, volumes=vol)
-                avg = float(jaxgeom.region_average(r, jaxgeom.riemannian_volumes(tess, metric, volumes=vol), region))
+                avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric, volumes=vol), region))
                 rows.append({"dim": d, "n": n, "metric": name, "exact_R": exact, "region_average_R": avg,
                              "relative_error": abs(avg / exact - 1), "region_walkers": int(region.sum()),
                              "delaunay_s": t_tess})

@@ -7,7 +7,6 @@ from ._cells import vertex_distance_variance as vertex_distance_variance
 from ._cells import volume_distortion as volume_distortion
 from ._curvature import angle_sums as angle_sums
 from ._curvature import deficit_angles as deficit_angles
-from ._curvature import region_average as region_average
 from ._curvature import ricci_resolution as ricci_resolution
 from ._curvature import ricci_scalar as ricci_scalar
 from ._delaunay import delaunay as delaunay

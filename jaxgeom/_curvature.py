@@ -14,7 +14,7 @@ from jaxtyping import Array, Float
 
 from ._checks import takes_tessellation
 from ._graph import Tessellation, edge_slots
-from ._metric import (check_metric, edge_lengths, edge_pairs, riemannian_mean, riemannian_volumes, simplex_sq_lengths,
+from ._metric import (check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths,
                       simplex_sq_lengths_with_references)
 from ._simplex import det_entries, safe_sqrt
 
@@ -294,8 +294,3 @@ def ricci_from_deficits(tess: Tessellation, metric=None, *, mode: str = "full") 
     if tess.dim == 2:
         return _per_volume(tess, 2.0 * delta, vol)
     return _per_volume(tess, jnp.sum(delta * edge_lengths(tess, metric, mode=mode), axis=1), vol)
-
-
-def region_average(values, volumes, mask) -> Float[Array, ""]:
-    """sum R_i V_i / sum V_i over `mask` (finite entries only): `riemannian_mean` with cell volumes."""
-    return riemannian_mean(values, volumes, mask)

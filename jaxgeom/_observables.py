@@ -16,10 +16,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._cells import raychaudhuri_expansion, shape_distortion, volume_distortion
-from ._curvature import region_average, ricci_resolution, ricci_scalar
+from ._curvature import ricci_resolution, ricci_scalar
 from ._dynamics import SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length
 from ._graph import neighbor_any
-from ._metric import riemannian_volumes
+from ._metric import riemannian_mean, riemannian_volumes
 from ._weights import weights_on_graph
 
 
@@ -52,14 +52,14 @@ def _observed_metric(s: _View):
 def _mean_ricci(s: _View):
     g = _observed_metric(s)
     ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
-    return region_average(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+    return riemannian_mean(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
 
 
 def _ricci_resolution(s: _View):
     """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
     g = _observed_metric(s)
     floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
-    return region_average(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+    return riemannian_mean(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
 
 
 def _mean_expansion(s: _View):

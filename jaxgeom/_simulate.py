@@ -262,9 +262,12 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
 
     **Returns:**
 
-    `(final_state, history)`: history maps each observable to an (n_steps + 1,)
-    array; with rebuild="host" also `spectral_gap_step`/`spectral_gap`,
-    `n_reallocations` and wall-clock `seconds_rebuild` / `seconds_steps`.
+    `(final_state, history)`, history a dict of JAX arrays with the same keys in both
+    rebuild modes: each observable (n_steps + 1,); `spectral_gap_step`, `spectral_gap`,
+    `spectral_components` (one entry per gap computed; empty with rebuild="callback");
+    `n_reallocations` (capacity growths); wall-clock `seconds_rebuild` / `seconds_steps`
+    (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
+    `diverged_step` (-1, or under a trace the first step whose state failed).
     """
     observe = tuple(observe)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
@@ -380,12 +383,23 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
                for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)
     check_health(fitness, params, [health(state)], n_steps, entering)
-    history = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
-    history.update(spectral_gap_step=np.array([g[0] for g in gaps], int), spectral_gap=np.array([g[1] for g in gaps]),
-                   spectral_components=np.array([g[2] for g in gaps], int),
-                   n_reallocations=reallocations, seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"],
-                   n_separated=int(state.n_separated), diverged_step=-1)
-    return state, history
+    series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
+    return state, _history(series, gaps, reallocations, seconds, state.n_separated, -1, state.positions.dtype)
+
+
+def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated, diverged_step, dtype) -> dict:
+    """The history `simulate` returns, with the same keys and JAX array types in both rebuild
+    modes (the callback mode computes no spectral gaps and measures no wall-clock times: empty
+    arrays and NaN)."""
+    history = {name: jnp.asarray(values, dtype) for name, values in series.items()}
+    history.update(
+        spectral_gap_step=jnp.asarray([g[0] for g in gaps], jnp.int32).reshape(-1),
+        spectral_gap=jnp.asarray([g[1] for g in gaps], dtype).reshape(-1),
+        spectral_components=jnp.asarray([g[2] for g in gaps], jnp.int32).reshape(-1),
+        n_reallocations=jnp.asarray(reallocations, jnp.int32),
+        seconds_rebuild=jnp.asarray(seconds["rebuild"], dtype), seconds_steps=jnp.asarray(seconds["steps"], dtype),
+        n_separated=jnp.asarray(n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32))
+    return history
 
 
 def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
@@ -402,7 +416,7 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
 
 def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
-    total = jnp.asarray(n_steps, jnp.int32)
+    total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
         final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k)
         final, last = _observe_final(fitness, params, final, observe)
@@ -413,11 +427,12 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
         if not bool(final.tess.overflow):
             break
         state = eqx.tree_at(lambda s: s.tess, state, grown(state.tess))
+        reallocations += 1
     codes = jnp.concatenate([obs["_health"], health(final)[None]])
     if not traced:
         check_health(fitness, params, codes, 0, state)
-    history = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
+    series = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
     # Under a trace nothing can be raised: the first step whose state failed `health`, or -1.
-    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1).astype(jnp.int32)
-    history.update(n_separated=final.n_separated, diverged_step=diverged)
-    return final, history
+    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
+    nan = {"rebuild": jnp.nan, "steps": jnp.nan}
+    return final, _history(series, [], reallocations, nan, final.n_separated, diverged, final.positions.dtype)

@@ -82,7 +82,7 @@ def test_constant_curvature_region_average(d, n, metric, exact, tol):
     region = tess.interior & jnp.asarray(np.linalg.norm(x, axis=1) < 0.35)
     assert int(region.sum()) >= 1000
     r = jaxgeom.ricci_scalar(tess, metric)
-    avg = float(jaxgeom.region_average(r, jaxgeom.riemannian_volumes(tess, metric), region))
+    avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric), region))
     assert abs(avg / exact - 1) < tol
 
 

@@ -144,6 +144,21 @@ def test_simulate_runs_the_phases_of_swarm_step_apart_with_the_same_result(rng, 
                                    rtol=1e-12, atol=1e-14)
 
 
+def test_history_has_the_same_keys_and_types_in_both_rebuild_modes(rng):
+    state = swarm(rng, n=120)
+    params = jaxgeom.SwarmParams(dt=0.05)
+    _, host = jaxgeom.simulate(bowl, state, params, n_steps=4, rebuild_every=2, spectral_gap_every=2)
+    _, callback = jaxgeom.simulate(bowl, state, params, n_steps=4, rebuild_every=2, rebuild="callback")
+    assert host.keys() == callback.keys()
+    for key in host:
+        assert isinstance(host[key], jax.Array) and isinstance(callback[key], jax.Array), key
+        assert host[key].dtype == callback[key].dtype, key
+        if key not in ("spectral_gap_step", "spectral_gap", "spectral_components"):
+            assert host[key].shape == callback[key].shape, key
+    assert host["spectral_gap_step"].tolist() == [0, 2, 4] and callback["spectral_gap_step"].shape == (0,)
+    assert np.isnan(callback["seconds_steps"]) and float(host["seconds_steps"]) > 0
+
+
 def test_callback_rebuild_matches_host_rebuild(rng):
     state = swarm(rng, n=200)
     params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)

@@ -26,7 +26,6 @@ from .._plots import pyplot, save_figure
 @dataclasses.dataclass
 class Analysis:
     """What every report section can read; `timings` collects seconds per stage."""
-
     args: argparse.Namespace
     points: np.ndarray
     box: tuple | None
@@ -38,7 +37,6 @@ class Analysis:
 
 def timed(analysis: Analysis, label: str, fn: Callable, *args, **kwargs):
     """Run fn, block on its JAX outputs, and record the wall time under `label`."""
-
     start = time.perf_counter()
     out = jax.block_until_ready(fn(*args, **kwargs))
     analysis.timings[label] = time.perf_counter() - start
@@ -82,7 +80,6 @@ def section_graph(a: Analysis) -> dict:
 
 def needs_simplices(section: Callable[[Analysis], dict]) -> Callable[[Analysis], dict]:
     """Report sections that need Delaunay simplices are skipped, with a note, on k-NN graphs."""
-
     def guarded(a: Analysis) -> dict:
         if a.tess.simplices is None:
             return {"skipped": "needs a Delaunay graph (--graph delaunay)"}
@@ -102,7 +99,6 @@ def section_volumes(a: Analysis) -> dict:
 
 def analysis_metric(a: Analysis):
     """The metric chosen by --metric: None, the landscape's Hessian metric, or the emergent metric."""
-
     if "metric" not in a.cache:
         kind = a.args.metric
         if kind == "hessian":
@@ -134,8 +130,8 @@ def section_curvature(a: Analysis) -> dict:
     resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric, volumes=vol))
     a.cache.update(ricci=ricci, riemannian_volumes=riem)
     interior = np.asarray(a.tess.interior)
-    out = {"tier2_volume_weighted_ricci": float(jaxgeom.region_average(ricci, riem, interior)),
-           "tier2_volume_weighted_ricci_resolution": float(jaxgeom.region_average(resolution, riem, interior)),
+    out = {"tier2_volume_weighted_ricci": float(jaxgeom.riemannian_mean(ricci, riem, interior)),
+           "tier2_volume_weighted_ricci_resolution": float(jaxgeom.riemannian_mean(resolution, riem, interior)),
            "precision": str(a.tess.points.dtype)}
     out.update(_stats(ricci[interior], "tier2_ricci"))
     out["tier2_ricci_resolution_median"] = float(np.nanmedian(resolution[interior])) if interior.any() else np.nan
@@ -162,7 +158,6 @@ def section_cells(a: Analysis) -> dict:
 
 def section_graph_proxies(a: Analysis) -> dict:
     """Spectral gap of the normalized Laplacian, and geodesics from the best (lowest-V) walker."""
-
     out = {}
     k = min(6, a.tess.n_points - 1)
     gaps = np.asarray(timed(a, "spectral_gap", jaxgeom.spectral_gap, a.tess, k=k))
@@ -216,7 +211,6 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
 
 def write_maps(a: Analysis, path: Path) -> None:
     """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates)."""
-
     fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
     for ax, key, title, cmap in [(axes[0], "ricci", "Ricci scalar", "coolwarm"),

@@ -51,7 +51,6 @@ def add_simulate_parser(sub) -> None:
 
 def load_landscape(spec: str, dim: int):
     """(V, (lower, upper)) for a built-in name or a user .py file defining V."""
-
     if spec in LANDSCAPES:
         fitness, _, half = LANDSCAPES[spec]
         return fitness, (-half, half)
@@ -94,8 +93,6 @@ def _validate(args) -> None:
 
 
 def run_simulation(args) -> dict:
-
-
     _validate(args)
     fitness, (lo, hi) = load_landscape(args.landscape, args.dim)
     dtype = np.float64 if args.float64 else np.float32
@@ -113,7 +110,7 @@ def run_simulation(args) -> dict:
         state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
                                           spectral_gap_every=gap_every if n % max(gap_every, 1) == 0 else 0,
                                           progress=not args.no_progress)
-        parts.append((done, history))
+        parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
         done += n
         snapshots.append(_snapshot(fitness, params, state, done))
     result = _merge(parts, float(args.dt))
@@ -125,7 +122,6 @@ def run_simulation(args) -> dict:
 
 def _snapshot(fitness, params, state, step: int) -> dict:
     """Positions and per-walker Ricci scalar (Hessian metric) of one state, for the figure."""
-
     ricci = None
     if state.tess.simplices is not None:
         g = metric_field(fitness, params, params.eps_sigma * state.eps_factor, state.positions)
@@ -135,7 +131,7 @@ def _snapshot(fitness, params, state, step: int) -> dict:
 
 def _merge(parts, dt: float) -> dict:
     """Concatenate segment histories (each segment's last entry is the next one's first)."""
-    names = [k for k, v in parts[0][1].items() if isinstance(v, np.ndarray) and not k.startswith("spectral")]
+    names = [k for k in parts[0][1] if k in jaxgeom.OBSERVABLES]
     series = {name: np.concatenate([h[name][:-1] for _, h in parts] + [parts[-1][1][name][-1:]]) for name in names}
     series["time"] = dt * np.arange(len(series[names[0]]))
     gap_steps = np.concatenate([done + h["spectral_gap_step"] for done, h in parts])
@@ -144,9 +140,9 @@ def _merge(parts, dt: float) -> dict:
     keep = np.r_[True, np.diff(gap_steps) > 0] if gap_steps.size else np.zeros(0, bool)
     return {"series": series, "spectral_gap_step": gap_steps[keep], "spectral_gap": gaps[keep],
             "spectral_components": components[keep],
-            "n_reallocations": sum(h["n_reallocations"] for _, h in parts),
-            "seconds_rebuild": sum(h["seconds_rebuild"] for _, h in parts),
-            "seconds_steps": sum(h["seconds_steps"] for _, h in parts)}
+            "n_reallocations": int(sum(h["n_reallocations"] for _, h in parts)),
+            "seconds_rebuild": float(sum(h["seconds_rebuild"] for _, h in parts)),
+            "seconds_steps": float(sum(h["seconds_steps"] for _, h in parts))}
 
 
 def summary_table(result: dict) -> str:
