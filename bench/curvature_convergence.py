@@ -51,8 +51,8 @@ def curvature_rows(sizes, seed):
             region = tess.interior & jnp.asarray(np.linalg.norm(x, axis=1) < 0.35)
             vol = jaxgeom.voronoi_volumes(tess)
             for name, metric, exact in (("sphere", sphere, d * (d - 1.0)), ("hyperbolic", hyperbolic, -d * (d - 1.0))):
-                r = jaxgeom.ricci_scalar(tess, metric, volumes=vol)
-                avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric, volumes=vol), region))
+                r = jaxgeom.ricci_scalar(tess, metric=metric, volumes=vol)
+                avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol), region))
                 rows.append({"dim": d, "n": n, "metric": name, "exact_R": exact, "region_average_R": avg,
                              "relative_error": abs(avg / exact - 1), "region_walkers": int(region.sum()),
                              "delaunay_s": t_tess})
@@ -65,7 +65,7 @@ def volume_rows(sizes, seed):
     for n in sizes:
         x = np.random.default_rng(seed + n).random((n, 2))
         tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
-        total = float(jnp.sum(jaxgeom.riemannian_volumes(tess, periodic_metric)))
+        total = float(jnp.sum(jaxgeom.riemannian_volumes(tess, metric=periodic_metric)))
         rows.append({"dim": 2, "n": n, "sum_riemannian_volumes": total, "exact": 1.125, "abs_error": abs(total - 1.125)})
         print(json.dumps(rows[-1]))
     return rows

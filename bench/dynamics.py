@@ -156,10 +156,10 @@ def force_versus_numpy(n: int) -> dict:
     tess = jaxgeom.delaunay(x)
     ell = np.float32(0.01)
     vj = jnp.asarray(v)
-    ours = jaxgeom.viscous_force(tess, vj, nu=0.1, mode="kernel", length_scale=ell)
+    ours = jaxgeom.viscous_force(tess, vj, nu=0.1, weights="kernel", length_scale=ell)
     nbrs = np.asarray(tess.neighbors)
     ref = numpy_viscous_force(x, v, nbrs, np.float32(0.1), ell)
-    t_jax = best_of(lambda: jaxgeom.viscous_force(tess, vj, nu=0.1, mode="kernel", length_scale=ell))
+    t_jax = best_of(lambda: jaxgeom.viscous_force(tess, vj, nu=0.1, weights="kernel", length_scale=ell))
     t_np = best_of(lambda: numpy_viscous_force(x, v, nbrs, np.float32(0.1), ell))
     out = {"n": n, "capacity_neighbors": tess.capacity.neighbors, "jax_seconds": t_jax, "numpy_seconds": t_np,
            "speedup": t_np / t_jax, "max_abs_difference": float(np.max(np.abs(np.asarray(ours) - ref)))}

@@ -74,7 +74,7 @@ def convergence(sizes, seed: int) -> list:
         far = np.linalg.norm(x, axis=1) > 0.3
         flat = np.asarray(jaxgeom.geodesic_distances(tess, src))[0][far]
         straight = np.linalg.norm(x[far] - x[src], axis=1)
-        curved = np.asarray(jaxgeom.geodesic_distances(tess, src, sphere))[0][far]
+        curved = np.asarray(jaxgeom.geodesic_distances(tess, src, metric=sphere))[0][far]
         great = np.arccos(np.clip(to_sphere(x[far]) @ to_sphere(x[src]), -1, 1))
         stretch = float(np.median(flat / straight))
         rows.append({"n": n, "flat_ratio_median": stretch, "flat_ratio_min": float(np.min(flat / straight)),

@@ -36,9 +36,9 @@ def best(fn, *args, repeat=3):
 def all_proxies(tess, before):
     vol = jaxgeom.voronoi_volumes(tess)
     metric = jaxgeom.emergent_metric(tess)
-    riem = jaxgeom.riemannian_volumes(tess, metric, volumes=vol)
+    riem = jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol)
     return {
-        "ricci": jaxgeom.ricci_scalar(tess, metric, volumes=vol),
+        "ricci": jaxgeom.ricci_scalar(tess, metric=metric, volumes=vol),
         "volume_distortion": jaxgeom.volume_distortion(tess, riem),
         "shape": jaxgeom.shape_distortion(tess),
         "theta": jaxgeom.raychaudhuri_expansion(before, vol, 0.01, valid=tess.interior),
@@ -63,9 +63,9 @@ def _bench_dim(d: int, n: int, seed: int, dtype: str) -> dict:
     proxies = {
         "voronoi_volumes": (jaxgeom.voronoi_volumes, tess),
         "emergent_metric (proxy 6)": (jaxgeom.emergent_metric, tess),
-        "riemannian_volumes (proxy 8)": (jax.jit(lambda t, g, v: jaxgeom.riemannian_volumes(t, g, volumes=v)), tess, metric, vol),
-        "ricci_scalar (proxy 1)": (jax.jit(lambda t, g, v: jaxgeom.ricci_scalar(t, g, volumes=v)), tess, metric, vol),
-        "deficit_angles": (jax.jit(lambda t, g: jaxgeom.deficit_angles(t, g)), tess, metric),
+        "riemannian_volumes (proxy 8)": (jax.jit(lambda t, g, v: jaxgeom.riemannian_volumes(t, metric=g, volumes=v)), tess, metric, vol),
+        "ricci_scalar (proxy 1)": (jax.jit(lambda t, g, v: jaxgeom.ricci_scalar(t, metric=g, volumes=v)), tess, metric, vol),
+        "deficit_angles": (jax.jit(lambda t, g: jaxgeom.deficit_angles(t, metric=g)), tess, metric),
         "volume_distortion (proxy 2)": (jax.jit(lambda t, v: jaxgeom.volume_distortion(t, v)), tess, vol),
         "shape_distortion (proxy 3)": (jaxgeom.shape_distortion, tess),
         "raychaudhuri_expansion (proxy 4)": (jax.jit(lambda a, b: jaxgeom.raychaudhuri_expansion(a, b, 0.01)), vol, vol),

@@ -119,7 +119,7 @@ def _hinge_vertex_ids(tess: Tessellation):
 
 @takes_tessellation
 @eqx.filter_jit
-def angle_sums(tess: Tessellation, metric=None, *, mode: str = "full"):
+def angle_sums(tess: Tessellation, *, metric=None, mode: str = "full"):
     """Total hinge angle around each hinge, in the metric.
 
     **Returns:**
@@ -157,7 +157,7 @@ def _per_hinge(tess: Tessellation, per_simplex):
 
 @takes_tessellation
 @eqx.filter_jit
-def deficit_angles(tess: Tessellation, metric=None, *, mode: str = "full"):
+def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
     """Regge deficit angles 2 pi - sum of hinge angles, with metric edge lengths.
 
     Hinges on the convex hull carry no deficit (0). A hinge is interior when its
@@ -176,7 +176,7 @@ def deficit_angles(tess: Tessellation, metric=None, *, mode: str = "full"):
 
 @takes_tessellation
 @eqx.filter_jit
-def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
+def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i (NOTES 2).
 
     V_i is the Riemannian cell volume `riemannian_volumes(tess, metric)`. The deficit
@@ -200,12 +200,12 @@ def ricci_scalar(tess: Tessellation, metric=None, *, mode: str = "full", volumes
     points; region averages sum R_i V_i / sum V_i converge (NOTES 2).
     """
     total, _ = _hinge_sums(tess, metric, mode)
-    return _per_volume(tess, total, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
+    return _per_volume(tess, total, riemannian_volumes(tess, metric=metric, mode=mode, volumes=volumes))
 
 
 @takes_tessellation
 @eqx.filter_jit
-def ricci_resolution(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
+def ricci_resolution(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """The smallest |R_i| that `ricci_scalar` resolves in the points' dtype (N,).
 
     Every hinge angle carries an absolute error of about `RICCI_ULPS` x eps (the metric
@@ -221,7 +221,7 @@ def ricci_resolution(tess: Tessellation, metric=None, *, mode: str = "full", vol
     are themselves rounded to eps |x|, which moves R by about eps |x| / h^3 more.
     """
     _, errors = _hinge_sums(tess, metric, mode)
-    return _per_volume(tess, errors, riemannian_volumes(tess, metric, mode=mode, volumes=volumes))
+    return _per_volume(tess, errors, riemannian_volumes(tess, metric=metric, mode=mode, volumes=volumes))
 
 
 def _hinge_sums(tess: Tessellation, metric, mode: str):
@@ -289,8 +289,8 @@ def _per_volume(tess: Tessellation, numerator, volumes):
 @eqx.filter_jit
 def ricci_from_deficits(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, " N"]:
     """R_i from `deficit_angles` directly (2D and 3D): the textbook form of `ricci_scalar`."""
-    delta = deficit_angles(tess, metric, mode=mode)
-    vol = riemannian_volumes(tess, metric, mode=mode)
+    delta = deficit_angles(tess, metric=metric, mode=mode)
+    vol = riemannian_volumes(tess, metric=metric, mode=mode)
     if tess.dim == 2:
         return _per_volume(tess, 2.0 * delta, vol)
-    return _per_volume(tess, jnp.sum(delta * edge_lengths(tess, metric, mode=mode), axis=1), vol)
+    return _per_volume(tess, jnp.sum(delta * edge_lengths(tess, metric=metric, mode=mode), axis=1), vol)

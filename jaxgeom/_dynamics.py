@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
-from ._forces import VISCOUS_MODES, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights
+from ._forces import VISCOUS_WEIGHTS, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights
 from ._graph import Tessellation
 from ._metric import HESSIAN_FLOORS, eigh, hessian_metric
 from ._simplex import small_cholesky
@@ -69,7 +69,7 @@ class SwarmParams(eqx.Module):
       cloned walkers land this many mean spacings from their companion.
     - `reward_power`, `distance_power`: exponents a, b of the virtual reward.
     - `nu_initial`: start of the nu annealing schedule (chapter: 0.01 -> nu).
-    - static: `mode` (viscous weights, `VISCOUS_MODES`), `volume_weighting`,
+    - static: `weights` (the viscous weight rule, `VISCOUS_WEIGHTS`), `volume_weighting`,
       `anisotropic` (D = g^-1), `cloning`, `anneal_nu` (nu linear from
       `nu_initial` to `nu` over the run), `adapt_length_scale`,
       `adapt_eps_sigma` (x10 whenever max cond(g) > 1e6), `floor` ("clip"/"softabs").
@@ -87,7 +87,7 @@ class SwarmParams(eqx.Module):
     reward_power: Float[Array, ""] = _param("reward_power", 1.0)
     distance_power: Float[Array, ""] = _param("distance_power", 1.0)
     nu_initial: Float[Array, ""] = _param("nu_initial", 0.01)
-    mode: str = eqx.field(static=True, default="kernel")
+    weights: str = eqx.field(static=True, default="kernel")
     volume_weighting: bool = eqx.field(static=True, default=False)
     anisotropic: bool = eqx.field(static=True, default=False)
     cloning: bool = eqx.field(static=True, default=True)
@@ -97,7 +97,7 @@ class SwarmParams(eqx.Module):
     floor: str = eqx.field(static=True, default="clip")
 
     def __check_init__(self):
-        check_choice(self.mode, "mode", VISCOUS_MODES)
+        check_choice(self.weights, "weights", VISCOUS_WEIGHTS)
         check_choice(self.floor, "floor", HESSIAN_FLOORS)
         for name in ("gamma", "temperature", "nu", "eps_sigma", "clone_rate", "nu_initial"):
             check_nonnegative(getattr(self, name), name)
@@ -112,7 +112,7 @@ class SwarmParams(eqx.Module):
 
     @property
     def needs_metric(self) -> bool:
-        return self.anisotropic or self.mode.startswith("metric") or self.adapt_eps_sigma
+        return self.anisotropic or self.weights.startswith("metric") or self.adapt_eps_sigma
 
 
 class SwarmState(eqx.Module):
@@ -212,7 +212,7 @@ def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
 
 def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, g):
     """Row-normalized weights (and row sums) used by both V half-steps."""
-    w = weights_to_normalize(tess, mode=params.mode, length_scale=viscous_length(params, state, tess), metric=g,
+    w = weights_to_normalize(tess, weights=params.weights, length_scale=viscous_length(params, state, tess), metric=g,
                              alpha=params.alpha)
     if params.volume_weighting:
         sqrt_det = 1.0 if g is None else jnp.sqrt(jnp.maximum(jnp.linalg.det(g), 0.0))

@@ -81,7 +81,7 @@ def _solve_normal(a, b, rcond: float = RCOND):
 
 @takes_tessellation
 @eqx.filter_jit
-def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weighting: str = "uniform",
+def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weights: str = "uniform",
                       order: int = 2, with_info: bool = False):
     """Gradient of a field sampled at the walkers.
 
@@ -92,11 +92,11 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
     - `method`: "wls" (default) fits a local polynomial by least squares and returns
       its linear coefficients. `order=2` (default) fits the quadratic model of
       [`jaxgeom.estimate_hessian`][] (with its 2-ring fallback), exact for quadratic V;
-      `order=1` fits V_j - V_i = g . (x_j - x_i) over the 1-ring with `weighting`,
+      `order=1` fits V_j - V_i = g . (x_j - x_i) over the 1-ring with `weights`,
       exact for linear V and cheaper (NOTES 5). "fd" is the chapter's
       one-sided formula sum_j w_ij (V_j - V_i)(x_j - x_i) / |x_j - x_i|^2 with
       weights normalised to sum 1; it is not exact even for linear V.
-    - `weighting`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"
+    - `weights`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"
       (exp(-|dx|^2 / 2 s^2), s = the walker's median neighbour distance).
     - `with_info`: also return an [`jaxgeom.EstimateInfo`][].
 
@@ -108,7 +108,7 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
     On a k-NN graph the remedy is a larger k.
     """
     check_choice(method, "method", GRADIENT_METHODS)
-    check_weights(weighting, "weighting", WEIGHTINGS)
+    check_weights(weights, "weights", WEIGHTINGS)
     if order not in (1, 2):
         raise ValueError(f"`order` must be 1 (linear fit) or 2 (quadratic fit); got {order!r}.")
     values = jnp.asarray(values, tess.points.dtype)
@@ -117,7 +117,7 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
         return (grad, info) if with_info else grad
     dx = neighbor_displacements(tess)
     dv, usable = _value_differences(tess, values)
-    w = _weights(dx, usable, weighting)
+    w = _weights(dx, usable, weights)
     if method == "fd":
         sq = jnp.where(usable, jnp.sum(dx * dx, axis=-1), 1.0)
         w = w / jnp.maximum(jnp.sum(w, axis=1, keepdims=True), jnp.finfo(w.dtype).tiny)

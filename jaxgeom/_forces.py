@@ -2,7 +2,7 @@
 
 F_i = nu * sum_j w_ij / sum_k w_ik * (v_j - v_i) over the neighbours listed in
 the Tessellation. Conservation (spec NOTES 4): for a symmetric weight (every
-mode on a Delaunay graph, without volume weighting) sum_i deg_i F_i = 0 and the
+weight rule on a Delaunay graph, without volume weighting) sum_i deg_i F_i = 0 and the
 degree-weighted velocity variance never increases; for any non-negative
 weights an explicit step with nu dt <= 1 makes each new velocity a convex
 combination of old ones. The plain mean velocity is NOT conserved.
@@ -20,11 +20,11 @@ from ._checks import check_nonnegative, takes_tessellation
 from ._graph import Tessellation
 from ._weights import DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph
 
-VISCOUS_MODES = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
+VISCOUS_WEIGHTS = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
 
 
-def _check_force_inputs(tess: Tessellation, mode: str, metric, volume_weights) -> None:
-    check_weights(mode, "mode", VISCOUS_MODES, metric)
+def _check_force_inputs(tess: Tessellation, weights: str, metric, volume_weights) -> None:
+    check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)
     n = tess.points.shape[0]
     if volume_weights is not None:
         if jnp.shape(volume_weights) != (n,):
@@ -34,29 +34,29 @@ def _check_force_inputs(tess: Tessellation, mode: str, metric, volume_weights) -
 
 
 @takes_tessellation
-def edge_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
+def edge_weights(tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None,
                  alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
     """Raw edge weights w_ij of the viscous force, aligned with `tess.neighbors` (0 on padding).
 
-    `mode` and the other arguments as in [`jaxgeom.viscous_force`][]."""
-    check_weights(mode, "mode", VISCOUS_MODES, metric)
+    `weights` and the other arguments as in [`jaxgeom.viscous_force`][]."""
+    check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)
     check_length_scale(length_scale)
     check_alpha(alpha)
-    return weights_on_graph(tess, mode, metric=metric, length_scale=length_scale, alpha=alpha)
+    return weights_on_graph(tess, weights, metric=metric, length_scale=length_scale, alpha=alpha)
 
 
-def weights_to_normalize(tess: Tessellation, *, mode: str, length_scale=None, metric=None,
+def weights_to_normalize(tess: Tessellation, *, weights: str, length_scale=None, metric=None,
                          alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
     """`edge_weights` up to a per-row factor that row normalisation cancels: kernel weights are
     divided by each row's largest, so that they tend to nearest-neighbour weighting as l -> 0
     instead of underflowing to 0 / 0."""
-    return weights_on_graph(tess, mode, metric=metric, length_scale=length_scale, alpha=alpha, shift="row")
+    return weights_on_graph(tess, weights, metric=metric, length_scale=length_scale, alpha=alpha, shift="row")
 
 
-def row_normalized_weights(tess: Tessellation, *, mode: str = "kernel", length_scale=None, metric=None,
+def row_normalized_weights(tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None,
                            volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
     """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0."""
-    w = weights_to_normalize(tess, mode=mode, length_scale=length_scale, metric=metric, alpha=alpha)
+    w = weights_to_normalize(tess, weights=weights, length_scale=length_scale, metric=metric, alpha=alpha)
     return normalize_rows(with_volume_weights(tess, w, volume_weights))[0]
 
 
@@ -87,7 +87,7 @@ def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Flo
 
 
 @takes_tessellation
-def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", length_scale=None, metric=None,
+def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel", length_scale=None, metric=None,
                   volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N d"]:
     """The scutoidal viscous force of Definition 834, O(N K).
 
@@ -96,7 +96,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
     - `tess`: Delaunay or k-NN [`jaxgeom.Tessellation`][] at the current positions.
     - `velocities`: (N, d) walker velocities.
     - `nu`: coupling strength nu >= 0 (a differentiable scalar).
-    - `mode`: edge weights w_ij (Definition 835): "uniform" (1), "kernel"
+    - `weights`: edge weights w_ij (Definition 835): "uniform" (1), "kernel"
       (exp(-|dx|^2 / (2 l^2))), "inverse_distance" (1 / (|dx| + eps)),
       "metric_diagonal" (1 / (|dx|_diag(g_edge) + eps)), "metric_full"
       (1 / (sqrt(dx^T g_edge dx) + eps)); eps = 1e-8 times the mean nearest-neighbour
@@ -113,16 +113,16 @@ def viscous_force(tess: Tessellation, velocities, *, nu, mode: str = "kernel", l
 
     (N, d) forces; 0 for walkers without neighbours.
     """
-    _check_force_inputs(tess, mode, metric, volume_weights)
+    _check_force_inputs(tess, weights, metric, volume_weights)
     check_nonnegative(nu, "nu")
     check_alpha(alpha)
     check_length_scale(length_scale)
     scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
-    return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), mode, scale, metric, volume_weights, alpha)
+    return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), weights, scale, metric, volume_weights, alpha)
 
 
 @eqx.filter_jit
-def _viscous_force(tess, velocities, nu, mode, length_scale, metric, volume_weights, alpha):
-    w = row_normalized_weights(tess, mode=mode, length_scale=length_scale, metric=metric,
+def _viscous_force(tess, velocities, nu, weights, length_scale, metric, volume_weights, alpha):
+    w = row_normalized_weights(tess, weights=weights, length_scale=length_scale, metric=metric,
                                volume_weights=volume_weights, alpha=alpha)
     return apply_viscous(tess, w, velocities, nu)

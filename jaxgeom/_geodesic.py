@@ -18,7 +18,7 @@ GEODESIC_METHODS = ("dijkstra", "bellman_ford")
 
 
 @takes_tessellation
-def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = "full",
+def geodesic_distances(tess: Tessellation, sources, *, metric=None, mode: str = "full",
                        method: str = "dijkstra") -> Float[Array, "M N"]:
     """Shortest-path distances along graph edges weighted by metric edge lengths.
 
@@ -40,7 +40,7 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
     """
     check_choice(method, "method", GEODESIC_METHODS)
     src = _check_sources(sources, tess.n_points)
-    lengths = edge_lengths(tess, metric, mode=mode)
+    lengths = edge_lengths(tess, metric=metric, mode=mode)
     if method == "dijkstra":
         return jnp.asarray(_dijkstra(tess, lengths, np.asarray(src)), dtype=lengths.dtype)
     symmetric = tess.simplices is not None

@@ -119,7 +119,7 @@ def metric_defects(tess: Tessellation, metric) -> Bool[Array, " N"]:
 
 @takes_tessellation
 @eqx.filter_jit
-def edge_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> Float[Array, "N K"]:
+def edge_lengths(tess: Tessellation, *, metric=None, mode: str = "full") -> Float[Array, "N K"]:
     """Metric length sqrt(dx^T g_edge dx) of every neighbour edge, aligned with `tess.neighbors`.
 
     **Arguments:**
@@ -248,7 +248,7 @@ def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> F
 
 @takes_tessellation
 @eqx.filter_jit
-def riemannian_volumes(tess: Tessellation, metric=None, *, mode: str = "full", volumes=None) -> Float[Array, " N"]:
+def riemannian_volumes(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Riemannian cell volumes V_i sqrt(det g(x_i)) (proxy 8).
 
     **Arguments:**

@@ -51,15 +51,15 @@ def _observed_metric(s: _View):
 
 def _mean_ricci(s: _View):
     g = _observed_metric(s)
-    ricci = ricci_scalar(s.new.tess, g, volumes=s.new.volumes)
-    return riemannian_mean(ricci, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+    ricci = ricci_scalar(s.new.tess, metric=g, volumes=s.new.volumes)
+    return riemannian_mean(ricci, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes), s.new.interior)
 
 
 def _ricci_resolution(s: _View):
     """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
     g = _observed_metric(s)
-    floor = ricci_resolution(s.new.tess, g, volumes=s.new.volumes)
-    return riemannian_mean(floor, riemannian_volumes(s.new.tess, g, volumes=s.new.volumes), s.new.interior)
+    floor = ricci_resolution(s.new.tess, metric=g, volumes=s.new.volumes)
+    return riemannian_mean(floor, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes), s.new.interior)
 
 
 def _mean_expansion(s: _View):
@@ -70,8 +70,8 @@ def _mean_expansion(s: _View):
 
 
 def _degree_weighted_variance(s: _View):
-    g = _observed_metric(s) if s.params.mode.startswith("metric") else None
-    w = weights_on_graph(s.new.tess, s.params.mode, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
+    g = _observed_metric(s) if s.params.weights.startswith("metric") else None
+    w = weights_on_graph(s.new.tess, s.params.weights, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
     return _variance(s.new.velocities, jnp.sum(w, axis=1))
 
 

@@ -85,7 +85,7 @@ def test_kernels_take_a_tessellation_and_a_metric_of_the_right_kind(tess):
     with pytest.raises(TypeError, match=r"jaxgeom.ricci_scalar takes a jaxgeom.Tessellation"):
         jaxgeom.ricci_scalar([[0.0, 1.0]])
     with pytest.raises(TypeError, match=r"got the string 'euclidean'. For the Euclidean metric pass metric=None"):
-        jaxgeom.ricci_scalar(tess, "euclidean")
+        jaxgeom.ricci_scalar(tess, metric="euclidean")
 
 
 def test_box_and_ragged_points_are_refused_clearly():
@@ -100,9 +100,9 @@ def test_box_and_ragged_points_are_refused_clearly():
 
 def metric_calls(tess, g):
     v = np.zeros((tess.n_points, 2))
-    return [lambda: jaxgeom.ricci_scalar(tess, g), lambda: jaxgeom.edge_lengths(tess, g),
-            lambda: jaxgeom.viscous_force(tess, v, nu=0.1, mode="metric_full", metric=g),
-            lambda: jaxgeom.geodesic_distances(tess, 0, g), lambda: jaxgeom.riemannian_volumes(tess, g)]
+    return [lambda: jaxgeom.ricci_scalar(tess, metric=g), lambda: jaxgeom.edge_lengths(tess, metric=g),
+            lambda: jaxgeom.viscous_force(tess, v, nu=0.1, weights="metric_full", metric=g),
+            lambda: jaxgeom.geodesic_distances(tess, 0, metric=g), lambda: jaxgeom.riemannian_volumes(tess, metric=g)]
 
 
 @pytest.mark.parametrize("call", range(5))
@@ -123,7 +123,7 @@ def test_metric_arrays_must_be_symmetric_positive_definite_and_real(tess, call):
 def test_a_metric_with_nan_rows_of_isolated_walkers_is_accepted(tess):
     g = np.tile(np.eye(2), (200, 1, 1))
     g[5] = np.nan  # the emergent metric of a walker without neighbours
-    volumes = np.asarray(jaxgeom.riemannian_volumes(tess, g))
+    volumes = np.asarray(jaxgeom.riemannian_volumes(tess, metric=g))
     others = np.asarray(tess.interior) & (np.arange(200) != 5)
     assert np.isnan(volumes[5]) and np.isfinite(volumes[others]).all()
 
@@ -146,7 +146,7 @@ def test_metric_defects_flags_the_walkers_where_a_callable_is_not_a_metric(d):
     flags = jax.jit(jaxgeom.metric_defects, static_argnums=1)(tess, saddle_left)
     np.testing.assert_array_equal(flags, x[:, 0] <= 0.5)
     # The kernels take the callable as given: a negative definite one gives NaN lengths.
-    lengths = np.asarray(jaxgeom.edge_lengths(tess, lambda p: saddle_left(p) - 2 * jnp.eye(d)))
+    lengths = np.asarray(jaxgeom.edge_lengths(tess, metric=lambda p: saddle_left(p) - 2 * jnp.eye(d)))
     assert np.isnan(lengths[np.asarray(tess.neighbor_mask)]).all()
 
 
@@ -266,20 +266,20 @@ def test_a_checked_jax_metric_is_not_checked_again(tess, monkeypatch):
     import jaxgeom._checks as checks
 
     g = jnp.asarray(np.tile(np.eye(2), (200, 1, 1)))
-    jaxgeom.riemannian_volumes(tess, g)
+    jaxgeom.riemannian_volumes(tess, metric=g)
     monkeypatch.setattr(checks, "_positive_definite", lambda *a: pytest.fail("checked twice"))
-    jaxgeom.ricci_scalar(tess, g)  # the same immutable array: no second O(N) check
+    jaxgeom.ricci_scalar(tess, metric=g)  # the same immutable array: no second O(N) check
     with pytest.raises(pytest.fail.Exception, match="checked twice"):
-        jaxgeom.ricci_scalar(tess, np.asarray(g))  # numpy arrays can change: checked every call
+        jaxgeom.ricci_scalar(tess, metric=np.asarray(g))  # numpy arrays can change: checked every call
 
 
-def test_edge_weights_refuse_an_unknown_mode_instead_of_returning_inverse_distances(tess):
-    with pytest.raises(ValueError, match=r"unknown mode 'kernal'; valid values are 'uniform', 'kernel', "
+def test_edge_weights_refuse_an_unknown_rule_instead_of_returning_inverse_distances(tess):
+    with pytest.raises(ValueError, match=r"unknown weights 'kernal'; valid values are 'uniform', 'kernel', "
                                          r"'inverse_distance', 'metric_diagonal', 'metric_full'"):
-        jaxgeom.edge_weights(tess, mode="kernal")
-    with pytest.raises(ValueError, match=r"mode 'metric_full' needs `metric`"):
-        jaxgeom.edge_weights(tess, mode="metric_full")
+        jaxgeom.edge_weights(tess, weights="kernal")
+    with pytest.raises(ValueError, match=r"weights 'metric_full' needs `metric`"):
+        jaxgeom.edge_weights(tess, weights="metric_full")
     with pytest.raises(ValueError, match=r"unknown weights 'gaussian'; valid values are 'kernel', 'uniform'"):
         jaxgeom.graph_laplacian(tess, weights="gaussian")
-    with pytest.raises(ValueError, match=r"unknown weighting 'kernel'; valid values are 'uniform'"):
-        jaxgeom.estimate_gradient(tess, np.zeros(200), method="fd", weighting="kernel")
+    with pytest.raises(ValueError, match=r"unknown weights 'kernel'; valid values are 'uniform'"):
+        jaxgeom.estimate_gradient(tess, np.zeros(200), method="fd", weights="kernel")

@@ -63,8 +63,8 @@ def test_discrete_gauss_bonnet_on_a_disk(metric):
     if metric == "array":
         metric = jaxgeom.emergent_metric(tess)
     hull = np.asarray(tess.hull)
-    sums = np.asarray(jaxgeom.angle_sums(tess, metric))
-    delta = np.asarray(jaxgeom.deficit_angles(tess, metric))
+    sums = np.asarray(jaxgeom.angle_sums(tess, metric=metric))
+    delta = np.asarray(jaxgeom.deficit_angles(tess, metric=metric))
     assert np.all(delta[hull] == 0.0), "hull hinges carry no deficit"
     total = delta[~hull].sum() + np.sum(np.pi - sums[hull])
     assert abs(total - 2 * np.pi) < 1e-9
@@ -81,8 +81,8 @@ def test_constant_curvature_region_average(d, n, metric, exact, tol):
     tess = jaxgeom.delaunay(x)
     region = tess.interior & jnp.asarray(np.linalg.norm(x, axis=1) < 0.35)
     assert int(region.sum()) >= 1000
-    r = jaxgeom.ricci_scalar(tess, metric)
-    avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric), region))
+    r = jaxgeom.ricci_scalar(tess, metric=metric)
+    avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric), region))
     assert abs(avg / exact - 1) < tol
 
 
@@ -91,7 +91,7 @@ def test_ricci_equals_textbook_deficit_form(d):
     x = ball(1500, d, seed=4)
     tess = jaxgeom.delaunay(x)
     metric = sphere
-    r = np.asarray(jaxgeom.ricci_scalar(tess, metric))
+    r = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric))
     r_textbook = np.asarray(ricci_from_deficits(tess, metric))
     ok = np.asarray(tess.tier) > 0
     np.testing.assert_allclose(r[ok], r_textbook[ok], rtol=1e-8, atol=1e-8 * np.abs(r[ok]).max())
@@ -101,12 +101,12 @@ def test_mode_none_ignores_the_metric_and_diagonal_equals_full_for_diagonal_metr
     x = ball(1500, 2, seed=5)
     tess = jaxgeom.delaunay(x)
     interior = np.asarray(tess.tier) == 2
-    assert np.all(np.asarray(jaxgeom.ricci_scalar(tess, sphere, mode="none"))[interior] == 0.0)
-    full = np.asarray(jaxgeom.ricci_scalar(tess, sphere))
-    diag = np.asarray(jaxgeom.ricci_scalar(tess, sphere, mode="diagonal"))
+    assert np.all(np.asarray(jaxgeom.ricci_scalar(tess, metric=sphere, mode="none"))[interior] == 0.0)
+    full = np.asarray(jaxgeom.ricci_scalar(tess, metric=sphere))
+    diag = np.asarray(jaxgeom.ricci_scalar(tess, metric=sphere, mode="diagonal"))
     np.testing.assert_allclose(diag[interior], full[interior], rtol=1e-12)
-    aniso_full = np.asarray(jaxgeom.ricci_scalar(tess, anisotropic))
-    aniso_diag = np.asarray(jaxgeom.ricci_scalar(tess, anisotropic, mode="diagonal"))
+    aniso_full = np.asarray(jaxgeom.ricci_scalar(tess, metric=anisotropic))
+    aniso_diag = np.asarray(jaxgeom.ricci_scalar(tess, metric=anisotropic, mode="diagonal"))
     assert np.abs(aniso_full - aniso_diag)[interior].max() > 1e-3
 
 
@@ -115,8 +115,8 @@ def test_no_nan_or_inf_under_strongly_anisotropic_3d_metric(rng, dtype):
     x = rng.random((1500, 3))
     with jax.enable_x64(dtype == "float64"):
         tess = jaxgeom.delaunay(x.astype(dtype))
-        r = np.asarray(jaxgeom.ricci_scalar(tess, anisotropic_3d))
-        delta = np.asarray(jaxgeom.deficit_angles(tess, anisotropic_3d))
+        r = np.asarray(jaxgeom.ricci_scalar(tess, metric=anisotropic_3d))
+        delta = np.asarray(jaxgeom.deficit_angles(tess, metric=anisotropic_3d))
         sq = np.asarray(jaxgeom._metric.simplex_sq_lengths(tess, anisotropic_3d))
     assert r.dtype == np.dtype(dtype)
     keep = np.asarray(tess.tier) > 0
@@ -136,11 +136,11 @@ def test_grad_of_mean_ricci_and_riemannian_volume_wrt_eps_sigma():
 
     def mean_ricci(eps):
         metric = jaxgeom.hessian_metric(double_well, eps)
-        r = jaxgeom.ricci_scalar(tess, metric)
-        return jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric), tess.interior)
+        r = jaxgeom.ricci_scalar(tess, metric=metric)
+        return jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric), tess.interior)
 
     def total_volume(eps):
-        vol = jaxgeom.riemannian_volumes(tess, jaxgeom.hessian_metric(double_well, eps))
+        vol = jaxgeom.riemannian_volumes(tess, metric=jaxgeom.hessian_metric(double_well, eps))
         return jnp.sum(jnp.where(tess.interior, vol, 0.0))
 
     for fn in (mean_ricci, total_volume):
@@ -157,7 +157,7 @@ def test_curvature_bad_input(rng):
         jaxgeom.ricci_scalar(knn)
     tess = jaxgeom.delaunay(rng.random((50, 2)))
     with pytest.raises(ValueError, match="unknown mode 'exact'"):
-        jaxgeom.ricci_scalar(tess, sphere, mode="exact")
+        jaxgeom.ricci_scalar(tess, metric=sphere, mode="exact")
     tess4 = jaxgeom.delaunay(rng.random((60, 4)))
     with pytest.raises(ValueError, match="d = 2 and 3"):
         jaxgeom.deficit_angles(tess4)

@@ -76,7 +76,7 @@ def test_cloning_improves_the_best_fitness_on_rastrigin(rng):
 
 def test_viscous_only_dynamics_reach_a_common_velocity(rng):
     state = swarm(rng, n=200, fitness=flat, velocities=rng.normal(size=(200, 2)))
-    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, mode="uniform", cloning=False)
+    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, weights="uniform", cloning=False)
     final, history = jaxgeom.simulate(flat, state, params, n_steps=600, rebuild_every=10)
     variance = history["velocity_variance"]
     assert variance[-1] < 1e-5 * variance[0] and variance[-1] < 0.1 * variance[300]  # still decaying geometrically
@@ -175,7 +175,7 @@ def test_gradient_through_a_whole_simulation_matches_finite_differences(rng):
 
     def loss(theta):
         params = jaxgeom.SwarmParams(dt=0.05, temperature=0.1, nu=theta[0], eps_sigma=theta[1],
-                                     mode="metric_full", anisotropic=True, cloning=False)
+                                     weights="metric_full", anisotropic=True, cloning=False)
         _, history = jaxgeom.simulate(quadratic, state, params, n_steps=10, rebuild="callback",
                                       observe=("mean_fitness",))
         return history["mean_fitness"][-1]
@@ -207,7 +207,7 @@ def test_capacity_overflow_reallocates_instead_of_truncating(rng, rebuild):
 
 def test_volume_weighted_metric_mode_runs_and_keeps_the_velocity_range(rng):
     state = swarm(rng, n=300, fitness=flat, velocities=rng.normal(size=(300, 2)))
-    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, mode="metric_diagonal",
+    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, weights="metric_diagonal",
                                  volume_weighting=True, cloning=False)
     final, history = jaxgeom.simulate(flat, state, params, n_steps=20, observe=("velocity_variance",))
     v0, v1 = np.asarray(state.velocities), np.asarray(final.velocities)
@@ -224,7 +224,7 @@ def test_knn_swarm_in_4d(rng):
 
 
 @pytest.mark.parametrize("kwargs, error, match", [
-    (dict(mode="gauss"), ValueError, "unknown mode 'gauss'; valid values are 'uniform'"),
+    (dict(weights="gauss"), ValueError, "unknown weights 'gauss'; valid values are 'uniform'"),
     (dict(nu=-1.0), ValueError, "`nu` must be a finite number >= 0"),
     (dict(dt=-0.1), ValueError, "`dt` must be a finite number > 0"),
     (dict(temperature=-1.0), ValueError, "`temperature` must be a finite number >= 0"),

@@ -57,7 +57,7 @@ def test_fd_gradient_reproduces_the_chapter_formula(rng):
     tess = jaxgeom.delaunay(x)
     nbrs = np.asarray(tess.neighbors)
     for weighting in ("uniform", "inverse_distance", "gaussian"):
-        ours = np.asarray(jaxgeom.estimate_gradient(tess, values, method="fd", weighting=weighting))
+        ours = np.asarray(jaxgeom.estimate_gradient(tess, values, method="fd", weights=weighting))
         for i in range(60):
             js = nbrs[i][nbrs[i] < 60]
             dx = x[js] - x[i]
@@ -125,8 +125,8 @@ def test_estimation_bad_input(rng):
     tess = jaxgeom.delaunay(rng.random((30, 2)))
     with pytest.raises(ValueError, match="unknown method 'central'; valid values are 'wls', 'fd'"):
         jaxgeom.estimate_gradient(tess, np.zeros(30), method="central")
-    with pytest.raises(ValueError, match="unknown weighting 'cubic'"):
-        jaxgeom.estimate_gradient(tess, np.zeros(30), weighting="cubic")
+    with pytest.raises(ValueError, match="unknown weights 'cubic'"):
+        jaxgeom.estimate_gradient(tess, np.zeros(30), weights="cubic")
     with pytest.raises(ValueError, match="`order` must be 1"):
         jaxgeom.estimate_gradient(tess, np.zeros(30), order=3)
     with pytest.raises(ValueError, match="unknown kind 'mixed'; valid values are 'full', 'diagonal'"):

@@ -54,7 +54,7 @@ def test_viscous_force_equals_dense_definition(rng, graph, mode, volume):
     vol = rng.uniform(0.5, 2.0, n) if volume else None
     ell = 3.0 * float(np.mean(np.min(np.where(np.asarray(tess.neighbor_mask),
                                                 np.asarray(jaxgeom.edge_lengths(tess)), np.inf), axis=1)))
-    ours = jaxgeom.viscous_force(tess, v, nu=0.3, mode=mode, metric=g if mode.startswith("metric") else None,
+    ours = jaxgeom.viscous_force(tess, v, nu=0.3, weights=mode, metric=g if mode.startswith("metric") else None,
                                  volume_weights=vol)
     ref = dense_viscous_force(x, v, np.asarray(tess.neighbors), 0.3, mode, ell, g, vol)
     np.testing.assert_allclose(np.asarray(ours), ref, atol=1e-12)
@@ -64,13 +64,13 @@ def test_explicit_length_scale_and_callable_metric(rng):
     x = rng.random((300, 2))
     tess = jaxgeom.delaunay(x)
     v = rng.normal(size=(300, 2))
-    ours = jaxgeom.viscous_force(tess, v, nu=1.0, mode="kernel", length_scale=0.07)
+    ours = jaxgeom.viscous_force(tess, v, nu=1.0, weights="kernel", length_scale=0.07)
     np.testing.assert_allclose(np.asarray(ours), dense_viscous_force(x, v, np.asarray(tess.neighbors), 1.0,
                                                                      "kernel", 0.07), atol=1e-12)
     # A constant callable metric equals the same constant array metric.
     g0 = jnp.array([[2.0, 0.3], [0.3, 0.5]])
-    by_callable = jaxgeom.viscous_force(tess, v, nu=1.0, mode="metric_full", metric=lambda p: g0)
-    by_array = jaxgeom.viscous_force(tess, v, nu=1.0, mode="metric_full", metric=jnp.tile(g0, (300, 1, 1)))
+    by_callable = jaxgeom.viscous_force(tess, v, nu=1.0, weights="metric_full", metric=lambda p: g0)
+    by_array = jaxgeom.viscous_force(tess, v, nu=1.0, weights="metric_full", metric=jnp.tile(g0, (300, 1, 1)))
     np.testing.assert_allclose(np.asarray(by_callable), np.asarray(by_array), atol=1e-12)
 
 
@@ -79,11 +79,11 @@ def test_degree_weighted_momentum_and_variance_for_symmetric_weights(rng, mode):
     x = rng.random((300, 2))
     tess = jaxgeom.delaunay(x)
     g = random_metric(rng, 300, 2) if mode.startswith("metric") else None
-    w = jaxgeom.edge_weights(tess, mode=mode, metric=g)
+    w = jaxgeom.edge_weights(tess, weights=mode, metric=g)
     deg = np.asarray(jnp.sum(w, axis=1))
     v = jnp.asarray(rng.normal(size=(300, 2)))
     nu, dt = 0.8, 0.5
-    step = jax.jit(lambda u: u + dt * jaxgeom.viscous_force(tess, u, nu=nu, mode=mode, metric=g))
+    step = jax.jit(lambda u: u + dt * jaxgeom.viscous_force(tess, u, nu=nu, weights=mode, metric=g))
 
     def weighted_variance(u):
         u = np.asarray(u)
@@ -91,7 +91,7 @@ def test_degree_weighted_momentum_and_variance_for_symmetric_weights(rng, mode):
         return float(deg @ np.sum((u - mean) ** 2, axis=1))
 
     momentum0 = deg @ np.asarray(v)
-    force = np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, mode=mode, metric=g))
+    force = np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, weights=mode, metric=g))
     np.testing.assert_allclose(deg @ force, 0.0, atol=1e-13 * np.abs(deg[:, None] * force).sum())
     variances = [weighted_variance(v)]
     for _ in range(100):
@@ -101,7 +101,7 @@ def test_degree_weighted_momentum_and_variance_for_symmetric_weights(rng, mode):
     assert np.all(np.diff(variances) <= 1e-12 * variances[0])
     assert variances[-1] < 0.5 * variances[0]
     # The plain mean velocity is not conserved (NOTES 4): the chapter's claim fails here.
-    assert not np.allclose(np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, mode=mode, metric=g)).sum(0), 0.0,
+    assert not np.allclose(np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, weights=mode, metric=g)).sum(0), 0.0,
                            atol=1e-9)
 
 
@@ -113,7 +113,7 @@ def test_explicit_steps_stay_inside_the_old_velocity_range(rng, graph, mode, vol
     vol = rng.uniform(0.1, 3.0, 300) if volume else None
     v = jnp.asarray(rng.normal(size=(300, 2)))
     for _ in range(100):
-        new = v + 1.0 * jaxgeom.viscous_force(tess, v, nu=1.0, mode=mode, volume_weights=vol)  # nu dt = 1
+        new = v + 1.0 * jaxgeom.viscous_force(tess, v, nu=1.0, weights=mode, volume_weights=vol)  # nu dt = 1
         lo, hi = np.asarray(v).min(0), np.asarray(v).max(0)
         assert np.all(np.asarray(new) >= lo - 1e-12) and np.all(np.asarray(new) <= hi + 1e-12)
         v = new
@@ -122,7 +122,7 @@ def test_explicit_steps_stay_inside_the_old_velocity_range(rng, graph, mode, vol
 def test_viscous_only_dynamics_converge_to_a_common_velocity(rng):
     tess = jaxgeom.delaunay(rng.random((200, 2)))
     v = jnp.asarray(rng.normal(size=(200, 2)))
-    step = jax.jit(lambda u: u + 0.5 * jaxgeom.viscous_force(tess, u, nu=1.0, mode="kernel"))
+    step = jax.jit(lambda u: u + 0.5 * jaxgeom.viscous_force(tess, u, nu=1.0, weights="kernel"))
     for _ in range(2000):
         v = step(v)
     assert float(jnp.max(jnp.std(v, axis=0))) < 1e-6
@@ -135,7 +135,7 @@ def test_isolated_walkers_get_zero_force():
     nbrs[0] = tess.n_points  # walker 0 loses its neighbours
     tess = jaxgeom.Tessellation(tess.points, jnp.asarray(nbrs), tess.tier, tess.hull, None, None, None, None,
                                 tess.overflow)
-    force = jaxgeom.viscous_force(tess, np.ones((5, 2)) * np.arange(5)[:, None], nu=1.0, mode="kernel")
+    force = jaxgeom.viscous_force(tess, np.ones((5, 2)) * np.arange(5)[:, None], nu=1.0, weights="kernel")
     assert np.all(np.asarray(force[0]) == 0.0) and np.all(np.isfinite(np.asarray(force)))
 
 
@@ -148,9 +148,9 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
         t = jaxgeom.Tessellation(pts, tess.neighbors, tess.tier, tess.hull, tess.simplices, None, None, None,
                                  tess.overflow)
         metric = lambda p: scale * jnp.eye(2) + jnp.outer(p, p)  # noqa: E731
-        f = jaxgeom.viscous_force(t, v, nu=nu, mode="kernel", length_scale=ell)
-        h = jaxgeom.viscous_force(t, v, nu=nu, mode="metric_full", metric=metric)
-        k = jaxgeom.viscous_force(t, v, nu=nu, mode="inverse_distance")
+        f = jaxgeom.viscous_force(t, v, nu=nu, weights="kernel", length_scale=ell)
+        h = jaxgeom.viscous_force(t, v, nu=nu, weights="metric_full", metric=metric)
+        k = jaxgeom.viscous_force(t, v, nu=nu, weights="inverse_distance")
         return jnp.sum(f**2) + jnp.sum(h * v) + jnp.sum(k[:, 0])
 
     args = (0.3, 0.05, x, 1.5)
@@ -164,9 +164,9 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(mode="gaussian"), "unknown mode 'gaussian'; valid values are 'uniform', 'kernel'"),
+    (dict(weights="gaussian"), "unknown weights 'gaussian'; valid values are 'uniform', 'kernel'"),
     (dict(nu=-0.1), "`nu` must be a finite number >= 0"),
-    (dict(mode="metric_full"), "needs `metric`"),
+    (dict(weights="metric_full"), "needs `metric`"),
     (dict(length_scale=0.0), "`length_scale` must be a finite number > 0"),
     (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(N,\)"),
     (dict(volume_weights=-np.ones(50)), "`volume_weights` must be >= 0"),

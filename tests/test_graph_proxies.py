@@ -126,8 +126,8 @@ def test_geodesics_with_a_metric_and_unreachable_walkers(rng):
     def metric(p):
         return jnp.diag(jnp.array([1.0 + p[1] ** 2, 2.0]))
 
-    dij = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric))
-    bf = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric, method="bellman_ford"))
+    dij = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric=metric))
+    bf = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric=metric, method="bellman_ford"))
     assert np.isinf(dij[0, 150:]).all() and np.isinf(bf[0, 150:]).all()
     np.testing.assert_allclose(bf[0, :150], dij[0, :150], rtol=1e-10)
 
@@ -137,7 +137,7 @@ def test_grad_through_bellman_ford_matches_finite_difference(rng):
 
     def total(a):
         metric = lambda p: (1.0 + a * p[0] ** 2) * jnp.eye(2) + 0.3 * a * jnp.array([[0.0, 1.0], [1.0, 0.0]])  # noqa: E731
-        return jnp.sum(jaxgeom.geodesic_distances(tess, jnp.array([5, 40]), metric, method="bellman_ford"))
+        return jnp.sum(jaxgeom.geodesic_distances(tess, jnp.array([5, 40]), metric=metric, method="bellman_ford"))
 
     grad = float(jax.grad(total)(0.4))
     h = 1e-6

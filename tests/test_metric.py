@@ -108,14 +108,14 @@ def test_edge_lengths_modes(rng):
                   np.stack([np.full_like(mid[..., 0], 0.3), 1 + mid[..., 1] ** 2], -1)], -2)
     full = np.sqrt(np.einsum("nki,nkij,nkj->nk", dx, g, dx))
     diag = np.sqrt(np.einsum("nki,nkij,nkj->nk", dx, g * np.eye(2), dx))
-    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric))[mask], full[mask], rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric, mode="diagonal"))[mask], diag[mask],
+    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric))[mask], full[mask], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric, mode="diagonal"))[mask], diag[mask],
                                rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric, mode="none")), euclid, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric, mode="none")), euclid, atol=1e-15)
     per_walker = np.asarray(jaxgeom.metric_at_walkers(tess, metric))
     pair = 0.5 * (per_walker[:, None] + per_walker[np.minimum(nbrs, 99)])
     arr = np.sqrt(np.einsum("nki,nkij,nkj->nk", dx, pair, dx))
-    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, per_walker))[mask], arr[mask], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=per_walker))[mask], arr[mask], rtol=1e-12)
 
 
 def periodic_metric(p):
@@ -128,7 +128,7 @@ def test_riemannian_volumes_integrate_sqrt_det_g_with_decreasing_error():
     for n in [300, 1200, 4800, 19200]:
         x = np.random.default_rng(n).random((n, 2))
         tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
-        total = float(jnp.sum(jaxgeom.riemannian_volumes(tess, periodic_metric)))
+        total = float(jnp.sum(jaxgeom.riemannian_volumes(tess, metric=periodic_metric)))
         errors.append(abs(total - 1.125))
     assert errors[-1] < 1e-3
     assert errors[-1] < errors[0] / 10, errors
@@ -139,7 +139,7 @@ def test_riemannian_volumes_and_mean(rng):
     tess = jaxgeom.delaunay(x)
     g = np.asarray(jaxgeom.metric_at_walkers(tess, periodic_metric))
     vol = np.asarray(jaxgeom.voronoi_volumes(tess))
-    riem = np.asarray(jaxgeom.riemannian_volumes(tess, periodic_metric))
+    riem = np.asarray(jaxgeom.riemannian_volumes(tess, metric=periodic_metric))
     np.testing.assert_allclose(riem, vol * np.sqrt(np.linalg.det(g)), rtol=1e-12)
     values = rng.random(200)
     interior = np.asarray(tess.interior)
@@ -150,11 +150,11 @@ def test_riemannian_volumes_and_mean(rng):
 def test_metric_bad_input(rng):
     tess = jaxgeom.delaunay(rng.random((30, 2)))
     with pytest.raises(ValueError, match="unknown mode 'fulll'; valid values are 'none', 'diagonal', 'full'"):
-        jaxgeom.edge_lengths(tess, None, mode="fulll")
+        jaxgeom.edge_lengths(tess, metric=None, mode="fulll")
     with pytest.raises(ValueError, match=r"shape \(N, d, d\) = \(30, 2, 2\); got an array of shape \(30, 2\)"):
-        jaxgeom.edge_lengths(tess, np.ones((30, 2)))
+        jaxgeom.edge_lengths(tess, metric=np.ones((30, 2)))
     with pytest.raises(ValueError, match="must map x \\(d,\\) to g \\(d, d\\)"):
-        jaxgeom.edge_lengths(tess, lambda p: p)
+        jaxgeom.edge_lengths(tess, metric=lambda p: p)
     with pytest.raises(ValueError, match="unknown floor 'abs'"):
         jaxgeom.hessian_metric(rosenbrock, 0.1, floor="abs")
     with pytest.raises(ValueError, match="`eps_sigma` must be a finite number >= 0"):
@@ -168,6 +168,6 @@ def test_periodic_callable_metric_sees_wrapped_positions(rng):
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
     tiled, _, _ = tile(x, np.zeros(2), np.ones(2))
     big = jaxgeom.delaunay(tiled)
-    ours = np.asarray(jaxgeom.riemannian_volumes(tess, periodic_metric))
-    ref = np.asarray(jaxgeom.riemannian_volumes(big, periodic_metric))[:150]
+    ours = np.asarray(jaxgeom.riemannian_volumes(tess, metric=periodic_metric))
+    ref = np.asarray(jaxgeom.riemannian_volumes(big, metric=periodic_metric))[:150]
     np.testing.assert_allclose(ours, ref, rtol=1e-10)

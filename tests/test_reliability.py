@@ -225,11 +225,11 @@ def test_a_constant_metric_is_flat_at_any_spacing(rng, h, dtype):
     tess = jaxgeom.delaunay(x, box=(0.0, h * np.sqrt(1500)))
     g = jnp.tile(2.1 * jnp.eye(2, dtype=tess.points.dtype), (1500, 1, 1))
     interior = np.asarray(tess.interior)
-    ricci = np.asarray(jaxgeom.ricci_scalar(tess, g))[interior]
-    resolution = np.asarray(jaxgeom.ricci_resolution(tess, g))[interior]
+    ricci = np.asarray(jaxgeom.ricci_scalar(tess, metric=g))[interior]
+    resolution = np.asarray(jaxgeom.ricci_resolution(tess, metric=g))[interior]
     assert np.all(np.abs(ricci) <= resolution) and np.all(ricci == 0.0)
     quadratic = jaxgeom.hessian_metric(lambda p: jnp.sum(p**2), 0.1)  # constant Hessian metric
-    assert np.all(np.asarray(jaxgeom.ricci_scalar(tess, quadratic))[interior] == 0.0)
+    assert np.all(np.asarray(jaxgeom.ricci_scalar(tess, metric=quadratic))[interior] == 0.0)
 
 
 @pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.slow)])
@@ -241,7 +241,7 @@ def test_float32_curvature_error_stays_below_the_stated_resolution(rng, d):
     r = {}
     for dtype in (np.float32, np.float64):
         tess = jaxgeom.delaunay(x.astype(dtype), box=(0.3, 0.31))
-        r[dtype] = np.asarray(jaxgeom.ricci_scalar(tess, metric)), np.asarray(jaxgeom.ricci_resolution(tess, metric))
+        r[dtype] = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric)), np.asarray(jaxgeom.ricci_resolution(tess, metric=metric))
     interior = np.asarray(tess.interior)
     ratio = np.abs(r[np.float32][0] - r[np.float64][0])[interior] / r[np.float32][1][interior]
     assert np.percentile(ratio, 99) < 1.0 and np.all(np.isfinite(ratio))
@@ -262,9 +262,9 @@ def test_float32_curvature_and_volumes_work_at_extreme_but_representable_scales(
     interior = np.asarray(ref.interior)
     np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess))[interior] / scale**3,
                                np.asarray(jaxgeom.voronoi_volumes(ref))[interior], rtol=1e-3)
-    ricci = np.asarray(jaxgeom.ricci_scalar(tess, metric.astype(np.float32) / scale**2))[interior]  # R is invariant
+    ricci = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric.astype(np.float32) / scale**2))[interior]  # R is invariant
     assert np.all(np.isfinite(ricci))
-    np.testing.assert_allclose(ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric))[interior], rtol=2e-2, atol=2e-2)
+    np.testing.assert_allclose(ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric=metric))[interior], rtol=2e-2, atol=2e-2)
 
 
 @pytest.mark.slow  # meaningful at XLA's default optimisation level: CI runs the slow set that way

@@ -125,9 +125,9 @@ def section_metric(a: Analysis) -> dict:
 @needs_simplices
 def section_curvature(a: Analysis) -> dict:
     metric, vol = analysis_metric(a), a.cache.get("volumes")
-    riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric, volumes=vol))
-    ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric, volumes=vol))
-    resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric, volumes=vol))
+    riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric=metric, volumes=vol))
+    ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric=metric, volumes=vol))
+    resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric=metric, volumes=vol))
     a.cache.update(ricci=ricci, riemannian_volumes=riem)
     interior = np.asarray(a.tess.interior)
     out = {"tier2_volume_weighted_ricci": float(jaxgeom.riemannian_mean(ricci, riem, interior)),
@@ -136,7 +136,7 @@ def section_curvature(a: Analysis) -> dict:
     out.update(_stats(ricci[interior], "tier2_ricci"))
     out["tier2_ricci_resolution_median"] = float(np.nanmedian(resolution[interior])) if interior.any() else np.nan
     if a.tess.dim in (2, 3):
-        delta = np.asarray(timed_warm(a, "deficit_angles", jaxgeom.deficit_angles, a.tess, metric))
+        delta = np.asarray(timed_warm(a, "deficit_angles", jaxgeom.deficit_angles, a.tess, metric=metric))
         out["mean_abs_deficit"] = float(np.abs(delta[delta != 0]).mean()) if np.any(delta != 0) else 0.0
     return out
 
@@ -165,7 +165,7 @@ def section_graph_proxies(a: Analysis) -> dict:
     fitness = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
     best = int(np.argmin(fitness))
     metric = analysis_metric(a)
-    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric))[0]
+    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric=metric))[0]
     reachable = np.isfinite(dist)
     out.update(best_walker=best, best_fitness=float(fitness[best]),
                best_walker_geodesic_eccentricity=float(dist[reachable].max()),

@@ -15,7 +15,7 @@ import numpy as np
 
 import jaxgeom
 from .._dynamics import metric_field
-from .._forces import VISCOUS_MODES
+from .._forces import VISCOUS_WEIGHTS
 from .._landscapes import LANDSCAPES
 from .._plots import plot_observables, plot_swarm_snapshots
 
@@ -33,7 +33,7 @@ def add_simulate_parser(sub) -> None:
     sim.add_argument("--dt", type=float, default=0.01)
     sim.add_argument("--gamma", type=float, default=2.0, help="friction")
     sim.add_argument("--temperature", type=float, default=1.0)
-    sim.add_argument("--mode", default="kernel", choices=VISCOUS_MODES, help="viscous weights")
+    sim.add_argument("--weights", default="kernel", choices=VISCOUS_WEIGHTS, help="viscous edge weights")
     sim.add_argument("--nu", type=float, default=0.1, help="viscous coupling")
     sim.add_argument("--eps-sigma", type=float, default=0.1, help="Hessian-metric floor (curvature, metric modes)")
     sim.add_argument("--clone-rate", type=float, default=0.1)
@@ -98,7 +98,7 @@ def run_simulation(args) -> dict:
     dtype = np.float64 if args.float64 else np.float32
     x0 = np.random.default_rng(args.seed).uniform(lo, hi, (args.n, args.dim)).astype(dtype)
     params = jaxgeom.SwarmParams(dt=args.dt, gamma=args.gamma, temperature=args.temperature, nu=args.nu,
-                                 eps_sigma=args.eps_sigma, mode=args.mode, clone_rate=args.clone_rate,
+                                 eps_sigma=args.eps_sigma, weights=args.weights, clone_rate=args.clone_rate,
                                  cloning=args.cloning, anisotropic=args.anisotropic)
     start = time.perf_counter()
     state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k)
@@ -125,7 +125,7 @@ def _snapshot(fitness, params, state, step: int) -> dict:
     ricci = None
     if state.tess.simplices is not None:
         g = metric_field(fitness, params, params.eps_sigma * state.eps_factor, state.positions)
-        ricci = np.asarray(jaxgeom.ricci_scalar(state.tess, g))
+        ricci = np.asarray(jaxgeom.ricci_scalar(state.tess, metric=g))
     return {"step": step, "positions": np.asarray(state.positions), "ricci": ricci}
 
 
