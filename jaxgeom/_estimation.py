@@ -43,15 +43,21 @@ DIAGONAL_STEP_ALPHA = 0.5
 class EstimateInfo(NamedTuple):
     """Diagnostics of an estimate: which walkers got a value, and why others did not.
 
+    Every estimator returns it as the second element of `(estimate, info)` with
+    `with_info=True`.
+
     **Fields:** `valid` (N,) bool; `n_invalid` () int; `two_ring` (N,) bool (stencil
     was the 2-ring); `n_over_capacity` () int (walkers that needed the 2-ring beyond
-    its static capacity, left NaN).
+    its static capacity, left NaN); `axis_quality` (N, d) in [0, 1] for
+    `estimate_hessian(kind="diagonal")` (the smaller cosine of the two neighbours used
+    along each axis), else None.
     """
 
     valid: Bool[Array, " N"]
     n_invalid: Int[Array, ""]
     two_ring: Bool[Array, " N"]
     n_over_capacity: Int[Array, ""]
+    axis_quality: Float[Array, "N d"] | None = None
 
 
 def _value_differences(tess: Tessellation, values):
@@ -98,7 +104,7 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
       weights normalised to sum 1; it is not exact even for linear V.
     - `weights`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"
       (exp(-|dx|^2 / 2 s^2), s = the walker's median neighbour distance).
-    - `with_info`: also return an [`jaxgeom.EstimateInfo`][].
+    - `with_info`: return `(estimate, info)`, info an [`jaxgeom.EstimateInfo`][].
 
     **Returns:**
 
@@ -225,9 +231,9 @@ def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_inf
       walkers, a static capacity; walkers beyond it are NaN and counted in
       `n_over_capacity`). "diagonal" returns (N, d) second derivatives along the
       axes from the neighbours best aligned with +e_a and -e_a (a three-point
-      second difference with unequal steps), and with `with_info=True` the
-      chapter's `axis_quality` (N, d) in [0, 1]: the smaller of the two cosines.
-    - `with_info`: also return an [`jaxgeom.EstimateInfo`][] (and `axis_quality`).
+      second difference with unequal steps); `info.axis_quality` is the chapter's
+      quality (N, d) in [0, 1], the smaller of the two cosines.
+    - `with_info`: return `(estimate, info)`, info an [`jaxgeom.EstimateInfo`][].
 
     **Returns:**
 
@@ -238,7 +244,7 @@ def estimate_hessian(tess: Tessellation, values, *, kind: str = "full", with_inf
     values = jnp.asarray(values, tess.points.dtype)
     if kind == "diagonal":
         diag, quality, ok = _diagonal_hessian(tess, values)
-        return (diag, quality, _info(ok, jnp.zeros_like(ok), 0)) if with_info else diag
+        return (diag, _info(ok, jnp.zeros_like(ok), 0)._replace(axis_quality=quality)) if with_info else diag
     hess, _, info = _local_quadratic(tess, values)
     return (hess, info) if with_info else hess
 

@@ -216,7 +216,7 @@ def files(tmp_path):
 def test_cli_input_files_fail_with_one_line_and_exit_2(files, capsys, argv, message):
     argv = [a.format(files) for a in argv]
     if argv[0] == "simulate":
-        argv += ["--n", "20", "--steps", "1", "--float64", "--no-progress"]  # the CLI sets x64 for the process
+        argv += ["--n", "20", "--steps", "1", "--no-progress"]  # the CLI sets x64 for the process
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err

@@ -1,5 +1,6 @@
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -38,6 +39,23 @@ def test_analyze_flat_metric_has_zero_curvature(tmp_path):
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["curvature"]["tier2_ricci_max"] == report["curvature"]["tier2_ricci_min"] == 0.0
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
+
+
+@pytest.mark.parametrize("command", ["analyze", "simulate"])
+def test_both_commands_share_one_precision_flag_and_default(tmp_path, command):
+    extra = ["--steps", "2", "--gap-every", "0", "--no-progress"] if command == "simulate" else []
+    try:
+        for precision in ("float32", None):
+            out = tmp_path / str(precision)
+            argv = [command, "--n", "200", "--out", str(out)] + extra
+            assert main(argv + (["--precision", precision] if precision else [])) == 0
+            if command == "analyze":
+                reported = json.loads((out / "summary.json").read_text())["curvature"]["precision"]
+            else:
+                reported = json.loads((out / "history.json").read_text())["dtype"]
+            assert reported == (precision or "float64")
+    finally:
+        jax.config.update("jax_enable_x64", True)  # the CLI sets it for the process
 
 
 @pytest.mark.slow
@@ -83,7 +101,7 @@ def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
 
 
 def test_simulate_writes_time_series_and_figures(tmp_path, capsys):
-    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--float64", "--no-progress",
+    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--no-progress",
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "best_fitness" in out and "total clones" in out
@@ -98,7 +116,7 @@ def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
     (tmp_path / "bowl.py").write_text("import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\ndef V(x):\n"
                                       "    return jnp.sum(x ** 2)\n")
     assert main(["simulate", "--landscape", str(tmp_path / "bowl.py"), "--n", "200", "--steps", "6", "--dim", "4",
-                 "--graph", "knn", "--k", "8", "--gap-every", "0", "--no-cloning", "--float64",
+                 "--graph", "knn", "--k", "8", "--gap-every", "0", "--no-cloning",
                  "--no-progress"]) == 0
     assert "mean_fitness" in capsys.readouterr().out
 
@@ -109,5 +127,5 @@ def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
     (["--dt", "0"], "`dt` must be a finite number > 0"),
 ])
 def test_simulate_reports_bad_input(argv, message, capsys):
-    assert main(["simulate", "--n", "50", "--steps", "2", "--float64", "--no-progress"] + argv) == 2
+    assert main(["simulate", "--n", "50", "--steps", "2", "--no-progress"] + argv) == 2
     assert message in capsys.readouterr().err

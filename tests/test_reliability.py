@@ -90,7 +90,7 @@ def test_huge_forces_are_a_divergence_not_a_degenerate_swarm(rng):
 
 def test_the_cli_exits_non_zero_on_divergence(capsys):
     assert main(["simulate", "--n", "100", "--steps", "20", "--dt", "5", "--gap-every", "0", "--no-progress",
-                 "--float64"]) == 2  # the CLI sets jax_enable_x64 for the process
+                 "--precision", "float64"]) == 2  # the CLI sets jax_enable_x64 for the process
     assert "diverged by step" in capsys.readouterr().err
 
 

@@ -14,11 +14,15 @@ from ._analyze import add_analyze_parser, analyze_main
 from ._simulate import add_simulate_parser, simulate_main
 
 
+PRECISIONS = ("float64", "float32")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
     sub = parser.add_subparsers(dest="command", required=True)
-    add_analyze_parser(sub)
-    add_simulate_parser(sub)
+    for command in (add_analyze_parser(sub), add_simulate_parser(sub)):
+        command.add_argument("--precision", choices=PRECISIONS, default="float64",
+                             help="floating-point type of the computation (default float64)")
     return parser
 
 
@@ -49,8 +53,5 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     check_arguments(parser, args)
 
-    if args.command == "simulate":
-        jax.config.update("jax_enable_x64", args.float64)
-        return simulate_main(args)
-    jax.config.update("jax_enable_x64", not args.float32)
-    return analyze_main(args)
+    jax.config.update("jax_enable_x64", args.precision == "float64")
+    return simulate_main(args) if args.command == "simulate" else analyze_main(args)

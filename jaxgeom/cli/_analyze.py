@@ -297,7 +297,7 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
-def add_analyze_parser(sub) -> None:
+def add_analyze_parser(sub) -> argparse.ArgumentParser:
     an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry")
     an.add_argument("--points", type=Path, help="(N, d) .npy file; default: sample the built-in landscape")
     an.add_argument("--landscape", default="double_well", choices=sorted(LANDSCAPES))
@@ -313,7 +313,7 @@ def add_analyze_parser(sub) -> None:
                     help="metric for curvature and Riemannian volumes (hessian: of --landscape)")
     an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
     an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
-    an.add_argument("--float32", action="store_true", help="compute in float32 (default float64)")
+    return an
 
 
 def analyze_main(args) -> int:

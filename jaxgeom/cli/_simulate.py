@@ -22,7 +22,7 @@ from .._plots import plot_observables, plot_swarm_snapshots
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 
 
-def add_simulate_parser(sub) -> None:
+def add_simulate_parser(sub) -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape")
     sim.add_argument("--landscape", default="rastrigin",
                      help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
@@ -45,8 +45,8 @@ def add_simulate_parser(sub) -> None:
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
-    sim.add_argument("--float64", action="store_true", help="simulate in float64 (default float32)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return sim
 
 
 def load_landscape(spec: str, dim: int):
@@ -95,7 +95,7 @@ def _validate(args) -> None:
 def run_simulation(args) -> dict:
     _validate(args)
     fitness, (lo, hi) = load_landscape(args.landscape, args.dim)
-    dtype = np.float64 if args.float64 else np.float32
+    dtype = np.dtype(args.precision)
     x0 = np.random.default_rng(args.seed).uniform(lo, hi, (args.n, args.dim)).astype(dtype)
     params = jaxgeom.SwarmParams(dt=args.dt, gamma=args.gamma, temperature=args.temperature, nu=args.nu,
                                  eps_sigma=args.eps_sigma, weights=args.weights, clone_rate=args.clone_rate,
