@@ -16,7 +16,7 @@ from ._volumes import voronoi_volumes
 @takes_tessellation
 @eqx.filter_jit
 def volume_distortion(tess: Tessellation, volumes=None) -> Float[Array, ""]:
-    """Var(V_i / <V>) over tier-2 walkers with finite volume (proxy 2, Definition 827).
+    """Var(V_i / <V>) over tier-2 walkers with finite volume: 0 for equal cells.
 
     Pass `volumes=riemannian_volumes(tess, metric)` for the Riemannian form.
     """
@@ -38,7 +38,8 @@ def _incident_circumradii(tess: Tessellation):
 @takes_tessellation
 @eqx.filter_jit
 def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
-    """Inradius / circumradius of every Voronoi cell about its generator (proxy 3, NOTES 8).
+    """Inradius / circumradius of every Voronoi cell about its generator: 1 for a regular
+    cell, towards 0 for an elongated one.
 
     r_in = half the distance to the nearest neighbour (the nearest facet) and
     r_circ = the largest circumradius of the walker's simplices (the farthest
@@ -56,7 +57,8 @@ def shape_distortion(tess: Tessellation) -> Float[Array, " N"]:
 @takes_tessellation
 @eqx.filter_jit
 def vertex_distance_variance(tess: Tessellation) -> Float[Array, " N"]:
-    """Variance of the distances from x_i to its Voronoi cell's vertices (NOTES 8, secondary).
+    """Variance of the distances from x_i to its Voronoi cell's vertices: 0 when
+    all lie on one sphere about x_i.
 
     Each simplex around i contributes its circumcentre once. Tier 0 is NaN.
     """
@@ -73,14 +75,16 @@ def vertex_distance_variance(tess: Tessellation) -> Float[Array, " N"]:
 
 
 def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> Float[Array, " N"]:
-    """Discrete expansion theta_i = (V_i(t+dt) - V_i(t)) / (V_i(t) dt) (proxy 4, Definition 829).
+    """Discrete expansion theta_i = (V_i(t+dt) - V_i(t)) / (V_i(t) dt), the
+    discrete Raychaudhuri expansion (the divergence of the flow for a smooth flow).
 
     **Arguments:**
 
     - `volumes_before`, `volumes_after`: (N,) cell volumes of the same walkers.
     - `dt`: time step > 0.
     - `valid`: (N,) bool; pass `tier == 2` at both times and not cloned
-      (NOTES 7). Invalid walkers, and non-finite or non-positive volumes, get NaN.
+      (a cell that changed tier or a clone that split it changes volume for reasons
+      other than the flow). Invalid walkers, and non-finite or non-positive volumes, get NaN.
 
     **Returns:**
 

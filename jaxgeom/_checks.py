@@ -148,8 +148,8 @@ def check_metric_array(metric, n: int, d: int) -> None:
     _remember_checked(metric)
 
 
-# JAX arrays are immutable: one that passed is not checked again (the check is O(N), ~9 ms at
-# N = 1e5 in 2D, as much as a kernel). Keyed by id, dropped when the array is freed.
+# JAX arrays are immutable: one that passed is not checked again (the check is O(N) on the
+# host and costs as much as a kernel, bench/README.md). Keyed by id, dropped when the array is freed.
 _CHECKED: dict[int, weakref.ref] = {}
 
 
@@ -169,7 +169,7 @@ def metric_defect_masks(g, xp):
     (N, d, d) metric `g`; rows with a NaN or inf entry are in neither. `xp` is numpy (the
     host check) or jax.numpy (the jittable `jaxgeom.metric_defects`). Symmetric means to
     100 eps of the row's largest entry; definiteness from Sylvester's leading minors up to
-    d = 3 (elementwise over (N,) columns: ~2 ms at N = 1e5 in 3D), eigenvalues above."""
+    d = 3 (elementwise over (N,) columns), eigenvalues above."""
     d = g.shape[-1]
     wide = xp.float64 if xp is np else g.dtype
     eps = float(xp.finfo(g.dtype if xp.issubdtype(g.dtype, xp.floating) else wide).eps)

@@ -177,7 +177,10 @@ def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
 @takes_tessellation
 @eqx.filter_jit
 def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
-    """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i (NOTES 2).
+    """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i.
+
+    The scalar curvature: R = d (d - 1) K on a space of constant sectional curvature K
+    (R = 2 delta_i / V_i in 2D).
 
     V_i is the Riemannian cell volume `riemannian_volumes(tess, metric)`. The deficit
     of an interior hinge h is a sum over the simplices around it of theta_ref - theta_g,
@@ -197,7 +200,8 @@ def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes
     **Returns:**
 
     (N,) Ricci scalar; NaN on tier 0. Pointwise values are noisy on irregular
-    points; region averages sum R_i V_i / sum V_i converge (NOTES 2).
+    points; region averages sum R_i V_i / sum V_i converge
+    (`jaxgeom.riemannian_mean`).
     """
     total, _ = _hinge_sums(tess, metric, mode)
     return _per_volume(tess, total, riemannian_volumes(tess, metric=metric, mode=mode, volumes=volumes))

@@ -216,7 +216,7 @@ def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, 
                              alpha=params.alpha)
     if params.volume_weighting:
         sqrt_det = 1.0 if g is None else jnp.sqrt(jnp.maximum(jnp.linalg.det(g), 0.0))
-        w = with_volume_weights(tess, w, state.volumes * sqrt_det)  # Riemannian volumes (Def. 833)
+        w = with_volume_weights(tess, w, state.volumes * sqrt_det)  # Riemannian volumes V_j sqrt(det g_j)
     return normalize_rows(w)
 
 

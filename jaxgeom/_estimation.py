@@ -99,7 +99,7 @@ def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weight
       its linear coefficients. `order=2` (default) fits the quadratic model of
       [`jaxgeom.estimate_hessian`][] (with its 2-ring fallback), exact for quadratic V;
       `order=1` fits V_j - V_i = g . (x_j - x_i) over the 1-ring with `weights`,
-      exact for linear V and cheaper (NOTES 5). "fd" is the chapter's
+      exact for linear V and cheaper. "fd" is the chapter's
       one-sided formula sum_j w_ij (V_j - V_i)(x_j - x_i) / |x_j - x_i|^2 with
       weights normalised to sum 1; it is not exact even for linear V.
     - `weights`: "uniform", "inverse_distance" (1/|dx|) or "gaussian"

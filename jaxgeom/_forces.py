@@ -1,7 +1,7 @@
-"""The scutoidal viscous force: a row-normalized graph Laplacian on velocities (Definitions 834-835).
+"""The scutoidal viscous force: a row-normalized graph Laplacian on velocities.
 
 F_i = nu * sum_j w_ij / sum_k w_ik * (v_j - v_i) over the neighbours listed in
-the Tessellation. Conservation (spec NOTES 4): for a symmetric weight (every
+the Tessellation. Conservation: for a symmetric weight (every
 weight rule on a Delaunay graph, without volume weighting) sum_i deg_i F_i = 0 and the
 degree-weighted velocity variance never increases; for any non-negative
 weights an explicit step with nu dt <= 1 makes each new velocity a convex
@@ -89,14 +89,14 @@ def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Flo
 @takes_tessellation
 def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel", length_scale=None, metric=None,
                   volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N d"]:
-    """The scutoidal viscous force of Definition 834, O(N K).
+    """The scutoidal viscous force F_i = nu sum_j w_ij / sum_k w_ik (v_j - v_i), O(N K).
 
     **Arguments:**
 
     - `tess`: Delaunay or k-NN [`jaxgeom.Tessellation`][] at the current positions.
     - `velocities`: (N, d) walker velocities.
     - `nu`: coupling strength nu >= 0 (a differentiable scalar).
-    - `weights`: edge weights w_ij (Definition 835): "uniform" (1), "kernel"
+    - `weights`: edge weights w_ij: "uniform" (1), "kernel"
       (exp(-|dx|^2 / (2 l^2))), "inverse_distance" (1 / (|dx| + eps)),
       "metric_diagonal" (1 / (|dx|_diag(g_edge) + eps)), "metric_full"
       (1 / (sqrt(dx^T g_edge dx) + eps)); eps = 1e-8 times the mean nearest-neighbour

@@ -1,4 +1,7 @@
-"""Geodesic distances on the metric-weighted neighbour graph (proxy 7, Definition 832)."""
+"""Geodesic distances on the metric-weighted neighbour graph.
+
+The distance between two walkers is the shortest path along neighbour edges, each edge
+as long as its metric length sqrt(dx^T g_edge dx) (`jaxgeom.edge_lengths`)."""
 
 from __future__ import annotations
 

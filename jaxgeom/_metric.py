@@ -4,7 +4,8 @@ A `metric` argument is `None` (Euclidean), an (N, d, d) array of per-walker
 tensors, or a JAX callable x (d,) -> g (d, d). Arrays are checked on the host
 (symmetric, positive definite); callables are not, and `metric_defects` flags the
 walkers where one is not a metric. The metric of an edge is g at the
-edge midpoint for a callable and (g_i + g_j) / 2 for an array (spec NOTES 1).
+edge midpoint for a callable and (g_i + g_j) / 2 for an array (both
+symmetric in i and j, so every edge has one length).
 `mode` picks how much of it is used: "none" (Euclidean), "diagonal", "full".
 """
 
@@ -249,7 +250,7 @@ def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> F
 @takes_tessellation
 @eqx.filter_jit
 def riemannian_volumes(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
-    """Riemannian cell volumes V_i sqrt(det g(x_i)) (proxy 8).
+    """Riemannian cell volumes V_i sqrt(det g(x_i)).
 
     **Arguments:**
 
@@ -270,7 +271,7 @@ def riemannian_mean(values, weights, mask=None) -> Float[Array, ""]:
     """Weighted mean sum(w O) / sum(w) over walkers in `mask` with finite O and w.
 
     Pass `weights=riemannian_volumes(...)` and `mask=tess.interior` for the
-    Riemannian average of an observable over tier-2 walkers (proxy 8).
+    Riemannian average of an observable over tier-2 walkers.
     """
     ok = jnp.isfinite(values) & jnp.isfinite(weights)
     if mask is not None:
@@ -285,7 +286,7 @@ def eigh(m):
 
 
 def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Callable:
-    """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V (Definition 669).
+    """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V.
 
     **Arguments:**
 
@@ -339,7 +340,7 @@ def _hessian_metric(fitness: Callable, eps_sigma, floor: str) -> Callable:
 @takes_tessellation
 @eqx.filter_jit
 def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array, "N d d"]:
-    """Emergent metric g_i = inverse(C_i + eps_reg (tr C_i / d) I) (Definition 831, NOTES 6).
+    """Emergent metric g_i = inverse(C_i + eps_reg (tr C_i / d) I).
 
     C_i = mean over walker i's neighbours of dx dx^T, padding ignored. The
     regulariser is relative to the local scale, so the metric is scale covariant

@@ -6,8 +6,8 @@ around a vertex form a fan; walking it counter-clockwise visits the vertex's
 Delaunay neighbours in angular order, one gather per neighbour, vectorised over
 walkers. A hull vertex's fan is open: its walk starts at the clockwise end and
 closes with the last triangle's other vertex. This replaces scipy's
-`vertex_neighbor_vertices` plus numpy padding on the host (N = 1e4: 3.7-5.8 ms host
-against 1.2-1.4 ms here), and it is jittable, so a rebuild inside `jax.pure_callback`
+`vertex_neighbor_vertices` plus numpy padding on the host (3-4x slower, bench/README.md),
+and it is jittable, so a rebuild inside `jax.pure_callback`
 returns Qhull's arrays alone.
 """
 

@@ -1,25 +1,20 @@
 """`jaxgeom.simulate`: jax.lax.scan over swarm steps, with the tessellation rebuilt as walkers move.
 
-Rebuild strategy (measured, bench/results/dynamics.json, N = 1e4 in 2D, float32,
-rebuild every step, fitness observables, medians of 3 runs): the default
-`rebuild="host"` runs `rebuild_every` steps in one jitted `lax.scan` chunk and rebuilds
-the graph with Qhull on the host between chunks: 31.0 ms per step against 33.7 ms with
-the Qhull call inside the scan through `jax.pure_callback` (Qhull alone on the same
-points: 24.6 and 29.9 ms). (An earlier bench warmed the callback run up with another
-n_steps, so it timed a compilation: its 72 ms per step were mostly that.)
-Between chunks the host dispatches the work that needs no new graph (the last step's
-closing kick, the next step's opening with its random draws and clone decisions, and
-the observables of the chunk's first state) and runs Qhull while XLA computes it.
-With it, everything but Qhull at N = 1e4, rebuild every step, went from 0.36-0.39x
-Qhull's time to 0.21-0.32x with fitness observables and from 0.71-0.79x to 0.25-0.33x
-with all of them (Qhull timed alone; two bench runs). The host loop is also the only
-place that can grow a too-small capacity (a new bucket, one recompilation) instead of
-truncating, compute the spectral gap every M steps and show a progress bar, and it
-compiles per chunk length, not per `n_steps`.
-`rebuild="callback"` is kept for what only it can do: the whole simulation is one
-jittable, differentiable function of the parameters (tuning nu and eps_Sigma with
-optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs the
-simulation with larger capacities when called eagerly and raises under a trace.
+Two rebuild strategies (why, with the measurements: bench/README.md):
+
+- `rebuild="host"` (default) runs `rebuild_every` steps in one jitted `lax.scan` chunk
+  (`_host_chunk`) and rebuilds the graph with Qhull on the host between chunks
+  (`jaxgeom._rebuild.update_host`). Between chunks the host first dispatches the work
+  that needs no new graph (the last step's closing kick, the next step's opening with
+  its random draws and clone decisions, the observables of the chunk's first state),
+  so XLA computes it while Qhull runs. Only this loop can grow a too-small capacity
+  (a new bucket, one recompilation) instead of truncating, compute the spectral gap
+  every M steps and show a progress bar; it compiles per chunk length, not per `n_steps`.
+- `rebuild="callback"` (`_callback_scan`) rebuilds inside the scan through
+  `jax.pure_callback` (`jaxgeom._rebuild.update_in_trace`): the whole simulation is
+  one jittable, differentiable function of the parameters (tuning nu and eps_Sigma
+  with optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs
+  the simulation with larger capacities when called eagerly and raises under a trace.
 """
 
 from __future__ import annotations
@@ -186,8 +181,8 @@ def _progress(step, n_total, dtype):
 
 
 # jax.jit, not eqx.filter_jit: every leaf is an array, and jax.jit's call returns at once
-# (eqx.filter_jit's blocked for the whole 3.6 ms chunk at N = 1e4), which the overlap of
-# graph-free work with Qhull relies on; fitness and the loop shape are static.
+# (eqx.filter_jit's blocks until the chunk is done), which the overlap of graph-free work
+# with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
 _run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k"))
 _begin_step = jax.jit(begin_step)

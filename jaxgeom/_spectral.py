@@ -1,4 +1,4 @@
-"""Normalized graph Laplacian and its spectral gap (proxy 5, Definition 830)."""
+"""Normalized graph Laplacian L = I - D^-1/2 W D^-1/2 of the neighbour graph and its spectral gap."""
 
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ class GraphLaplacian(eqx.Module):
 @eqx.filter_jit
 def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
                     alpha: float = DEFAULT_ALPHA) -> GraphLaplacian:
-    """The normalized graph Laplacian of Definition 830 on the neighbour graph.
+    """The normalized graph Laplacian L = I - D^-1/2 W D^-1/2 on the neighbour graph.
 
     **Arguments:**
 
@@ -106,7 +106,7 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
 def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: str = "kernel",
                  alpha: float = DEFAULT_ALPHA, method: str = "scipy", tol=None, maxiter: int = 2000,
                  seed: int = 0) -> Float[Array, " k"]:
-    """The k smallest eigenvalues of the normalized Laplacian, ascending (proxy 5).
+    """The k smallest eigenvalues of the normalized Laplacian, ascending.
 
     lambda_0 = 0 (the constant mode D^1/2 1) and lambda_1 is the spectral gap.
 
