@@ -1,4 +1,5 @@
 import json
+import re
 
 import jax
 import numpy as np
@@ -13,6 +14,7 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert "[graph]" in printed and "[volumes]" in printed
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["swarm"]["n_walkers"] == 600 and report["swarm"]["dim"] == 2
+    assert report["curvature"]["precision"] == "float64"  # the default of both commands
     graph = report["graph"]
     assert graph["tier0"] + graph["tier1"] + graph["tier2"] == 600
     assert graph["tier0"] >= report["volumes"]["n_unbounded"] > 0  # also cells reaching outside the hull
@@ -41,19 +43,13 @@ def test_analyze_flat_metric_has_zero_curvature(tmp_path):
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
 
 
-@pytest.mark.parametrize("command", ["analyze", "simulate"])
-def test_both_commands_share_one_precision_flag_and_default(tmp_path, command):
-    extra = ["--steps", "2", "--gap-every", "0", "--no-progress"] if command == "simulate" else []
+def test_both_commands_take_the_same_precision_flag(tmp_path, capsys):
     try:
-        for precision in ("float32", None):
-            out = tmp_path / str(precision)
-            argv = [command, "--n", "200", "--out", str(out)] + extra
-            assert main(argv + (["--precision", precision] if precision else [])) == 0
-            if command == "analyze":
-                reported = json.loads((out / "summary.json").read_text())["curvature"]["precision"]
-            else:
-                reported = json.loads((out / "history.json").read_text())["dtype"]
-            assert reported == (precision or "float64")
+        assert main(["analyze", "--n", "100", "--metric", "none", "--precision", "float32"]) == 0
+        assert re.search(r"precision\s+float32", capsys.readouterr().out)
+        assert main(["simulate", "--n", "50", "--steps", "1", "--gap-every", "0", "--no-progress",
+                     "--precision", "float32", "--out", str(tmp_path)]) == 0
+        assert json.loads((tmp_path / "history.json").read_text())["dtype"] == "float32"
     finally:
         jax.config.update("jax_enable_x64", True)  # the CLI sets it for the process
 
@@ -107,6 +103,7 @@ def test_simulate_writes_time_series_and_figures(tmp_path, capsys):
     assert "best_fitness" in out and "total clones" in out
     history = json.loads((tmp_path / "history.json").read_text())
     assert len(history["series"]["mean_fitness"]) == 13 and len(history["series"]["time"]) == 13
+    assert history["dtype"] == "float64"  # the default of both commands
     assert history["series"]["best_fitness"][-1] <= history["series"]["best_fitness"][0]
     assert history["spectral_gap"]["step"] == [0, 4, 8, 12]
     assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
