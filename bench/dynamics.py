@@ -108,7 +108,7 @@ def run(state, params, n_steps, rebuild_every, observe, rebuild="host", repeats=
             "qhull_share": median([q / t for t, q in zip(per_step, in_run)]),
             "rest_over_qhull": median(rest_alone), "rest_over_qhull_in_run": median(rest_in_run),
             "runs": {"seconds_per_step": per_step, "rest_over_qhull": rest_alone, "rest_over_qhull_in_run": rest_in_run},
-            "n_reallocations": history.get("n_reallocations")}  # host rebuilds only
+            "n_reallocations": int(history["n_reallocations"])}
 
 
 def throughput(n: int, n_steps: int) -> dict:
