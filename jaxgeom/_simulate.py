@@ -191,7 +191,7 @@ _begin_step = jax.jit(begin_step)
 @functools.partial(jax.jit, static_argnums=(0, 5))
 def _measure_first(fitness, params: SwarmParams, state: SwarmState, cells, progress, observe: tuple):
     """The observables of a host chunk's first state (`state` as it entered the chunk, `cells`
-    its refreshed volumes and tiers from `_scan_steps`)."""
+    its refreshed volumes and tiers from `_host_chunk`)."""
     new = eqx.tree_at(lambda s: (s.volumes, s.interior), state, cells)
     return measure(fitness, params, state, new, progress, observe)
 

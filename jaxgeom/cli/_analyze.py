@@ -256,7 +256,7 @@ def load_points(path: Path) -> np.ndarray:
     return pts
 
 
-def build_graph(a: Analysis):
+def analysis_graph(a: Analysis):
     use_box = a.box if (a.args.periodic or a.args.box is not None) else None
     if a.args.graph == "knn":
         return timed(a, "knn_graph", jaxgeom.knn_graph, a.points, a.args.k, box=use_box, periodic=a.args.periodic)
@@ -268,7 +268,7 @@ def run_analysis(args) -> dict:
     points, box, source = load_swarm(args)
     a = Analysis(args=args, points=points, box=box, source=source)
     a.timings["load"] = time.perf_counter() - start
-    a.tess = build_graph(a)
+    a.tess = analysis_graph(a)
     report = {name: section(a) for name, section in REPORT_SECTIONS}
     report["timings_s"] = {k: round(v, 6) for k, v in a.timings.items()}
     if args.out is not None:
