@@ -15,6 +15,7 @@ LAYERS = [
     ("_landscapes",),  # the built-in fitness functions
     ("_contacts",),
     ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
+    ("_cellclip",),  # Voronoi cells on the device (groundwork of the jittable rebuild)
     ("_volumes",),
     ("_metric",),
     ("_cells", "_curvature", "_geodesic"),
