@@ -99,7 +99,8 @@ def voronoi_cells_2d(points: Float[Array, "N 2"], box: Float[Array, "2 2"], *, k
 
     **Returns:** `(vertices (N, P, 2), labels (N, P), count (N,), area (N,), certified (N,),
     overflowed (N,))`; `labels` holds the neighbour across each edge, -1 for the box."""
-    points, box = jnp.asarray(points), jnp.asarray(box, jnp.asarray(points).dtype)
+    points = jnp.asarray(points)
+    box = jnp.asarray(box, points.dtype)
     n = points.shape[0]
     ids = _brute_neighbors(points, min(k, n - 1), None)
     candidates = points.at[ids].get(mode="fill", fill_value=jnp.nan)

@@ -97,7 +97,9 @@ def metric_defects(tess: Tessellation, metric) -> Bool[Array, " N"]:
     it a second time in every call. Where it returns a matrix that is not symmetric
     positive definite, the kernels use it as given: only its symmetric part enters the
     quadratic forms, and an indefinite part gives NaN lengths, angles and curvatures at the
-    edges it touches. Call this once (it is jittable) to find such walkers.
+    edges it touches. Call this once (it is jittable) to find such walkers. (A concrete
+    array is checked on entry like everywhere else, so it raises instead of returning a
+    flag; under jit an array is flagged like a callable.)
 
     **Arguments:**
 

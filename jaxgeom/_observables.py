@@ -49,17 +49,17 @@ def _observed_metric(s: _View):
     return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
 
 
-def _mean_ricci(s: _View):
-    g = _observed_metric(s)
-    ricci = ricci_scalar(s.new.tess, metric=g, volumes=s.new.volumes)
-    return riemannian_mean(ricci, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes), s.new.interior)
+def _tier2_riemannian_mean(kernel):
+    """The observable sum_i f_i V_i sqrt(det g_i) / sum_i V_i sqrt(det g_i) over tier-2 walkers,
+    f = kernel(tess, metric=g, volumes=V) in the Hessian metric g."""
 
+    def observable(s: _View):
+        g = _observed_metric(s)
+        values = kernel(s.new.tess, metric=g, volumes=s.new.volumes)
+        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes),
+                               s.new.interior)
 
-def _ricci_resolution(s: _View):
-    """The smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R."""
-    g = _observed_metric(s)
-    floor = ricci_resolution(s.new.tess, metric=g, volumes=s.new.volumes)
-    return riemannian_mean(floor, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes), s.new.interior)
+    return observable
 
 
 def _mean_expansion(s: _View):
@@ -85,8 +85,9 @@ OBSERVABLE_TABLE: dict[str, Observable] = {
     "best_fitness": Observable(lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf))),
     "velocity_variance": Observable(lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness))),
     "degree_weighted_variance": Observable(_degree_weighted_variance),
-    "mean_ricci": Observable(_mean_ricci, True),
-    "ricci_resolution": Observable(_ricci_resolution, True),
+    "mean_ricci": Observable(_tier2_riemannian_mean(ricci_scalar), True),
+    # the smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R
+    "ricci_resolution": Observable(_tier2_riemannian_mean(ricci_resolution), True),
     "volume_distortion": Observable(lambda s: volume_distortion(s.new.tess, s.new.volumes), True),
     "mean_shape_distortion": Observable(lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior), True),
     "mean_expansion": Observable(_mean_expansion, True),

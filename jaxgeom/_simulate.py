@@ -161,7 +161,9 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
                    rebuild_every: int, k: int):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
-    in the trace (`update_in_trace`) every `rebuild_every` steps. Returns `(state, observables)`."""
+    in the trace (`update_in_trace`) every `rebuild_every` steps. Returns `(state, observables)`.
+    `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
+    as in the host chunks (a constant divisor could be folded differently)."""
     dtype = state.positions.dtype
 
     def body(st, i):

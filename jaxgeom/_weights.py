@@ -26,7 +26,6 @@ DEFAULT_ALPHA = 3.0
 # regularisers: the result does not depend on the units). The chapter's absolute 1e-8 is
 # this at unit spacing.
 INVERSE_DISTANCE_EPS = 1e-8
-SHIFTS = ("none", "row", "global")
 
 
 def mean_nearest_neighbor_distance(tess: Tessellation):
@@ -73,16 +72,19 @@ def gaussian(sq, mask, **_):
 
 class WeightRule(NamedTuple):
     fn: Callable
-    needs_metric: bool = False
-    metric_mode: str = "none"
+    metric_mode: str = "none"  # how much of the metric measures the lengths (`jaxgeom.edge_lengths`)
+
+    @property
+    def needs_metric(self) -> bool:
+        return self.metric_mode != "none"
 
 
 EDGE_WEIGHTS: dict[str, WeightRule] = {
     "uniform": WeightRule(uniform),
     "kernel": WeightRule(kernel),
     "inverse_distance": WeightRule(inverse_distance),
-    "metric_diagonal": WeightRule(inverse_distance, True, "diagonal"),
-    "metric_full": WeightRule(inverse_distance, True, "full"),
+    "metric_diagonal": WeightRule(inverse_distance, "diagonal"),
+    "metric_full": WeightRule(inverse_distance, "full"),
     "gaussian": WeightRule(gaussian),
 }
 
