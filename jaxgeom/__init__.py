@@ -5,6 +5,7 @@ from ._cells import raychaudhuri_expansion as raychaudhuri_expansion
 from ._cells import shape_distortion as shape_distortion
 from ._cells import vertex_distance_variance as vertex_distance_variance
 from ._cells import volume_distortion as volume_distortion
+from ._cellclip import rebuild as rebuild
 from ._curvature import angle_sums as angle_sums
 from ._curvature import deficit_angles as deficit_angles
 from ._curvature import ricci_resolution as ricci_resolution

@@ -8,6 +8,8 @@ allocation on the host, updates that keep the shapes, an overflow flag).
   final positions, capacity grown when needed.
 - `update_in_trace(state, k)`: inside a trace, through `jax.pure_callback`; the shapes
   cannot change, so a graph that does not fit sets `tess.overflow` and keeps the old one.
+- `update_on_device(state, k)`: inside a trace, `jaxgeom.rebuild` (no host round trip);
+  a rebuild it cannot certify falls back to `update_in_trace` for that step.
 - `grown(tess)`: the next capacity after an overflow.
 
 Walkers that coincide for Qhull (cloning puts them there) are moved apart first
@@ -23,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cellclip import rebuild_unchecked
 from ._checks import mean_spacing
 from ._delaunay import CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles
 from ._dynamics import REBUILD_FAILED, SwarmState
@@ -203,6 +206,18 @@ def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     if len(arrays) == 4:
         new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
     return _apply_rebuild(state, new, x, code, moved)
+
+
+def update_on_device(state: SwarmState, k: int) -> tuple[SwarmState, jax.Array]:
+    """(state, fell_back): the graph rebuilt on the device (`jaxgeom.rebuild`, 2D), or, where
+    that rebuild is not certified, by Qhull through `update_in_trace` (then `fell_back`).
+    The topology is discrete: no gradient flows into the rebuild, the positions pass through."""
+    new = rebuild_unchecked(state.tess, jax.lax.stop_gradient(state.positions))
+    new = eqx.tree_at(lambda t: t.points, new, state.positions)
+    certified = ~new.overflow
+    state = jax.lax.cond(certified, lambda s: eqx.tree_at(lambda q: q.tess, s, new),
+                         lambda s: update_in_trace(s, k), state)
+    return state, ~certified
 
 
 def _callback_planar_rebuild(state: SwarmState) -> SwarmState:

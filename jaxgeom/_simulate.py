@@ -1,6 +1,6 @@
 """`jaxgeom.simulate`: jax.lax.scan over swarm steps, with the tessellation rebuilt as walkers move.
 
-Two rebuild strategies (why, with the measurements: bench/README.md):
+Three rebuild strategies (why, with the measurements: bench/README.md):
 
 - `rebuild="host"` (default) runs `rebuild_every` steps in one jitted `lax.scan` chunk
   (`_host_chunk`) and rebuilds the graph with Qhull on the host between chunks
@@ -15,6 +15,10 @@ Two rebuild strategies (why, with the measurements: bench/README.md):
   one jittable, differentiable function of the parameters (tuning nu and eps_Sigma
   with optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs
   the simulation with larger capacities when called eagerly and raises under a trace.
+- `rebuild="device"` is the same scan with the graph rebuilt in JAX (`jaxgeom.rebuild`,
+  2D non-periodic Delaunay swarms): no host round trip on the steps it certifies; a step
+  it cannot certify falls back to the callback's Qhull and is counted (`n_fallbacks`).
+  On CPU it is slower than the callback today (bench/README.md); it is the route to GPUs.
 """
 
 from __future__ import annotations
@@ -38,11 +42,11 @@ from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RA
 from ._graph import Tessellation
 from ._metric import eigh
 from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
-from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace
+from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace, update_on_device
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance
 
-REBUILD_MODES = ("host", "callback")
+REBUILD_MODES = ("host", "callback", "device")
 
 
 def check_callable_fitness(fitness) -> None:
@@ -159,9 +163,10 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
-                   rebuild_every: int, k: int):
+                   rebuild_every: int, k: int, mode: str = "callback"):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
-    in the trace (`update_in_trace`) every `rebuild_every` steps. Returns `(state, observables)`.
+    in the trace every `rebuild_every` steps (`update_in_trace`, or `update_on_device` for
+    mode "device", which records its fallbacks as `_fallback`). Returns `(state, observables)`.
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
     as in the host chunks (a constant divisor could be folded differently)."""
     dtype = state.positions.dtype
@@ -171,8 +176,11 @@ def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_s
         st, obs = _observed(fitness, params, st, progress, observe)
         rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
         q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
-        q = jax.lax.cond(rebuild, lambda r: update_in_trace(r, k), lambda r: r, q)
-        return q, dict(obs, _health=health(st))
+        if mode == "device":
+            q, fell_back = jax.lax.cond(rebuild, lambda r: update_on_device(r, k), lambda r: (r, jnp.asarray(False)), q)
+        else:
+            q, fell_back = jax.lax.cond(rebuild, lambda r: update_in_trace(r, k), lambda r: r, q), jnp.asarray(False)
+        return q, dict(obs, _health=health(st), _fallback=fell_back)
 
     return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
 
@@ -186,7 +194,7 @@ def _progress(step, n_total, dtype):
 # (eqx.filter_jit's blocks until the chunk is done), which the overlap of graph-free work
 # with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
-_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k"))
+_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode"))
 _begin_step = jax.jit(begin_step)
 
 
@@ -227,10 +235,15 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
         raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
                         "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
                         "traceable, differentiable simulation.")
+    tess = state.tess
+    if rebuild == "device" and (tess.simplices is None or tess.dim != 2 or tess.periodic):
+        raise ValueError("simulate(rebuild='device') rebuilds 2D Delaunay swarms on the device so far; this swarm's "
+                         "graph is " + ("a k-NN graph" if tess.simplices is None else f"{tess.dim}D") +
+                         ". Use rebuild='callback' (traceable) or 'host'.")
     if params.volume_weighting and state.tess.simplices is None:
         raise ValueError("`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
                          "use init_swarm(..., graph='delaunay') or volume_weighting=False.")
-    if spectral_gap_every and (spectral_gap_every % rebuild_every or rebuild == "callback"):
+    if spectral_gap_every and (spectral_gap_every % rebuild_every or rebuild != "host"):
         raise ValueError("`spectral_gap_every` must be a multiple of `rebuild_every` and needs rebuild='host' "
                          f"(the gap is computed on the host after a rebuild); got {spectral_gap_every}.")
 
@@ -250,8 +263,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       cloning happens on the last step before each rebuild).
     - `observe`: names from `OBSERVABLES`, recorded for the state entering every
       step and for the final state (n_steps + 1 values, times 0, dt, ...).
-    - `rebuild`: "host" (default) or "callback" (module docstring: jittable and
-      differentiable end to end).
+    - `rebuild`: "host" (default: fastest on CPU), "callback" (jittable and differentiable
+      end to end, vmap runs the lanes' Qhull calls one after another) or "device" (the
+      same, with the 2D graph rebuilt in JAX and Qhull only on the steps the device rebuild
+      cannot certify; module docstring).
     - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
       component (`bulk_spectral_gap`) and the number of components every M steps
       (host, rebuild="host"); a gap that fails to converge is NaN with a warning.
@@ -262,15 +277,16 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     `(final_state, history)`, history a dict of JAX arrays with the same keys in both
     rebuild modes: each observable (n_steps + 1,); `spectral_gap_step`, `spectral_gap`,
     `spectral_components` (one entry per gap computed; empty with rebuild="callback");
-    `n_reallocations` (capacity growths); wall-clock `seconds_rebuild` / `seconds_steps`
+    `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
+    by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
     `diverged_step` (-1, or under a trace the first step whose state failed).
     """
     observe = tuple(observe)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
-    if rebuild == "callback":
-        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k)
+    if rebuild in ("callback", "device"):
+        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
@@ -384,7 +400,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     return state, _history(series, gaps, reallocations, seconds, state.n_separated, -1, state.positions.dtype)
 
 
-def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated, diverged_step, dtype) -> dict:
+def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated, diverged_step, dtype,
+             n_fallbacks=0) -> dict:
     """The history `simulate` returns, with the same keys and JAX array types in both rebuild
     modes (the callback mode computes no spectral gaps and measures no wall-clock times: empty
     arrays and NaN)."""
@@ -393,7 +410,7 @@ def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated
         spectral_gap_step=jnp.asarray([g[0] for g in gaps], jnp.int32).reshape(-1),
         spectral_gap=jnp.asarray([g[1] for g in gaps], dtype).reshape(-1),
         spectral_components=jnp.asarray([g[2] for g in gaps], jnp.int32).reshape(-1),
-        n_reallocations=jnp.asarray(reallocations, jnp.int32),
+        n_reallocations=jnp.asarray(reallocations, jnp.int32), n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
         seconds_rebuild=jnp.asarray(seconds["rebuild"], dtype), seconds_steps=jnp.asarray(seconds["steps"], dtype),
         n_separated=jnp.asarray(n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32))
     return history
@@ -411,11 +428,11 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
         return float("nan"), -1
 
 
-def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k):
+def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
-        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k)
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "
@@ -432,4 +449,5 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     # Under a trace nothing can be raised: the first step whose state failed `health`, or -1.
     diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
     nan = {"rebuild": jnp.nan, "steps": jnp.nan}
-    return final, _history(series, [], reallocations, nan, final.n_separated, diverged, final.positions.dtype)
+    fallbacks = jnp.sum(obs["_fallback"], dtype=jnp.int32)
+    return final, _history(series, [], reallocations, nan, final.n_separated, diverged, final.positions.dtype, fallbacks)

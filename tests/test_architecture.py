@@ -15,7 +15,8 @@ LAYERS = [
     ("_landscapes",),  # the built-in fitness functions
     ("_contacts",),
     ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
-    ("_cellclip",),  # Voronoi cells on the device (groundwork of the jittable rebuild)
+    ("_cellgrid",),  # the device cell list
+    ("_cellclip",),  # the Delaunay rebuild on the device (per-cell Voronoi clipping, certified)
     ("_volumes",),
     ("_metric",),
     ("_cells", "_curvature", "_geodesic"),

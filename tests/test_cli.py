@@ -43,6 +43,7 @@ def test_analyze_flat_metric_has_zero_curvature(tmp_path):
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
 
 
+@pytest.mark.slow
 def test_both_commands_take_the_same_precision_flag(tmp_path, capsys):
     try:
         assert main(["analyze", "--n", "100", "--metric", "none", "--precision", "float32"]) == 0

@@ -169,14 +169,45 @@ def test_callback_rebuild_matches_host_rebuild(rng):
     np.testing.assert_allclose(np.asarray(hb["mean_ricci"]), ha["mean_ricci"], rtol=1e-8, atol=1e-12)  # ~0 in a bowl
 
 
-def test_gradient_through_a_whole_simulation_matches_finite_differences(rng):
+@pytest.mark.slow
+def test_device_rebuild_matches_host_rebuild(rng):
+    """The device rebuild's steps are Qhull's graphs: certified ones by the Delaunay lemma,
+    the others rebuilt by Qhull and counted."""
+    state = swarm(rng, n=160)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
+    a, ha = jaxgeom.simulate(bowl, state, params, n_steps=8)
+    b, hb = jaxgeom.simulate(bowl, state, params, n_steps=8, rebuild="device")
+    np.testing.assert_allclose(np.asarray(b.positions), np.asarray(a.positions), atol=1e-10)
+    assert np.array_equal(np.asarray(a.tess.neighbors), np.asarray(b.tess.neighbors))
+    assert ha.keys() == hb.keys() and int(ha["n_fallbacks"]) == 0 and 0 <= int(hb["n_fallbacks"]) <= 8
+
+
+def test_an_uncertified_device_rebuild_falls_back_to_qhull_and_is_counted(rng, monkeypatch):
+    import equinox as eqx
+
+    import jaxgeom._rebuild
+
+    real = jaxgeom._rebuild.rebuild_unchecked
+    monkeypatch.setattr(jaxgeom._rebuild, "rebuild_unchecked",
+                        lambda tess, x: eqx.tree_at(lambda t: t.overflow, real(tess, x), jnp.asarray(True)))
+    state = swarm(rng, n=140)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
+    a, _ = jaxgeom.simulate(bowl, state, params, n_steps=6, rebuild="callback")
+    b, hb = jaxgeom.simulate(bowl, state, params, n_steps=6, rebuild="device")
+    assert int(hb["n_fallbacks"]) == 6
+    np.testing.assert_array_equal(np.asarray(b.positions), np.asarray(a.positions))
+    assert np.array_equal(np.asarray(a.tess.neighbors), np.asarray(b.tess.neighbors))
+
+
+@pytest.mark.parametrize("rebuild, n_steps", [("callback", 10), pytest.param("device", 20, marks=pytest.mark.slow)])
+def test_gradient_through_a_whole_simulation_matches_finite_differences(rng, rebuild, n_steps):
     x = rng.uniform(-1, 1, (120, 2))
     state = jaxgeom.init_swarm(quadratic, x, rng.normal(size=(120, 2)), key=1)
 
     def loss(theta):
         params = jaxgeom.SwarmParams(dt=0.05, temperature=0.1, nu=theta[0], eps_sigma=theta[1],
                                      weights="metric_full", anisotropic=True, cloning=False)
-        _, history = jaxgeom.simulate(quadratic, state, params, n_steps=10, rebuild="callback",
+        _, history = jaxgeom.simulate(quadratic, state, params, n_steps=n_steps, rebuild=rebuild,
                                       observe=("mean_fitness",))
         return history["mean_fitness"][-1]
 
@@ -254,5 +285,7 @@ def test_bad_swarm_input(rng):
     knn = jaxgeom.init_swarm(bowl, x, graph="knn", k=6)
     with pytest.raises(ValueError, match="`volume_weighting=True` needs Voronoi volumes"):
         jaxgeom.simulate(bowl, knn, jaxgeom.SwarmParams(volume_weighting=True), n_steps=2)
-    with pytest.raises(ValueError, match="unknown rebuild 'device'"):
-        jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild="device")
+    with pytest.raises(ValueError, match="unknown rebuild 'gpu'; valid values are 'host', 'callback', 'device'"):
+        jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild="gpu")
+    with pytest.raises(ValueError, match="rebuild='device'.* 2D Delaunay swarms"):
+        jaxgeom.simulate(bowl, knn, params, n_steps=2, rebuild="device")

@@ -52,6 +52,7 @@ def test_laplacian_matvec_matches_scipy_operator(rng):
     np.testing.assert_allclose(np.asarray(product), lap.to_scipy() @ v, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_lobpcg_agrees_with_scipy_at_1e4_in_float64():
     tess = jaxgeom.delaunay(np.random.default_rng(7).random((10_000, 2)))
     ref = np.asarray(jaxgeom.spectral_gap(tess))

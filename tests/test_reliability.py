@@ -163,6 +163,7 @@ def run_with_watchdog(argv, seconds: float):
     assert result == [0]
 
 
+@pytest.mark.slow
 def test_analyze_in_3d_never_hangs():
     """The normal suite's `analyze --dim 3`: the same code path as the default size (the
     deadlock needed two batched LAPACK eigh calls at once; the divergence diagnosis and the
