@@ -1,8 +1,8 @@
 """The Delaunay triangulation on the device, one walker's Voronoi cell at a time (2D).
 
 After Ray, Sokolov, Lefebvre and Levy, "Meshless Voronoi on the GPU" (2018): walker i's
-cell is a large square around x_i clipped by the bisector of each candidate j, nearest
-first. The cell is kept as the cyclic list of the lines bounding it (homogeneous
+cell is a large square around x_i clipped by the bisector of each candidate j (from the
+cell list of `_cellgrid`). The cell is kept as the cyclic list of the lines bounding it (homogeneous
 3-vectors in the frame of x_i; the square's sides are labelled `FAR`), and every vertex
 is the cross product of two consecutive lines, so a vertex near x_i is as precise as
 the two bisectors that make it, however far the square's corners are. Every cell is
@@ -20,8 +20,9 @@ the Delaunay triangulation):
 - the boundary (cells reaching the square) is a convex polygon, turning once.
 
 A candidate list that misses a Delaunay neighbour, a far Voronoi vertex outside the
-square, a capacity exceeded or an unresolved degeneracy breaks one of these, and the
-rebuild is flagged instead of returned wrong.
+square, a capacity exceeded or an unresolved degeneracy breaks one of these. The cells in
+a failed condition are redone with more candidates (`triangulate`); what still fails is
+flagged instead of returned wrong.
 """
 
 from __future__ import annotations
