@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._delaunay import planar_tessellation
-from ._graph import Tessellation
+from ._graph import Tessellation, lower_bound_in_rows
 from ._cellgrid import block_walkers, build_grid, grid_side, walker_reach, within
 
 FAR = -1  # label of the square's sides (the cell reaches "infinity": a hull walker)
@@ -143,12 +143,8 @@ def _label_search(sorted_labels, order, rows, values):
     """Slot (in the cycle of walker `rows`) of label `values`, or -1 if absent: binary search
     over each row's sorted labels (`order` maps sorted positions back to cycle slots)."""
     p = sorted_labels.shape[1]
-    lo, hi = jnp.zeros_like(values), jnp.full_like(values, p)
     rows = jnp.clip(rows, 0, sorted_labels.shape[0] - 1)
-    for _ in range(max(1, math.ceil(math.log2(p))) + 1):
-        mid = (lo + hi) // 2
-        right = (mid < p) & (sorted_labels[rows, jnp.minimum(mid, p - 1)] < values)
-        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    lo = lower_bound_in_rows(sorted_labels, rows, values)
     at = jnp.minimum(lo, p - 1)
     return jnp.where((lo < p) & (sorted_labels[rows, at] == values), order[rows, at], -1)
 
@@ -473,6 +469,16 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
     return Triangulation(simplices, adjacency, checks.hull, certified, checks.certificate, repaired, rounds)
 
 
+def rebuilds_on_device(tess: Tessellation) -> bool:
+    """Whether `rebuild` builds this kind of graph: 2D, non-periodic, Delaunay."""
+    return tess.simplices is not None and tess.dim == 2 and not tess.periodic
+
+
+def describe_graph(tess: Tessellation) -> str:
+    """'a k-NN graph', or the dimension and periodicity of a Delaunay graph, for messages."""
+    return "a k-NN graph" if tess.simplices is None else f"{tess.dim}D{' periodic' if tess.periodic else ''}"
+
+
 def rebuild(tess: Tessellation, points) -> Tessellation:
     """The Delaunay `Tessellation` of new positions, built on the device (jittable, vmappable).
 
@@ -497,9 +503,9 @@ def rebuild(tess: Tessellation, points) -> Tessellation:
     if not isinstance(tess, Tessellation) or tess.simplices is None:
         raise TypeError("jaxgeom.rebuild takes a Delaunay jaxgeom.Tessellation as `tess` (from jaxgeom.delaunay); "
                         f"got {type(tess).__name__ if not isinstance(tess, Tessellation) else 'a k-NN graph'}.")
-    if tess.dim != 2 or tess.periodic:
+    if not rebuilds_on_device(tess):
         raise ValueError(f"jaxgeom.rebuild builds 2D, non-periodic graphs on the device so far; this graph is "
-                         f"{tess.dim}D{' periodic' if tess.periodic else ''}. Rebuild it with jaxgeom.delaunay.")
+                         f"{describe_graph(tess)}. Rebuild it with jaxgeom.delaunay.")
     points = jnp.asarray(points)
     if points.shape != tess.points.shape or points.dtype != tess.points.dtype:
         raise ValueError(f"`points` must have the shape and dtype of tess.points, {tess.points.shape} "

@@ -203,6 +203,19 @@ def bucket_simplices(n: int) -> int:
 MAX_IMAGES_PER_NEIGHBOR = 8
 
 
+def lower_bound_in_rows(table, rows, values):
+    """Binary search in rows sorted ascending: the first column k with
+    `table[rows, k] >= values` (K, the width, where there is none). One flat gather per step."""
+    k_cap = table.shape[1]
+    flat = table.ravel()
+    lo, hi = jnp.zeros_like(values), jnp.full_like(values, k_cap)
+    for _ in range(max(1, math.ceil(math.log2(k_cap))) + 1):
+        mid = (lo + hi) // 2
+        right = (mid < k_cap) & (flat[rows * k_cap + jnp.minimum(mid, k_cap - 1)] < values)
+        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    return lo
+
+
 def edge_slots(tess: Tessellation, src, dst, shift=None):
     """Column k with `neighbors[src, k] == dst` (and `neighbor_shifts[src, k] == shift`).
 
@@ -211,11 +224,7 @@ def edge_slots(tess: Tessellation, src, dst, shift=None):
     """
     k_cap = tess.neighbors.shape[1]
     flat = tess.neighbors.ravel()
-    lo, hi = jnp.zeros_like(src), jnp.full_like(src, k_cap)
-    for _ in range(max(1, math.ceil(math.log2(k_cap))) + 1):
-        mid = (lo + hi) // 2
-        right = (mid < k_cap) & (flat[src * k_cap + jnp.minimum(mid, k_cap - 1)] < dst)
-        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    lo = lower_bound_in_rows(tess.neighbors, src, dst)
     if tess.neighbor_shifts is None:
         found = (lo < k_cap) & (flat[src * k_cap + jnp.minimum(lo, k_cap - 1)] == dst)
         return jnp.where(found, lo, k_cap)

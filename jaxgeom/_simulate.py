@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg
 
+from ._cellclip import describe_graph, rebuilds_on_device
 from ._checks import check_choice, check_min_points, host_points, real_array
 from ._delaunay import delaunay
 from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
@@ -170,16 +171,14 @@ def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_s
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
     as in the host chunks (a constant divisor could be folded differently)."""
     dtype = state.positions.dtype
+    update = update_on_device if mode == "device" else lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
 
     def body(st, i):
         progress = _progress(i, n_total, dtype)
         st, obs = _observed(fitness, params, st, progress, observe)
         rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
         q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
-        if mode == "device":
-            q, fell_back = jax.lax.cond(rebuild, lambda r: update_on_device(r, k), lambda r: (r, jnp.asarray(False)), q)
-        else:
-            q, fell_back = jax.lax.cond(rebuild, lambda r: update_in_trace(r, k), lambda r: r, q), jnp.asarray(False)
+        q, fell_back = jax.lax.cond(rebuild, lambda r: update(r, k), lambda r: (r, jnp.asarray(False)), q)
         return q, dict(obs, _health=health(st), _fallback=fell_back)
 
     return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
@@ -235,11 +234,9 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
         raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
                         "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
                         "traceable, differentiable simulation.")
-    tess = state.tess
-    if rebuild == "device" and (tess.simplices is None or tess.dim != 2 or tess.periodic):
+    if rebuild == "device" and not rebuilds_on_device(state.tess):
         raise ValueError("simulate(rebuild='device') rebuilds 2D Delaunay swarms on the device so far; this swarm's "
-                         "graph is " + ("a k-NN graph" if tess.simplices is None else f"{tess.dim}D") +
-                         ". Use rebuild='callback' (traceable) or 'host'.")
+                         f"graph is {describe_graph(state.tess)}. Use rebuild='callback' (traceable) or 'host'.")
     if params.volume_weighting and state.tess.simplices is None:
         raise ValueError("`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
                          "use init_swarm(..., graph='delaunay') or volume_weighting=False.")
