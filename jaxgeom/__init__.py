@@ -39,6 +39,13 @@ from ._simulate import simulate as simulate
 from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap
+from ._tune import TuneResult as TuneResult
+from ._tune import TuningFailed as TuningFailed
+from ._tune import tune as tune
+from ._tuning import OBJECTIVES as OBJECTIVES
+from ._tuning import TUNABLE as TUNABLE
+from ._tuning import SimulationLoss as SimulationLoss
+from ._tuning import simulation_loss as simulation_loss
 from ._validation import compare_estimation_methods as compare_estimation_methods
 from ._validation import validate_on_synthetic_function as validate_on_synthetic_function
 from ._volumes import circumcenters as circumcenters

@@ -24,6 +24,7 @@ Three rebuild strategies (why, with the measurements: bench/README.md):
 from __future__ import annotations
 
 import functools
+import math
 import sys
 import time
 import warnings
@@ -164,12 +165,13 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
-                   rebuild_every: int, k: int, mode: str = "callback"):
+                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
     in the trace every `rebuild_every` steps (`update_in_trace`, or `update_on_device` for
     mode "device", which records its fallbacks as `_fallback`). Returns `(state, observables)`.
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
-    as in the host chunks (a constant divisor could be folded differently)."""
+    as in the host chunks (a constant divisor could be folded differently). `checkpoint`:
+    nested rematerialisation (`checkpointed_scan`), for gradients through long runs."""
     dtype = state.positions.dtype
     update = update_on_device if mode == "device" else lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
 
@@ -181,7 +183,29 @@ def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_s
         q, fell_back = jax.lax.cond(rebuild, lambda r: update(r, k), lambda r: (r, jnp.asarray(False)), q)
         return q, dict(obs, _health=health(st), _fallback=fell_back)
 
+    if checkpoint:
+        return checkpointed_scan(body, state, n_steps)
     return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
+
+
+def checkpointed_scan(body, carry, n_steps: int):
+    """`jax.lax.scan(body, carry, arange(n_steps))` with two levels of rematerialisation:
+    chunks of ceil(sqrt(n_steps)) steps, each step checkpointed inside its chunk, so the
+    backward pass stores O(sqrt(n_steps)) carries instead of every step's intermediates
+    (Griewank's sqrt(T) checkpointing). Steps past `n_steps` in the last chunk are skipped."""
+    size = max(1, math.isqrt(max(n_steps - 1, 0)) + 1)
+    n_chunks = -(-n_steps // size)
+    step = jax.checkpoint(body)
+    out = jax.eval_shape(body, carry, jnp.asarray(0, jnp.int32))[1]
+
+    def guarded(st, i):
+        skip = lambda s, _: (s, jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out))
+        return jax.lax.cond(i < n_steps, step, skip, st, i)
+
+    chunk = jax.checkpoint(lambda st, ids: jax.lax.scan(guarded, st, ids))
+    ids = jnp.arange(n_chunks * size, dtype=jnp.int32).reshape(n_chunks, size)
+    final, obs = jax.lax.scan(chunk, carry, ids)
+    return final, jax.tree_util.tree_map(lambda o: o.reshape((n_chunks * size,) + o.shape[2:])[:n_steps], obs)
 
 
 def _progress(step, n_total, dtype):
@@ -193,7 +217,8 @@ def _progress(step, n_total, dtype):
 # (eqx.filter_jit's blocks until the chunk is done), which the overlap of graph-free work
 # with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
-_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode"))
+_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode",
+                                                         "checkpoint"))
 _begin_step = jax.jit(begin_step)
 
 
@@ -247,7 +272,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
 
 def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, rebuild_every: int = 1,
              observe: tuple[str, ...] = OBSERVABLES, rebuild: str = "host", spectral_gap_every: int = 0,
-             progress: bool = False):
+             progress: bool = False, checkpoint: bool = False):
     """Run `n_steps` swarm steps (`jax.lax.scan`), rebuilding the tessellation as walkers move.
 
     **Arguments:**
@@ -268,6 +293,11 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       component (`bulk_spectral_gap`) and the number of components every M steps
       (host, rebuild="host"); a gap that fails to converge is NaN with a warning.
     - `progress`: print a progress bar to stderr.
+    - `checkpoint`: with rebuild="callback" or "device", rematerialise the steps in the
+      backward pass (nested sqrt(n_steps) checkpointing), so the memory of `jax.grad`
+      through the run grows like sqrt(n_steps) instead of n_steps, for about two more
+      forward passes of time; the forward result is unchanged (`jaxgeom.simulation_loss`
+      turns it on).
 
     **Returns:**
 
@@ -281,9 +311,11 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     """
     observe = tuple(observe)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
+    if not isinstance(checkpoint, bool):
+        raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     if rebuild in ("callback", "device"):
-        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild)
+        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
@@ -425,11 +457,11 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
         return float("nan"), -1
 
 
-def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode):
+def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
-        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode)
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "

@@ -26,6 +26,8 @@ LAYERS = [
     ("_observables",),
     ("_rebuild",),  # graph lifecycle of a moving swarm
     ("_simulate",),  # the scan driver
+    ("_tuning",),  # simulation_loss: theta -> objective of whole simulations
+    ("_tune",),  # the optimistix / jaxopt driver
     ("_validation", "_plots"),
     ("cli",),
 ]

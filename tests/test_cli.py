@@ -127,3 +127,34 @@ def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
 def test_simulate_reports_bad_input(argv, message, capsys):
     assert main(["simulate", "--n", "50", "--steps", "2", "--no-progress"] + argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_tune_prints_iterations_and_writes_json_and_figure(tmp_path, capsys):
+    assert main(["tune", "--n", "60", "--steps", "8", "--seeds", "2", "--max-steps", "3", "--grid", "3",
+                 "--no-progress", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"iter\s+loss\s+\|grad\|\s+nu\s+eps_sigma", out) and "true values:" in out
+    report = json.loads((tmp_path / "tune.json").read_text())
+    first = report["iterations"][0]
+    assert first["iteration"] == 0 and first["values"] == {"nu": 0.05, "eps_sigma": pytest.approx(0.2)}
+    losses = [it["loss"] for it in report["iterations"]]
+    assert losses == sorted(losses, reverse=True) and report["truth"] == {"nu": 0.3, "eps_sigma": 0.05}
+    grid = np.asarray(report["grid"]["loss"])
+    assert grid.shape == (3, 3) and np.isfinite(grid).all() and report["grid"]["names"] == ["nu", "eps_sigma"]
+    assert (tmp_path / "tune.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--seeds", "0"], "--seeds must be a finite number >= 1"),
+    (["--tune", "mu"], "invalid choice: 'mu'"),
+    (["--objective", "fit"], "invalid choice: 'fit'"),
+])
+def test_tune_refuses_bad_arguments(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["tune", "--n", "50", "--steps", "2"] + argv)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_tune_reports_a_bad_start_clearly(capsys):
+    assert main(["tune", "--n", "50", "--steps", "2", "--tune", "nu", "--nu", "0", "--no-progress"]) == 2
+    assert "--nu must be > 0 to be tuned" in capsys.readouterr().err

@@ -1,6 +1,7 @@
 """The `jaxgeom` console script: `jaxgeom simulate` runs a swarm on a landscape
 (`_simulate.py`); `jaxgeom analyze` tessellates one swarm and reports its geometry
-(`_analyze.py`). Both refuse bad arguments before any work (`check_arguments`)."""
+(`_analyze.py`); `jaxgeom tune` tunes nu and eps_Sigma by gradient through whole simulations
+(`_tune.py`). All refuse bad arguments before any work (`check_arguments`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 
 from ._analyze import add_analyze_parser, analyze_main
 from ._simulate import add_simulate_parser, simulate_main
+from ._tune import add_tune_parser, tune_main
 
 
 PRECISIONS = ("float64", "float32")
@@ -20,7 +22,7 @@ PRECISIONS = ("float64", "float32")
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
     sub = parser.add_subparsers(dest="command", required=True)
-    for command in (add_analyze_parser(sub), add_simulate_parser(sub)):
+    for command in (add_analyze_parser(sub), add_simulate_parser(sub), add_tune_parser(sub)):
         command.add_argument("--precision", choices=PRECISIONS, default="float64",
                              help="floating-point type of the computation (default float64)")
     return parser
@@ -30,7 +32,8 @@ def check_arguments(parser: argparse.ArgumentParser, args) -> None:
     """Refuse bad numbers and an unusable --out before any work (argparse's exit code 2)."""
     rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
              ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
-             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None)]
+             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None), ("seeds", "--seeds", 1, None),
+             ("max_steps", "--max-steps", 1, None), ("steps", "--steps", 1, None)]
     for attr, flag, low, high in rules:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):
@@ -54,4 +57,4 @@ def main(argv=None) -> int:
     check_arguments(parser, args)
 
     jax.config.update("jax_enable_x64", args.precision == "float64")
-    return simulate_main(args) if args.command == "simulate" else analyze_main(args)
+    return {"simulate": simulate_main, "analyze": analyze_main, "tune": tune_main}[args.command](args)
