@@ -63,7 +63,9 @@ def mean_fitness_loss(n: int, n_steps: int, checkpoint: bool = True):
 
 def memory_plan(n: int, n_steps: int, checkpoint: bool) -> dict:
     loss = mean_fitness_loss(n, n_steps, checkpoint)
-    compiled = eqx.filter_jit(lambda l, t: jax.value_and_grad(l)(t)).lower(loss, loss.to_theta()).compile()
+    arrays, static = eqx.partition(loss, eqx.is_array)
+    both = jax.jit(lambda a, t: jax.value_and_grad(eqx.combine(a, static))(t))
+    compiled = both.lower(arrays, loss.to_theta()).compile()
     plan = compiled.memory_analysis()
     total = plan.temp_size_in_bytes + plan.argument_size_in_bytes + plan.output_size_in_bytes
     return {"n": n, "n_steps": n_steps, "checkpoint": checkpoint, "temp_bytes": int(plan.temp_size_in_bytes),

@@ -35,7 +35,7 @@ def moved(x, scale, seed, box=None):
     return y if box is None else np.clip(y, box[0] + 1e-9, box[1] - 1e-9)
 
 
-@pytest.mark.parametrize("sample", ["uniform-boxed", "gaussian-plain"])
+@pytest.mark.parametrize("sample", [pytest.param("uniform-boxed", marks=pytest.mark.slow), "gaussian-plain"])
 def test_rebuild_equals_qhull_on_random_walkers(sample):
     rng = np.random.default_rng(3)
     box = UNIT if sample == "uniform-boxed" else None
@@ -48,6 +48,7 @@ def test_rebuild_equals_qhull_on_random_walkers(sample):
         tess = new
 
 
+@pytest.mark.slow
 def test_rebuild_compiles_once_for_a_moving_swarm():
     x = np.random.default_rng(4).random((N, 2))
     tess = jaxgeom.delaunay(x, box=UNIT)
@@ -96,6 +97,7 @@ def starved(x, first_pass):
     return triangulate(x, s_cap=2 * N, first_pass=first_pass, local_rounds=1, exact_rounds=0)
 
 
+@pytest.mark.slow
 def test_a_starved_triangulation_is_flagged_never_wrong():
     """Too few candidates: some rebuilds fail their certificate; every certified one is Qhull's."""
     outcomes = []

@@ -182,6 +182,7 @@ def test_device_rebuild_matches_host_rebuild(rng):
     assert ha.keys() == hb.keys() and int(ha["n_fallbacks"]) == 0 and 0 <= int(hb["n_fallbacks"]) <= 8
 
 
+@pytest.mark.slow
 def test_an_uncertified_device_rebuild_falls_back_to_qhull_and_is_counted(rng, monkeypatch):
     import equinox as eqx
 

@@ -329,6 +329,7 @@ def test_float32_lobpcg_is_accurate_or_nan(rng):
     np.testing.assert_allclose(lam[ok], reference[ok], rtol=2e-2, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_analyze_periodic_on_its_own_sample_and_notes_the_geometric_reference(tmp_path):
     assert main(["analyze", "--periodic", "--n", "2000", "--out", str(tmp_path)]) == 0
     import json

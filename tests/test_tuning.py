@@ -120,12 +120,12 @@ def test_a_diverging_swarm_gives_inf_not_an_exception_and_tune_names_the_iterati
 
 def test_tune_takes_the_iterates_of_optimistix_minimise():
     params = jaxgeom.SwarmParams(dt=0.05, temperature=0.5, gamma=0.5, nu=0.3, cloning=False)
-    loss = jaxgeom.simulation_loss(V, swarm(n=60), "match", n_steps=10, params=params, tuned=("nu",),
+    loss = jaxgeom.simulation_loss(V, swarm(n=40), "match", n_steps=6, params=params, tuned=("nu",),
                                    targets={"velocity_variance": 1.0})
-    result = jaxgeom.tune(loss, {"nu": 0.1}, max_steps=4)
+    result = jaxgeom.tune(loss, {"nu": 0.1}, max_steps=3)
     theta0 = loss.to_theta({"nu": 0.1})
     direct = optx.minimise(scaled(loss, jnp.asarray(result.scale)), optx.BFGS(rtol=1e-4, atol=1e-6), theta0,
-                           max_steps=4, throw=False)
+                           max_steps=3, throw=False)
     np.testing.assert_allclose(result.theta, np.asarray(direct.value), rtol=1e-10)
     assert result.iterations[0]["loss"] == pytest.approx(float(loss(theta0)), rel=1e-12)
     losses = [it["loss"] for it in result.iterations]
