@@ -313,6 +313,9 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
+    if checkpoint and rebuild == "host":
+        raise ValueError("`checkpoint=True` serves gradients through a traced run: use it with rebuild='callback' "
+                         "or 'device' (rebuild='host' cannot be differentiated).")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     if rebuild in ("callback", "device"):
         return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)

@@ -194,7 +194,7 @@ def _run_optimistix(loss, solver, theta0, scale, max_steps: int, recorder: _Reco
     accepted, done, result, n_steps = 1, False, optx.RESULTS.successful, 0
     while n_steps < max_steps and not done:
         theta, state, done, result = _step(solver, loss, scale, theta, state)
-        n_steps, done = n_steps + 1, bool(done) or result != optx.RESULTS.successful
+        n_steps, done = n_steps + 1, bool(done) or bool(result != optx.RESULTS.successful)
         info = getattr(state, "f_info", None)
         count = int(getattr(state, "num_accepted_steps", n_steps))
         if info is not None and count > accepted:
@@ -203,7 +203,7 @@ def _run_optimistix(loss, solver, theta0, scale, max_steps: int, recorder: _Reco
     if getattr(state, "f_info", None) is None:  # a solver without f_info: record the final iterate
         value, grad = _value_and_grad(loss, theta)
         recorder.add(theta, value, grad)
-    converged = bool(done) and result == optx.RESULTS.successful
+    converged = done and bool(result == optx.RESULTS.successful)
     message = "converged" if converged else (optx.RESULTS[result] if result != optx.RESULTS.successful
                                             else f"max_steps={max_steps} reached")
     return theta, n_steps, converged, message
