@@ -22,7 +22,7 @@ import numpy as np
 import optimistix as optx
 
 from ._dynamics import SwarmParams
-from ._tuning import SimulationLoss
+from ._tuning import SimulationLoss, _inverse_map
 
 SOLVERS = ("bfgs", "nonlinear_cg", "lbfgsb")
 
@@ -240,9 +240,9 @@ def _theta_bounds(loss: SimulationLoss, bounds: dict | None):
     lower, upper = [], []
     for name, (map_lower, map_upper) in zip(loss.tuned, loss.bounds):
         lo, hi = bounds.get(name, (None, None))
-        lower.append(-np.inf if lo is None or lo <= (map_lower or 0.0) else float(loss.to_theta({name: lo})[
-            loss.tuned.index(name)]))
-        upper.append(np.inf if hi is None or (map_upper is not None and hi >= map_upper) else float(
-            loss.to_theta({name: hi})[loss.tuned.index(name)]))
+        open_below = lo is None or lo <= (map_lower or 0.0)
+        open_above = hi is None or (map_upper is not None and hi >= map_upper)
+        lower.append(-np.inf if open_below else _inverse_map(float(lo), map_lower, map_upper))
+        upper.append(np.inf if open_above else _inverse_map(float(hi), map_lower, map_upper))
     dtype = loss.state.positions.dtype
     return jnp.asarray(lower, dtype), jnp.asarray(upper, dtype)

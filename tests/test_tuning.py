@@ -10,7 +10,7 @@ import pytest
 
 import jaxgeom
 from jaxgeom._simulate import checkpointed_scan
-from jaxgeom._tune import scaled
+from jaxgeom._tune import _theta_bounds, scaled
 
 
 def V(x):
@@ -106,6 +106,10 @@ def test_parameter_map_round_trips_and_respects_bounds():
     assert far["nu"] > 1e20 and 0.01 <= far["eps_sigma"] < 0.0100001
     with pytest.raises(ValueError, match="eps_sigma.*< 0.5"):
         loss.to_theta({"eps_sigma": 0.6})
+    # L-BFGS-B's hard bounds in theta: the map's inverse at the physical bounds, open where unbounded
+    lower, upper = _theta_bounds(loss, {"nu": (0.1, 0.5), "eps_sigma": (0.02, None)})
+    np.testing.assert_allclose(np.asarray(lower), np.asarray(loss.to_theta({"nu": 0.1, "eps_sigma": 0.02})))
+    assert float(upper[0]) == pytest.approx(float(loss.to_theta({"nu": 0.5})[0])) and np.isposinf(upper[1])
 
 
 def test_a_diverging_swarm_gives_inf_not_an_exception_and_tune_names_the_iteration():
