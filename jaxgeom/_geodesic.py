@@ -1,53 +1,108 @@
-"""Geodesic distances on the metric-weighted neighbour graph.
-
-The distance between two walkers is the shortest path along neighbour edges, each edge
-as long as its metric length sqrt(dx^T g_edge dx) (`jaxgeom.edge_lengths`)."""
+"""Geodesic distances: the heat method on the metric's cotangent Laplacian (converges to the
+geodesic distance), and shortest paths along graph edges (the graph distance)."""
 
 from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 from scipy.sparse.csgraph import dijkstra
 
-from ._checks import check_choice, takes_tessellation
+from ._checks import check_choice, check_positive, takes_tessellation
 from ._graph import Tessellation, padded_to_csr
+from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances
 from ._metric import edge_lengths
 
-GEODESIC_METHODS = ("dijkstra", "bellman_ford")
+GEODESIC_METHODS = ("heat", "dijkstra", "bellman_ford")
 
 
 @takes_tessellation
-def geodesic_distances(tess: Tessellation, sources, *, metric=None, mode: str = "full",
-                       method: str = "dijkstra") -> Float[Array, "M N"]:
-    """Shortest-path distances along graph edges weighted by metric edge lengths.
+def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = "full", method: str = "heat",
+                       t=None, boundary: str = "mean", solver: str = "auto") -> Float[Array, "M N"]:
+    """Geodesic distances from each source walker to every walker.
 
     **Arguments:**
 
-    - `tess`: Delaunay or k-NN graph (k-NN edges are used in both directions).
-    - `sources`: int or sequence of walker indices.
-    - `metric`, `mode`: as in [`jaxgeom.edge_lengths`][].
-    - `method`: "dijkstra" runs `scipy.sparse.csgraph.dijkstra` on the host.
-      "bellman_ford" is jittable: parallel min-plus relaxation over the padded
-      neighbours in a `lax.while_loop` until nothing changes, and differentiable
-      in the edge lengths (hence the metric): the gradient of each distance flows
-      along its shortest-path tree (a subgradient where shortest paths tie).
+    - `tess`: a Delaunay tessellation (k-NN graphs: `method="dijkstra"` or `"bellman_ford"`).
+    - `sources`: int or sequence of walker indices (a traced integer array under jit).
+    - `metric`, `mode`: as in [`jaxgeom.edge_lengths`][]; the same squared metric edge
+      lengths as the curvature kernels.
+    - `method`:
+        - "heat" (default): the heat method of Crane, Weischedel and Wardetzky (2013) on
+          the Delaunay simplices, each an intrinsic simplex with its metric edge lengths:
+          (M + t K) u = delta_source with the cotangent Laplacian K and the lumped mass M;
+          X = -grad u / |grad u| per simplex; K phi = div X; distance = phi - phi(source).
+          Converges to the geodesic distance of the metric as the walkers refine (flat
+          space, tier-2 walkers, median relative error: 0.3% at N = 1e4 and below 0.2% at
+          1e5 in 2D; bench/results/graph.json). Jittable and differentiable in the positions,
+          the metric and `t` (implicit differentiation of the linear solves).
+        - "dijkstra": shortest paths along graph edges of metric length
+          (`scipy.sparse.csgraph.dijkstra` on the host). This is the *graph* distance: on a
+          random Delaunay graph it converges to about 1.04x the geodesic distance (the
+          graph's stretch), not to the geodesic.
+        - "bellman_ford": the same graph distance, jittable: parallel min-plus relaxation
+          in a `lax.while_loop`, differentiable in the edge lengths along the shortest-path
+          tree (a subgradient where shortest paths tie).
+    - `t`: heat time step (heat only). Default N^(1/(2d)) h^2 with h the mean metric length of
+      the simplex edges. (A fixed t = h^2 stalls at a 1.5-2% median error on random walkers:
+      the normalised gradient keeps a direction error that does not shrink with h; t / h^2
+      growing like N^(1/(2d)) removes it while t -> 0 relative to the domain.)
+    - `boundary`: heat step at hull walkers (heat only; periodic graphs have none):
+      "mean" (default) averages the solutions with zero flux (Neumann) and with u = 0 on hull
+      walkers (Dirichlet), as Crane et al. recommend; "neumann" or "dirichlet" alone. The
+      Poisson step always has the natural (Neumann) condition. Distances are measured
+      inside the convex hull of the walkers (the triangulated domain); periodic graphs give
+      distances on the torus.
+    - `solver`: linear solves of the heat method. "direct": scipy's sparse LU on the host
+      (through `jax.pure_callback`), factorised once per operator and cached (the last 8
+      operators, keyed by their contents), so later calls with the same graph, metric and
+      t reuse it; many sources share it. "cg": Jacobi-preconditioned conjugate gradients, all
+      on the device (vmap/GPU), to a relative residual of 1e-12 (heat) and 1e-10 (Poisson) in
+      float64, 1e-5 and 1e-4 in float32; NaN rows where CG does not get there. The heat
+      solution falls off like exp(-r / sqrt(t)), below that tolerance far from the source, so
+      CG adds a second heat step with t' = N^(1/(2d)) t whose direction is used on simplices
+      whose vertices all have |u| < 1e-9 max u (1e-2 in float32). The LU of "direct" needs
+      no such step on Euclidean 2D graphs (nearly an M-matrix: the triangular solves keep
+      relative accuracy entry by entry); bench/README.md compares both at N = 1e5.
+      "auto": "direct" on the CPU backend, "cg" on accelerators.
 
     **Returns:**
 
-    (len(sources), N) distances; unreachable walkers are inf. Concrete sources outside
-    [0, N) are a ValueError; traced ones (Bellman-Ford under jit) give a row of inf.
+    (len(sources), N) distances. Heat: NaN at walkers in no valid simplex, and for traced
+    sources outside [0, N); graph methods: inf where unreachable (a row of inf for traced
+    sources outside [0, N)). Concrete sources outside [0, N) are a ValueError.
     """
     check_choice(method, "method", GEODESIC_METHODS)
     src = _check_sources(sources, tess.n_points)
+    if method == "heat":
+        return _heat(tess, src, metric, mode=mode, t=t, boundary=boundary, solver=solver)
     lengths = edge_lengths(tess, metric=metric, mode=mode)
     if method == "dijkstra":
         return jnp.asarray(_dijkstra(tess, lengths, np.asarray(src)), dtype=lengths.dtype)
     symmetric = tess.simplices is not None
     return jax.vmap(lambda s: _bellman_ford(lengths, tess.neighbors, s, symmetric))(jnp.atleast_1d(src).astype(jnp.int32))
+
+
+def _heat(tess: Tessellation, sources, metric, *, mode: str, t, boundary: str, solver: str):
+    check_choice(boundary, "boundary", HEAT_BOUNDARIES)
+    check_choice(solver, "solver", HEAT_SOLVERS)
+    if tess.simplices is None:
+        raise ValueError("method='heat' needs Delaunay simplices and this is a k-NN graph: build the graph with "
+                         "jaxgeom.delaunay, or pass method='dijkstra' (or 'bellman_ford') for graph distances.")
+    if t is not None:
+        check_positive(t, "t", " (the heat time step, a length squared; None picks N^(1/d) h^2)")
+    if solver == "auto":
+        solver = "direct" if jax.default_backend() == "cpu" else "cg"
+    return _heat_jit(tess, sources, metric, mode, t, boundary, solver)
+
+
+@eqx.filter_jit
+def _heat_jit(tess, sources, metric, mode, t, boundary, solver):
+    return heat_distances(tess, sources, metric, mode=mode, t=t, boundary=boundary, solver=solver)
 
 
 def _check_sources(sources, n: int):

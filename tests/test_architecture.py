@@ -19,7 +19,8 @@ LAYERS = [
     ("_cellclip",),  # the Delaunay rebuild on the device (per-cell Voronoi clipping, certified)
     ("_volumes",),
     ("_metric",),
-    ("_cells", "_curvature", "_geodesic"),
+    ("_cells", "_curvature", "_heat"),
+    ("_geodesic",),  # heat method, Dijkstra, Bellman-Ford behind one entry point
     ("_weights",),  # edge weight rules
     ("_forces", "_spectral", "_estimation"),
     ("_dynamics",),  # SwarmParams, SwarmState, the three phases of a step

@@ -30,6 +30,7 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     graph_proxies = report["graph_proxies"]
     assert 0 < graph_proxies["spectral_gap"] < 1 and graph_proxies["smallest_eigenvalues"][0] < 1e-10
     assert graph_proxies["best_walker_geodesic_eccentricity"] > 0 and graph_proxies["unreachable_walkers"] == 0
+    assert graph_proxies["geodesic_method"] == "heat"
     estimation = report["estimation"]
     assert estimation["tier2_gradient_norm_median"] > 0 and -1 <= estimation["agreement_eigenvalue_correlation"] <= 1
     assert estimation["agreement_method_preference"] in ("excellent", "good", "poor")

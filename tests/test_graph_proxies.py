@@ -112,7 +112,7 @@ def test_geodesic_methods_agree_and_dominate_straight_lines(rng, graph):
     x = rng.random((1500, 2))
     tess = jaxgeom.delaunay(x) if graph == "delaunay" else jaxgeom.knn_graph(x, 8)
     sources = [0, 17, 999]
-    dijkstra = np.asarray(jaxgeom.geodesic_distances(tess, sources))
+    dijkstra = np.asarray(jaxgeom.geodesic_distances(tess, sources, method="dijkstra"))
     bellman = np.asarray(jaxgeom.geodesic_distances(tess, sources, method="bellman_ford"))
     np.testing.assert_allclose(bellman, dijkstra, rtol=1e-10, atol=0)
     straight = np.linalg.norm(x[None, :, :] - x[sources][:, None, :], axis=-1)
@@ -127,7 +127,7 @@ def test_geodesics_with_a_metric_and_unreachable_walkers(rng):
     def metric(p):
         return jnp.diag(jnp.array([1.0 + p[1] ** 2, 2.0]))
 
-    dij = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric=metric))
+    dij = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric=metric, method="dijkstra"))
     bf = np.asarray(jaxgeom.geodesic_distances(tess, 3, metric=metric, method="bellman_ford"))
     assert np.isinf(dij[0, 150:]).all() and np.isinf(bf[0, 150:]).all()
     np.testing.assert_allclose(bf[0, :150], dij[0, :150], rtol=1e-10)
@@ -152,7 +152,7 @@ def test_graph_proxy_bad_input(rng):
         jaxgeom.geodesic_distances(tess, [3, 40])
     with pytest.raises(ValueError, match="`sources` must be an int or a 1-D sequence"):
         jaxgeom.geodesic_distances(tess, [0.5])
-    with pytest.raises(ValueError, match="unknown method 'astar'; valid values are 'dijkstra', 'bellman_ford'"):
+    with pytest.raises(ValueError, match="unknown method 'astar'; valid values are 'heat', 'dijkstra', 'bellman_ford'"):
         jaxgeom.geodesic_distances(tess, 0, method="astar")
     with pytest.raises(ValueError, match="unknown mode 'half'"):
         jaxgeom.geodesic_distances(tess, 0, mode="half")

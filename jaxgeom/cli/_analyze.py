@@ -157,7 +157,8 @@ def section_cells(a: Analysis) -> dict:
 
 
 def section_graph_proxies(a: Analysis) -> dict:
-    """Spectral gap of the normalized Laplacian, and geodesics from the best (lowest-V) walker."""
+    """Spectral gap of the normalized Laplacian, and geodesics from the best (lowest-V) walker
+    (the heat method on Delaunay graphs, Dijkstra's graph distance on k-NN graphs)."""
     out = {}
     k = min(6, a.tess.n_points - 1)
     gaps = np.asarray(timed(a, "spectral_gap", jaxgeom.spectral_gap, a.tess, k=k))
@@ -165,9 +166,11 @@ def section_graph_proxies(a: Analysis) -> dict:
     fitness = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
     best = int(np.argmin(fitness))
     metric = analysis_metric(a)
-    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric=metric))[0]
+    method = "heat" if a.tess.simplices is not None else "dijkstra"  # a k-NN graph has no simplices
+    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric=metric,
+                            method=method))[0]
     reachable = np.isfinite(dist)
-    out.update(best_walker=best, best_fitness=float(fitness[best]),
+    out.update(best_walker=best, best_fitness=float(fitness[best]), geodesic_method=method,
                best_walker_geodesic_eccentricity=float(dist[reachable].max()),
                best_walker_mean_geodesic_distance=float(dist[reachable].mean()),
                unreachable_walkers=int((~reachable).sum()))
