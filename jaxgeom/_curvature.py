@@ -237,7 +237,10 @@ def _hinge_sums(tess: Tessellation, metric, mode: str):
     sq_g, sq_ref = _metric_and_reference_sq_lengths(tess, metric, mode)
     # Angles depend on ratios of lengths only: scale each simplex to unit size, so that the
     # Gram determinants (length^2d) neither underflow nor overflow; |h| scales back below.
-    scale = jnp.max(sq_g, axis=1, keepdims=True)
+    # The scale's value cancels (angles use ratios, |h| is scaled back), so it carries no
+    # gradient: reduce_max's derivative divides by the count of entries equal to the max, 0 where
+    # XLA rounds two copies differently (seen at --xla_backend_optimization_level=0: NaN).
+    scale = jax.lax.stop_gradient(jnp.max(sq_g, axis=1, keepdims=True))
     scale = jnp.where(scale > 0, scale, 1.0)
     sq_g, sq_ref = sq_g / scale, [sq / scale for sq in sq_ref]
     size_scale = jnp.sqrt(scale[:, 0]) ** (d - 2)

@@ -57,17 +57,19 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
       Poisson step always has the natural (Neumann) condition. Distances are measured
       inside the convex hull of the walkers (the triangulated domain); periodic graphs give
       distances on the torus.
-    - `solver`: linear solves of the heat method. "direct": scipy's sparse LU on the host
-      (through `jax.pure_callback`), factorised once per operator and cached (the last 8
+    - `solver`: linear solves of the heat method. "direct": a sparse Cholesky factorisation
+      on the host (CHOLMOD through cholespy; scipy's SuperLU where cholespy is missing or the
+      matrix is not numerically positive definite), through `jax.pure_callback`,
+      factorised once per operator and cached (the last 8
       operators, keyed by their contents), so later calls with the same graph, metric and
       t reuse it; many sources share it. "cg": Jacobi-preconditioned conjugate gradients, all
       on the device (vmap/GPU), to a relative residual of 1e-12 (heat) and 1e-10 (Poisson) in
       float64, 1e-5 and 1e-4 in float32; NaN rows where CG does not get there. The heat
       solution falls off like exp(-r / sqrt(t)), below that tolerance far from the source, so
       CG adds a second heat step with t' = N^(1/(2d)) t whose direction is used on simplices
-      whose vertices all have |u| < 1e-9 max u (1e-2 in float32). The LU of "direct" needs
-      no such step on Euclidean 2D graphs (nearly an M-matrix: the triangular solves keep
-      relative accuracy entry by entry); bench/README.md compares both at N = 1e5.
+      whose vertices all have |u| < 1e-9 max u (1e-2 in float32). "direct" needs no such
+      step on Euclidean 2D graphs (nearly an M-matrix: the triangular solves keep relative
+      accuracy entry by entry); bench/README.md compares both at N = 1e5.
       "auto": "direct" on the CPU backend, "cg" on accelerators.
 
     **Returns:**

@@ -234,8 +234,8 @@ def test_float32_distances(rng):
 def test_the_factorisation_is_cached_per_operator(rng, monkeypatch):
     tess = jaxgeom.delaunay(rng.random((500, 2)))
     calls = []
-    real = _heat.scipy.sparse.linalg.splu
-    monkeypatch.setattr(_heat.scipy.sparse.linalg, "splu", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = _heat._assemble
+    monkeypatch.setattr(_heat, "_assemble", lambda *a: calls.append(1) or real(*a))
     _heat._FACTORS.clear()
     first = np.asarray(jaxgeom.geodesic_distances(tess, [1, 2], solver="direct"))
     assert len(calls) == 3  # Neumann and Dirichlet heat operators, pinned Laplacian
@@ -244,6 +244,23 @@ def test_the_factorisation_is_cached_per_operator(rng, monkeypatch):
     np.testing.assert_array_equal(again[0], first[1])
     jaxgeom.geodesic_distances(tess, [1], sphere_metric, solver="direct")  # another metric: new operators
     assert len(calls) == 6
+
+
+@pytest.mark.parametrize("backend", ["cholmod", "superlu"])
+def test_direct_backends_solve_the_assembled_systems(rng, backend):
+    if backend == "cholmod" and _heat.cholespy is None:
+        pytest.skip("cholespy is not installed")
+    tess = jaxgeom.delaunay(rng.random((300, 2)))
+    op = _heat.heat_operators(tess)
+    keep = ~np.asarray(tess.hull)
+    matrix = _heat._assemble(op.simplices, op.stiffness, op.mass, op.t, keep)
+    factor = _heat.new_factor(matrix, backend)
+    assert isinstance(factor, _heat._Cholesky) == (backend == "cholmod")
+    rhs = rng.random((300, 3))
+    np.testing.assert_allclose(matrix @ factor.solve(rhs), rhs, atol=1e-12)
+    # a matrix that is not positive definite falls back to SuperLU
+    indefinite = _heat.scipy.sparse.csr_matrix(np.array([[1.0, 2.0], [2.0, 1.0]]))
+    np.testing.assert_allclose(_heat.new_factor(indefinite, backend).solve(np.array([1.0, 0.0])), [-1 / 3, 2 / 3])
 
 
 def test_heat_bad_arguments(rng):
