@@ -45,8 +45,8 @@ from ._simplex import safe_sqrt, small_adjugate, small_det
 HEAT_BOUNDARIES = ("mean", "neumann", "dirichlet")
 HEAT_SOLVERS = ("auto", "direct", "cg")
 SOURCE_BATCH = 16  # sources solved together (one host call, one vmapped CG)
-# CG's heat solution is trusted where u > CG_TRUST * max u (float64, float32): three decades
-# above the heat step's relative residual tolerance (`_solver`)
+# CG's heat solution is trusted on simplices with a vertex where |u| > CG_TRUST * max u
+# (float64, float32): three decades above the heat step's relative residual tolerance (`_solver`)
 CG_TRUST = {True: 1e-9, False: 1e-2}
 
 

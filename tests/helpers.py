@@ -2,6 +2,7 @@
 
 import itertools
 
+import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, Voronoi
 
@@ -82,3 +83,9 @@ def brute_knn(points, k, lengths=None):
 def random_rotation(d, rng):
     q, r = np.linalg.qr(rng.normal(size=(d, d)))
     return q * np.sign(np.diag(r))
+
+
+def sphere(x):
+    """Unit-sphere metric in stereographic coordinates, 4 / (1 + |x|^2)^2 I: curvature
+    R = d (d - 1), geodesics the great circles."""
+    return 4.0 / (1.0 + jnp.sum(x * x)) ** 2 * jnp.eye(x.shape[0], dtype=x.dtype)

@@ -2,13 +2,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import sphere
 
 import jaxgeom
 from jaxgeom._curvature import ricci_from_deficits
-
-
-def sphere(x):  # unit sphere in stereographic coordinates: R = d (d - 1)
-    return 4.0 / (1.0 + jnp.sum(x * x)) ** 2 * jnp.eye(x.shape[0])
 
 
 def hyperbolic(x):  # Poincare ball: R = -d (d - 1)
