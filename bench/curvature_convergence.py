@@ -17,6 +17,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 import jaxgeom
 
@@ -42,21 +43,20 @@ def ball(n, d, seed):
 
 def curvature_rows(sizes, seed):
     rows = []
-    for d in (2, 3):
-        for n in sizes:
-            x = ball(n, d, seed)
-            start = time.perf_counter()
-            tess = jaxgeom.delaunay(x)
-            t_tess = time.perf_counter() - start
-            region = tess.interior & jnp.asarray(np.linalg.norm(x, axis=1) < 0.35)
-            vol = jaxgeom.voronoi_volumes(tess)
-            for name, metric, exact in (("sphere", sphere, d * (d - 1.0)), ("hyperbolic", hyperbolic, -d * (d - 1.0))):
-                r = jaxgeom.ricci_scalar(tess, metric=metric, volumes=vol)
-                avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol), region))
-                rows.append({"dim": d, "n": n, "metric": name, "exact_R": exact, "region_average_R": avg,
-                             "relative_error": abs(avg / exact - 1), "region_walkers": int(region.sum()),
-                             "delaunay_s": t_tess})
-                print(json.dumps(rows[-1]))
+    for d, n in tqdm([(d, n) for d in (2, 3) for n in sizes], desc="curvature convergence", disable=None):
+        x = ball(n, d, seed)
+        start = time.perf_counter()
+        tess = jaxgeom.delaunay(x)
+        t_tess = time.perf_counter() - start
+        region = tess.interior & jnp.asarray(np.linalg.norm(x, axis=1) < 0.35)
+        vol = jaxgeom.voronoi_volumes(tess)
+        for name, metric, exact in (("sphere", sphere, d * (d - 1.0)), ("hyperbolic", hyperbolic, -d * (d - 1.0))):
+            r = jaxgeom.ricci_scalar(tess, metric=metric, volumes=vol)
+            avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol), region))
+            rows.append({"dim": d, "n": n, "metric": name, "exact_R": exact, "region_average_R": avg,
+                         "relative_error": abs(avg / exact - 1), "region_walkers": int(region.sum()),
+                         "delaunay_s": t_tess})
+            tqdm.write(json.dumps(rows[-1]))
     return rows
 
 

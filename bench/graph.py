@@ -29,6 +29,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 import jaxgeom
 
@@ -111,7 +112,7 @@ def convergence_row(case: str, n: int, seed: int, fixed_t_up_to: int) -> dict:
         h = float(np.mean(np.asarray(jaxgeom.edge_lengths(tess, metric=metric))[np.asarray(tess.neighbor_mask)]))
         fixed = np.asarray(jaxgeom.geodesic_distances(tess, sources, metric, t=h * h, solver="direct"))
         row["heat_fixed_t_h2_median_rel_error"] = median_error(tess, fixed, true)
-    print(json.dumps(row), flush=True)
+    tqdm.write(json.dumps(row))
     return row
 
 
@@ -132,7 +133,8 @@ def main() -> None:
                                    "heat_median_rel_error_at_1e5": "flat_2d <= 0.01, flat_3d <= 0.02"}},
               "timings": timings(args.n, args.seed, args.repeat),
               "geodesic_convergence": [convergence_row(case, n, args.seed, args.fixed_t_up_to)
-                                       for case in args.cases for n in args.sizes]}
+                                       for case, n in tqdm([(c, n) for c in args.cases for n in args.sizes],
+                                                           desc="geodesic convergence", disable=None)]}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 from scipy.spatial import Delaunay
 
 import jaxgeom
@@ -90,11 +91,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "tessellation.json")
     args = parser.parse_args()
     rows = []
-    for d in args.dims:
-        for n in args.sizes:
-            row = bench_one(d, n, args.repeat, args.seed)
-            rows.append(row)
-            print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}))
+    for d, n in tqdm([(d, n) for d in args.dims for n in args.sizes], desc="tessellation bench", disable=None):
+        row = bench_one(d, n, args.repeat, args.seed)
+        rows.append(row)
+        tqdm.write(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}))
     meta = {"machine": platform.machine(), "cpus": __import__("os").cpu_count(), "jax": jax.__version__,
             "targets": {"delaunay_over_scipy": "<= 1.3", "periodic_over_freud": "< 1 (2D), <= 1.2 (3D) at N=1e5"}}
     args.out.parent.mkdir(parents=True, exist_ok=True)

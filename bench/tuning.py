@@ -161,7 +161,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("bench/results/tuning.json"))
     args = parser.parse_args()
     results = json.loads(args.out.read_text()) if args.out.exists() else {}
-    for part in args.part:
+    for part in tqdm(args.part, desc="tuning bench parts", disable=None):
         began = time.perf_counter()
         results[f"{part}_{args.precision}"] = dict(PARTS[part](), seconds=time.perf_counter() - began,
                                                    machine=f"{platform.machine()} CPU x{jax.device_count()}",
@@ -169,7 +169,7 @@ def main() -> None:
                                                    date=time.strftime("%Y-%m-%d"))
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(results, indent=1, default=float))
-        print(f"{part}: done in {time.perf_counter() - began:.0f} s", flush=True)
+        tqdm.write(f"{part}: done in {time.perf_counter() - began:.0f} s")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from ._estimation import estimate_gradient as estimate_gradient
 from ._estimation import estimate_hessian as estimate_hessian
 from ._estimation import geometric_hessian as geometric_hessian
 from ._forces import edge_weights as edge_weights
+from ._forces import VISCOUS_WEIGHTS as VISCOUS_WEIGHTS
 from ._forces import viscous_force as viscous_force
 from ._geodesic import geodesic_distances as geodesic_distances
 from ._graph import Capacity as Capacity

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.special
@@ -48,20 +49,25 @@ def landscape(name: str) -> Callable:
     return LANDSCAPES[name][0]
 
 
-def sample_boltzmann(name: str, n: int, dim: int, *, beta: float = 2.0, seed: int = 0):
-    """Exact samples of exp(-beta V) restricted to the landscape's box.
+def sample_boltzmann(name, n: int, dim: int, *, beta: float = 2.0, seed: int = 0, box=None):
+    """Samples of exp(-beta V) restricted to the landscape's box.
 
     Separable landscapes (quadratic, rastrigin) are sampled coordinate by coordinate and
     the double well through its structure (x_0 from its marginal, the others Gaussian given
     x_0), so the cost does not grow with the dimension; rosenbrock by rejection from the box.
+    A callable V (a user's landscape, `box` = (lower, upper) required) is sampled by rejection
+    from the box against the lowest V of a first batch of 2^16 uniform points: exact when that
+    batch comes within ~1/beta of the minimum, which a narrow well in high dimension may not.
 
     **Returns:**
 
     `(points, box)`: (n, dim) float64 walkers and the sampling box `(lower, upper)`.
     """
+    rng = np.random.default_rng(seed)
+    if callable(name):
+        return _sample_by_rejection(name, n, dim, beta, rng, box)
     fitness = landscape(name)
     _, v_min, half = LANDSCAPES[name]
-    rng = np.random.default_rng(seed)
     box = (np.full(dim, -half), np.full(dim, half))
     if name == "quadratic":
         scales = np.sqrt(1.0 / (beta * np.arange(1, dim + 1)))
@@ -71,13 +77,34 @@ def sample_boltzmann(name: str, n: int, dim: int, *, beta: float = 2.0, seed: in
                              n * dim, half).reshape(n, dim), box
     if name == "double_well" and dim > 1:
         return _double_well_sample(rng, n, dim, beta, half), box
+    return _rejection(fitness, n, dim, beta, rng, (-half, half), v_min), box
+
+
+def _sample_by_rejection(fitness, n: int, dim: int, beta: float, rng, box):
+    if box is None:
+        raise ValueError("sample_boltzmann of a callable V needs `box=(lower, upper)`.")
+    lo, hi = (float(b) for b in box)
+    batch = rng.uniform(lo, hi, size=(1 << 16, dim))
+    v_min = float(np.nanmin(_values(fitness, batch)))
+    return _rejection(fitness, n, dim, beta, rng, (lo, hi), v_min), (np.full(dim, lo), np.full(dim, hi))
+
+
+def _values(fitness, points):
+    return np.asarray(jax.jit(jax.vmap(fitness))(points), dtype=float)
+
+
+def _rejection(fitness, n: int, dim: int, beta: float, rng, box, v_min: float, max_rounds: int = 200):
     accepted, total = [], 0
-    while total < n:
-        trial = rng.uniform(-half, half, size=(max(4 * n, 1024), dim))
-        keep = rng.random(len(trial)) < np.exp(-beta * (np.asarray(fitness(trial)) - v_min))
+    for _ in range(max_rounds):
+        trial = rng.uniform(box[0], box[1], size=(max(4 * n, 1024), dim))
+        excess = np.maximum(_values(fitness, trial) - v_min, 0.0)
+        keep = rng.random(len(trial)) < np.exp(-beta * np.nan_to_num(excess, nan=np.inf))
         accepted.append(trial[keep])
         total += int(keep.sum())
-    return np.concatenate(accepted)[:n], box
+        if total >= n:
+            return np.concatenate(accepted)[:n]
+    raise ValueError(f"sampling exp(-{beta} V) by rejection accepted {total} of {n} walkers in {max_rounds} rounds; "
+                     "lower beta, shrink the box, or give the walkers yourself (--points).")
 
 
 def _rejection_1d(rng, density, n: int, half: float) -> np.ndarray:

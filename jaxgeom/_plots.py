@@ -9,7 +9,7 @@ import numpy as np
 NEIGHBOUR_COUNTS = (6, 10, 16, 30)
 
 
-def plot_estimation_quality(result: dict, path) -> Path:
+def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     """The chapter's four-panel diagnostic of Hessian estimation, written to `path` (PNG).
 
     **Arguments:**
@@ -17,6 +17,7 @@ def plot_estimation_quality(result: dict, path) -> Path:
     - `result`: the dict of [`jaxgeom.compare_estimation_methods`][], or of
       [`jaxgeom.validate_on_synthetic_function`][] (then errors are against the
       analytic Hessian; otherwise against the geometric Hessian).
+    - `dpi`: resolution of the PNG.
 
     Panels: FD vs geometric eigenvalues; spatial map of the per-walker relative
     error; median error against the number of k-NN neighbours (the fit redone on
@@ -48,7 +49,7 @@ def plot_estimation_quality(result: dict, path) -> Path:
         fig.suptitle("reference: the geometric Hessian C^-1 - eps_Sigma I, which measures walker spacing (~1/h^2), "
                      "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
                      "errors are expected", fontsize=9)
-    return save_figure(fig, path)
+    return save_figure(fig, path, dpi=dpi)
 
 
 def _relative_error(estimate, reference):
@@ -93,69 +94,188 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path, dpi: int = 100) -> Path:
-    """Lay out, write (creating the folder) and close a figure; returns the path."""
+def save_figure(fig, path, dpi: int = 100, layout: bool = True) -> Path:
+    """Lay out (unless the figure has its own layout engine: `layout=False`), write (creating
+    the folder) and close a figure; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
+    if layout:
+        fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     pyplot().close(fig)
     return path
+
+
+# observable: (panel title, y-axis label); energies are in the landscape's units
+OBSERVABLE_LABELS = {
+    "mean_fitness": ("mean fitness", "<V> over walkers"),
+    "best_fitness": ("best fitness", "min V"),
+    "velocity_variance": ("velocity variance", "Var(v), per component"),
+    "degree_weighted_variance": ("degree-weighted velocity variance", "Var(v), viscous-degree weights"),
+    "mean_ricci": ("mean Ricci scalar (Hessian metric)", "<R>_g, tier-2 walkers"),
+    "volume_distortion": ("volume distortion", "Var(V_i / <V>), tier 2"),
+    "mean_shape_distortion": ("mean shape ratio", "<r_in / r_circ>, tier 2 (1: round)"),
+    "mean_expansion": ("mean Raychaudhuri expansion", "<theta> = <d ln V_i / dt>"),
+    "n_clones": ("clones per step", "walkers cloned"),
+    "nu": ("viscous coupling", "nu"),
+    "eps_sigma": ("metric floor", "eps_Sigma"),
+    "spectral_gap": ("spectral gap (largest component)", "lambda_2 of the graph Laplacian"),
+}
 
 
 def _landscape_grid(fitness, lo, hi, d: int):
     import jax
     import jax.numpy as jnp
 
-    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 120), np.linspace(lo[1], hi[1], 120))
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 160), np.linspace(lo[1], hi[1], 160))
     plane = np.zeros((gx.size, d))
     plane[:, 0], plane[:, 1] = gx.ravel(), gy.ravel()
     return gx, gy, np.asarray(jax.vmap(fitness)(jnp.asarray(plane))).reshape(gx.shape)
 
 
+def _contour_levels(values, n: int = 14):
+    """Linear levels, or log-spaced ones above the minimum when most of the range lies in a
+    thin layer near it (a valley such as Rosenbrock's is invisible with linear levels)."""
+    low, high = float(np.nanmin(values)), float(np.nanmax(values))
+    above = values - low
+    if high > low and np.nanmedian(above) < 0.1 * (high - low):
+        floor = max(np.nanpercentile(above, 1), 1e-6 * (high - low))
+        return low + np.geomspace(floor, high - low, n)
+    return np.linspace(low, high, n + 2)[1:-1]
+
+
+def _frame(positions, box):
+    """Limits of the first two coordinates that hold every walker, with a 5% margin, within
+    the box (+ margin)."""
+    lo, hi = positions[:, :2].min(axis=0), positions[:, :2].max(axis=0)
+    pad = 0.05 * np.maximum(hi - lo, 1e-3)
+    return np.maximum(lo - pad, box[0] - pad), np.minimum(hi + pad, box[1] + pad)
+
+
+def _shared_ricci_norm(snapshots):
+    """One symmetric-log colour scale for every panel: the uniform start has |R| orders of
+    magnitude above a settled swarm, so linear scales per panel cannot be compared."""
+    from matplotlib.colors import SymLogNorm
+
+    pooled = np.concatenate([np.abs(s["ricci"][np.isfinite(s["ricci"])]) for s in snapshots
+                             if s["ricci"] is not None] or [np.ones(1)])
+    top = max(float(np.percentile(pooled, 99)), 1e-12)
+    return SymLogNorm(linthresh=max(float(np.percentile(pooled, 25)), 1e-4 * top), vmin=-top, vmax=top, base=10)
+
+
+def _symlog_ticks(norm):
+    """0 and +-10^k for the decades between the linear threshold and the top (every second
+    decade beyond four), so the colour bar's labels do not overlap."""
+    decades = np.arange(np.ceil(np.log10(norm.linthresh)), np.floor(np.log10(norm.vmax)) + 1)
+    decades = decades[:: 1 + (len(decades) > 4)]
+    return np.concatenate([-(10.0 ** decades[::-1]), [0.0], 10.0 ** decades])
+
+
 def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
-    """Walkers coloured by their Ricci scalar over the contours of V (first two coordinates,
-    other coordinates 0), one panel per snapshot `{"step", "positions", "ricci"}`, each
-    zoomed to the swarm (the central 98% of walkers) within `box`."""
+    """Walkers coloured by their Ricci scalar (one symmetric-log colour scale for every panel)
+    over contours of V, one panel per snapshot `{"step", "positions", "ricci"}` (ricci None on
+    a k-NN graph: walkers coloured by V instead). Beyond 2D the panels show the projection on
+    (x_1, x_2) and the contours V(x_1, x_2, 0, ..., 0); the figure says so."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, len(snapshots), figsize=(4.4 * len(snapshots), 4.2), squeeze=False)
+    from matplotlib.ticker import MaxNLocator
+
+    d = snapshots[0]["positions"].shape[1]
+    has_ricci = any(s["ricci"] is not None for s in snapshots)
+    norm = _shared_ricci_norm(snapshots) if has_ricci else None
+    fig, axes = plt.subplots(1, len(snapshots), figsize=(3.4 * len(snapshots) + 1.4, 3.8), squeeze=False,
+                             layout="constrained")
     for ax, snap in zip(axes[0], snapshots):
-        x, ricci = snap["positions"], snap["ricci"]
-        lo = np.maximum(np.percentile(x[:, :2], 1, axis=0), box[0])
-        hi = np.minimum(np.percentile(x[:, :2], 99, axis=0), box[1])
-        pad = 0.1 * np.max(hi - lo) + 1e-3
-        lo, hi = lo - pad, hi + pad
-        gx, gy, values = _landscape_grid(fitness, lo, hi, x.shape[1])
-        ax.contour(gx, gy, values, levels=15, colors="0.6", linewidths=0.6)
-        ok = np.isfinite(ricci) if ricci is not None else np.zeros(len(x), bool)
-        ax.scatter(x[~ok, 0], x[~ok, 1], s=2, c="0.7")
-        if ok.any():
-            scale = np.percentile(np.abs(ricci[ok]), 90)
-            sc = ax.scatter(x[ok, 0], x[ok, 1], s=3, c=ricci[ok], cmap="coolwarm", vmin=-scale, vmax=scale)
-            fig.colorbar(sc, ax=ax, label="Ricci scalar (Hessian metric)")
-        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"step {snap['step']}")
-    return save_figure(fig, path, dpi=72)
+        x = snap["positions"]
+        lo, hi = _frame(x, box)
+        gx, gy, values = _landscape_grid(fitness, lo, hi, d)
+        ax.contour(gx, gy, values, levels=_contour_levels(values), colors="0.55", linewidths=0.5)
+        if has_ricci:
+            ok = np.isfinite(snap["ricci"]) if snap["ricci"] is not None else np.zeros(len(x), bool)
+            ax.scatter(x[~ok, 0], x[~ok, 1], s=1, c="k")
+            mapped = ax.scatter(x[ok, 0], x[ok, 1], s=4, c=snap["ricci"][ok], cmap="coolwarm", norm=norm)
+        else:
+            v = np.asarray(_fitness_at(fitness, x))
+            mapped = ax.scatter(x[:, 0], x[:, 1], s=3, c=v, cmap="viridis", vmin=0.0 if v.min() >= 0 else None)
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), xlabel="x_1", title=f"step {snap['step']}")
+        ax.xaxis.set_major_locator(MaxNLocator(4))
+        ax.yaxis.set_major_locator(MaxNLocator(5))
+    axes[0, 0].set_ylabel("x_2")
+    label = "Ricci scalar R (symmetric log scale)" if has_ricci else "V(x)"
+    bar = fig.colorbar(mapped, ax=axes[0].tolist(), label=label, fraction=0.03, pad=0.01)
+    if has_ricci:
+        bar.set_ticks(_symlog_ticks(norm))
+    what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull "
+            "tiers, no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
+    where = (f"{d}D swarm projected on (x_1, x_2), contours of V(x_1, x_2, 0, ..., 0)" if d > 2
+             else "contours of V")
+    fig.suptitle(f"{what}\n{where}; each panel framed to hold every walker", fontsize=9)
+    return save_figure(fig, path, dpi=72, layout=False)
+
+
+def _fitness_at(fitness, x):
+    import jax
+
+    return jax.vmap(fitness)(x)
+
+
+def _first_finite(values) -> float:
+    values = np.asarray(values)
+    return float(values[np.isfinite(values)][0])
+
+
+def _constant(values) -> bool:
+    finite = np.asarray(values)[np.isfinite(values)]
+    return finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300)
 
 
 def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
-    """Every observable of a `jaxgeom.simulate` history against time, one panel each."""
+    """Every observable of a `jaxgeom.simulate` history against time, one panel each, with
+    labelled axes. Constant series (nu, eps_Sigma without annealing) are named in the title
+    instead of drawn; observables that are NaN throughout (the Voronoi ones on a k-NN graph)
+    are listed; NaN entries (the expansion at step 0) are skipped, the line joins the rest."""
     plt = pyplot()
-    names = [n for n in series if n not in ("time", "ricci_resolution")] + (["spectral_gap"] if len(gaps) else [])
+    names, constant, undefined = observable_panels(series, gaps)
     cols = 3
-    rows = -(-len(names) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.8 * rows), squeeze=False)
-    t = series["time"]
+    rows = max(-(-len(names) // cols), 1)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.9 * rows + 0.6), squeeze=False)
+    t = np.asarray(series["time"])
     dt = t[1] - t[0] if len(t) > 1 else 1.0
     for ax, name in zip(axes.ravel(), names):
-        if name == "spectral_gap":
-            ax.plot(np.asarray(gap_steps) * dt, gaps, "o-")
-        else:
-            ax.plot(t, series[name], lw=1)
-        if name == "mean_ricci" and "ricci_resolution" in series:  # |R| below this is rounding
-            floor = np.asarray(series["ricci_resolution"])
-            ax.fill_between(t, -floor, floor, color="0.85", label="resolution (+-)")
-            ax.legend(fontsize=7)
-        ax.set(title=name, xlabel="time")
+        _plot_one(ax, name, series, t, np.asarray(gap_steps) * dt, gaps)
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
+    notes = []
+    if constant:
+        notes.append("constant: " + ", ".join(f"{n} = {_first_finite(series[n]):.4g}" for n in constant))
+    if undefined:
+        notes.append("undefined on this graph (no Voronoi cells): " + ", ".join(undefined))
+    fig.suptitle("; ".join(n for n in notes if n) or "observables", fontsize=9)
     return save_figure(fig, path)
+
+
+def observable_panels(series: dict, gaps) -> tuple[list, list, list]:
+    """(drawn, constant, undefined): the observables `plot_observables` draws, those constant
+    over the run and those NaN throughout."""
+    names = [n for n in series if n not in ("time", "ricci_resolution")]
+    constant = [n for n in names if _constant(series[n])]
+    undefined = [n for n in names if not np.isfinite(series[n]).any()]
+    drawn = [n for n in names if n not in constant and n not in undefined] + (["spectral_gap"] if len(gaps) else [])
+    return drawn, constant, undefined
+
+
+def _plot_one(ax, name, series, t, gap_times, gaps):
+    title, ylabel = OBSERVABLE_LABELS.get(name, (name, name))
+    if name == "spectral_gap":
+        ax.plot(gap_times, gaps, "o-", ms=3)
+    else:
+        y = np.asarray(series[name])
+        ok = np.isfinite(y)
+        ax.plot(t[ok], y[ok], lw=1)
+        if (~ok).any():
+            title += f" (NaN at {int((~ok).sum())} step{'s' if (~ok).sum() > 1 else ''}, skipped)"
+    if name == "mean_ricci" and "ricci_resolution" in series:  # |R| below this is rounding
+        floor = np.asarray(series["ricci_resolution"])
+        ax.fill_between(t, -floor, floor, color="0.85", label="rounding floor (+-)")
+        ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=10)
+    ax.set(xlabel="time (steps x dt)", ylabel=ylabel)

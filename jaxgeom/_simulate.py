@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 import math
-import sys
 import time
 import warnings
 
@@ -44,6 +43,7 @@ from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RA
 from ._graph import Tessellation
 from ._metric import eigh
 from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
+from ._progress import check_progress, close_bar, open_bar
 from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace, update_on_device
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance
@@ -272,7 +272,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
 
 def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, rebuild_every: int = 1,
              observe: tuple[str, ...] = OBSERVABLES, rebuild: str = "host", spectral_gap_every: int = 0,
-             progress: bool = False, checkpoint: bool = False):
+             progress=False, checkpoint: bool = False):
     """Run `n_steps` swarm steps (`jax.lax.scan`), rebuilding the tessellation as walkers move.
 
     **Arguments:**
@@ -292,7 +292,9 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
       component (`bulk_spectral_gap`) and the number of components every M steps
       (host, rebuild="host"); a gap that fails to converge is NaN with a warning.
-    - `progress`: print a progress bar to stderr.
+    - `progress`: a `tqdm.auto` progress bar (rebuild="host"): False (default), True,
+      "auto" (shown in a terminal or a notebook, silent otherwise) or a tqdm bar of the
+      caller's, advanced by `n_steps` and left open (one bar over several calls).
     - `checkpoint`: with rebuild="callback" or "device", rematerialise the steps in the
       backward pass (nested sqrt(n_steps) checkpointing), so the memory of `jax.grad`
       through the run grows like sqrt(n_steps) instead of n_steps, for about two more
@@ -310,6 +312,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     `diverged_step` (-1, or under a trace the first step whose state failed).
     """
     observe = tuple(observe)
+    check_progress(progress)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
@@ -372,27 +375,10 @@ def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
             f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape.")
 
 
-class _ProgressBar:
-    def __init__(self, total: int):
-        self.total, self.start, self.shown = total, time.perf_counter(), -1
-
-    def update(self, done: int) -> None:
-        width = 30
-        filled = int(width * done / self.total)
-        if filled == self.shown and done < self.total:
-            return
-        self.shown = filled
-        rate = done / max(time.perf_counter() - self.start, 1e-9)
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} steps  {rate:6.1f} steps/s")
-        if done >= self.total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_every, k, progress):
     n_total = jnp.asarray(n_steps, jnp.int32)
     gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
-    bar = _ProgressBar(n_steps) if progress else None
+    bar, owned = open_bar(progress, n_steps, "simulate")
     if gap_every:
         gaps.append((0,) + _bulk_gap(state.tess))
     opening, pending = _begin_step(params, state), []
@@ -422,8 +408,9 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         seconds["rebuild"] += time.perf_counter() - t1
         if gap_every and end % gap_every == 0:
             gaps.append((end,) + _bulk_gap(state.tess))
-        if bar:
-            bar.update(end)
+        if bar is not None:
+            bar.update(end - start)
+    close_bar(bar, owned)
     chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
                for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)

@@ -12,7 +12,6 @@ those of `optimistix.minimise(scaled(loss, scale), solver, theta0)`.
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
 
 import equinox as eqx
@@ -22,6 +21,7 @@ import numpy as np
 import optimistix as optx
 
 from ._dynamics import SwarmParams
+from ._progress import check_progress, close_bar, open_bar
 from ._tuning import SimulationLoss, _inverse_map
 
 SOLVERS = ("bfgs", "nonlinear_cg", "lbfgsb")
@@ -43,7 +43,7 @@ class TuneResult:
     - `theta`, `values` ({name: physical value}), `params` (the `SwarmParams` at theta),
       `loss` at theta.
     - `iterations`: one dict per accepted iterate, the start included: `iteration`,
-      `loss`, `grad_norm` (of the loss in theta), `values`.
+      `loss`, `grad_norm` (of the loss in theta), `values`, `gradient` ({name: d loss / d theta}).
     - `solver`, `n_steps` (solver steps, rejected line-search trials included),
       `converged`, `message`, `seconds` (wall clock, compilation included).
     - `scale`: the norm of the loss's gradient at the start; the solver minimises
@@ -89,7 +89,7 @@ def _start(loss: SimulationLoss, start):
 
 
 def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, rtol: float = 1e-4,
-         atol: float = 1e-6, bounds: dict | None = None, progress: bool = False) -> TuneResult:
+         atol: float = 1e-6, bounds: dict | None = None, progress=False) -> TuneResult:
     """Minimise a [`jaxgeom.SimulationLoss`][] over its tuned parameters.
 
     **Arguments:**
@@ -103,7 +103,8 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
       minimisers take no bounds, use `simulation_loss(bounds=...)` with them instead).
     - `max_steps`: solver steps (optimistix) or iterations (L-BFGS-B); `rtol`, `atol`: the
       optimistix Cauchy termination (L-BFGS-B: `rtol` is scipy's `tol`).
-    - `progress`: print each accepted iteration to stderr.
+    - `progress`: a `tqdm.auto` bar over the iterations, showing the loss and the values:
+      False (default), True, "auto" (shown in a terminal or a notebook) or a tqdm bar.
 
     **Returns:** a [`jaxgeom.TuneResult`][]. **Raises:** `TuningFailed` (naming the
     iteration) when an accepted iterate has a non-finite loss or gradient, e.g. a start
@@ -111,6 +112,7 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     """
     if not isinstance(loss, SimulationLoss):
         raise TypeError("`loss` must be a jaxgeom.SimulationLoss from jaxgeom.simulation_loss(...).")
+    check_progress(progress)
     if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"`max_steps` must be an integer >= 1; got {max_steps!r}.")
     name, minimiser = _solver_of(solver, rtol, atol)
@@ -119,14 +121,18 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
                          "simulation_loss(bounds=...) (a sigmoid map of theta).")
     theta0 = _start(loss, start)
     began = time.perf_counter()
-    recorder = _Recorder(loss, progress, name)
-    value, grad = _value_and_grad(loss, theta0)
-    recorder.add(theta0, value, grad)
-    scale = jnp.maximum(jnp.linalg.norm(grad), jnp.finfo(grad.dtype).tiny)
-    if name == "lbfgsb":
-        theta, n_steps, converged, message = _run_lbfgsb(loss, theta0, scale, max_steps, rtol, bounds, recorder)
-    else:
-        theta, n_steps, converged, message = _run_optimistix(loss, minimiser, theta0, scale, max_steps, recorder)
+    bar, owned = open_bar(progress, max_steps + 1, f"tune ({name})", unit="it")
+    recorder = _Recorder(loss, bar, name)
+    try:
+        value, grad = _value_and_grad(loss, theta0)
+        recorder.add(theta0, value, grad)
+        scale = jnp.maximum(jnp.linalg.norm(grad), jnp.finfo(grad.dtype).tiny)
+        if name == "lbfgsb":
+            theta, n_steps, converged, message = _run_lbfgsb(loss, theta0, scale, max_steps, rtol, bounds, recorder)
+        else:
+            theta, n_steps, converged, message = _run_optimistix(loss, minimiser, theta0, scale, max_steps, recorder)
+    finally:
+        close_bar(bar, owned)
     best = recorder.iterations[-1]
     return TuneResult(np.asarray(theta), loss.values(theta), loss.to_params(jnp.asarray(theta)), best["loss"],
                       recorder.iterations, name, n_steps, converged, message, time.perf_counter() - began,
@@ -136,17 +142,18 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
 class _Recorder:
     """The list of accepted iterates; raises `TuningFailed` at the first non-finite one."""
 
-    def __init__(self, loss: SimulationLoss, progress: bool, name: str):
-        self.loss, self.progress, self.iterations, self.name = loss, progress, [], name
+    def __init__(self, loss: SimulationLoss, bar, name: str):
+        self.loss, self.bar, self.iterations, self.name = loss, bar, [], name
 
     def add(self, theta, value, grad) -> None:
         record = {"iteration": len(self.iterations), "loss": float(value),
-                  "grad_norm": float(np.linalg.norm(np.asarray(grad))), "values": self.loss.values(theta)}
+                  "grad_norm": float(np.linalg.norm(np.asarray(grad))), "values": self.loss.values(theta),
+                  "gradient": dict(zip(self.loss.tuned, np.asarray(grad, float).tolist()))}
         self.iterations.append(record)
-        if self.progress:
-            shown = " ".join(f"{k}={v:.6g}" for k, v in record["values"].items())
-            print(f"tune: iteration {record['iteration']:3d}  loss {record['loss']:.6g}  "
-                  f"|grad| {record['grad_norm']:.3g}  {shown}", file=sys.stderr, flush=True)
+        if self.bar is not None:
+            shown = " ".join(f"{k}={v:.4g}" for k, v in record["values"].items())
+            self.bar.set_postfix_str(f"loss {record['loss']:.4g} {shown}", refresh=False)
+            self.bar.update(1)
         if not (np.isfinite(record["loss"]) and np.isfinite(record["grad_norm"])):
             partial = TuneResult(np.asarray(theta), record["values"], self.loss.to_params(jnp.asarray(theta)),
                                  record["loss"], self.iterations, self.name, len(self.iterations), False,

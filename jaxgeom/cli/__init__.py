@@ -24,7 +24,7 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for command in (add_analyze_parser(sub), add_simulate_parser(sub), add_tune_parser(sub)):
         command.add_argument("--precision", choices=PRECISIONS, default="float64",
-                             help="floating-point type of the computation (default float64)")
+                             help="floating-point type of the computation")
     return parser
 
 

@@ -18,8 +18,9 @@ import jax
 import numpy as np
 
 import jaxgeom
-from .._landscapes import LANDSCAPES, landscape, sample_boltzmann
+from .._landscapes import LANDSCAPES, sample_boltzmann
 from .._plots import pyplot, save_figure
+from ._simulate import HelpFormatter, load_landscape
 
 
 
@@ -30,6 +31,7 @@ class Analysis:
     points: np.ndarray
     box: tuple | None
     source: str
+    fitness: Callable = None
     tess: object = None
     timings: dict = dataclasses.field(default_factory=dict)
     cache: dict = dataclasses.field(default_factory=dict)
@@ -102,7 +104,7 @@ def analysis_metric(a: Analysis):
     if "metric" not in a.cache:
         kind = a.args.metric
         if kind == "hessian":
-            a.cache["metric"] = jaxgeom.hessian_metric(landscape(a.args.landscape), a.args.eps_sigma)
+            a.cache["metric"] = jaxgeom.hessian_metric(a.fitness, a.args.eps_sigma)
         elif kind == "emergent":
             a.cache["metric"] = timed_warm(a, "emergent_metric", jaxgeom.emergent_metric, a.tess)
         else:
@@ -163,7 +165,7 @@ def section_graph_proxies(a: Analysis) -> dict:
     k = min(6, a.tess.n_points - 1)
     gaps = np.asarray(timed(a, "spectral_gap", jaxgeom.spectral_gap, a.tess, k=k))
     out.update(spectral_gap=float(gaps[1]) if k > 1 else float("nan"), smallest_eigenvalues=gaps.tolist())
-    fitness = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
+    fitness = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
     best = int(np.argmin(fitness))
     metric = analysis_metric(a)
     method = "heat" if a.tess.simplices is not None else "dijkstra"  # a k-NN graph has no simplices
@@ -181,7 +183,7 @@ def section_estimation(a: Analysis) -> dict:
     """Gradient and Hessian of the fitness field estimated from its values at the walkers,
     and their agreement with the geometric (emergent-metric) Hessian."""
 
-    values = np.asarray(landscape(a.args.landscape)(np.asarray(a.points)))
+    values = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
     result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
                    eps_sigma=a.args.eps_sigma)
     a.cache["estimation"] = result
@@ -231,9 +233,10 @@ def write_maps(a: Analysis, path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
-def load_swarm(args) -> tuple[np.ndarray, tuple | None, str]:
+def load_swarm(args, fitness, bounds) -> tuple[np.ndarray, tuple | None, str]:
     if args.points is None:
-        pts, box = sample_boltzmann(args.landscape, args.n, args.dim, beta=args.beta, seed=args.seed)
+        name = args.landscape if args.landscape in LANDSCAPES else fitness
+        pts, box = sample_boltzmann(name, args.n, args.dim, beta=args.beta, seed=args.seed, box=bounds)
         return pts, box, f"exp(-{args.beta} V), V = {args.landscape}, seed {args.seed}"
     pts = load_points(args.points)
     box = None
@@ -268,8 +271,9 @@ def analysis_graph(a: Analysis):
 
 def run_analysis(args) -> dict:
     start = time.perf_counter()
-    points, box, source = load_swarm(args)
-    a = Analysis(args=args, points=points, box=box, source=source)
+    fitness, bounds = load_landscape(args.landscape, args.dim)
+    points, box, source = load_swarm(args, fitness, bounds)
+    a = Analysis(args=args, points=points, box=box, source=source, fitness=fitness)
     a.timings["load"] = time.perf_counter() - start
     a.tess = analysis_graph(a)
     report = {name: section(a) for name, section in REPORT_SECTIONS}
@@ -301,14 +305,17 @@ def format_report(report: dict) -> str:
 
 
 def add_analyze_parser(sub) -> argparse.ArgumentParser:
-    an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry")
-    an.add_argument("--points", type=Path, help="(N, d) .npy file; default: sample the built-in landscape")
-    an.add_argument("--landscape", default="double_well", choices=sorted(LANDSCAPES))
+    an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry",
+                        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    an.add_argument("--points", type=Path, help="(N, d) .npy file; None: sample exp(-beta V) of --landscape")
+    an.add_argument("--landscape", default="double_well",
+                    help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
+                         "BOX = (lower, upper)): the sampled density and the Hessian metric")
     an.add_argument("--beta", type=float, default=2.0, help="inverse temperature of the default sample")
-    an.add_argument("--dim", type=int, default=2)
-    an.add_argument("--n", type=int, default=5000)
-    an.add_argument("--seed", type=int, default=0)
-    an.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay")
+    an.add_argument("--dim", type=int, default=2, help="dimension of the sampled walkers")
+    an.add_argument("--n", type=int, default=5000, help="walkers sampled")
+    an.add_argument("--seed", type=int, default=0, help="seed of the sample")
+    an.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
     an.add_argument("--k", type=int, default=12, help="neighbours per walker with --graph knn")
     an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
     an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"), help="domain bounds for every axis")

@@ -18,34 +18,62 @@ from .._dynamics import metric_field
 from .._forces import VISCOUS_WEIGHTS
 from .._landscapes import LANDSCAPES
 from .._plots import plot_observables, plot_swarm_snapshots
+from .._progress import close_bar, open_bar
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help shows every option's default and keeps the description's line breaks."""
+
+
+def add_progress_flag(parser) -> None:
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="a progress bar on stderr (None: only when stderr is a terminal)")
+
+
+def progress_choice(args):
+    """The `progress` argument of jaxgeom.simulate / tune for --progress / --no-progress."""
+    return "auto" if args.progress is None else args.progress
+
+
+SIMULATE_DESCRIPTION = """\
+Run N walkers on a landscape: underdamped Langevin dynamics with the scutoidal viscous force
+and Fractal Gas cloning, the Delaunay (or k-NN) graph rebuilt as they move; print a table of
+the observables, and with --out write history.json, swarm.png and observables.png.
+
+The command line's defaults (temperature 1, gamma 2) are hotter and more damped than
+jaxgeom.SwarmParams' (temperature 0.1, gamma 1): the built-in landscapes span boxes of half
+width 3 to 5.12 with barriers of order 10, which a swarm at T = 0.1 does not cross within a
+few hundred steps. The library's defaults suit a unit-scale landscape."""
+
+
 def add_simulate_parser(sub) -> argparse.ArgumentParser:
-    sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape")
+    sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape",
+                         description=SIMULATE_DESCRIPTION, formatter_class=HelpFormatter)
     sim.add_argument("--landscape", default="rastrigin",
                      help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
                           "BOX = (lower, upper))")
     sim.add_argument("--n", type=int, default=3000, help="walkers")
     sim.add_argument("--dim", type=int, default=2, help="2 or 3 (higher with --graph knn)")
-    sim.add_argument("--steps", type=int, default=300)
-    sim.add_argument("--dt", type=float, default=0.01)
-    sim.add_argument("--gamma", type=float, default=2.0, help="friction")
-    sim.add_argument("--temperature", type=float, default=1.0)
+    sim.add_argument("--steps", type=int, default=300, help="time steps")
+    sim.add_argument("--dt", type=float, default=0.01, help="time step")
+    sim.add_argument("--gamma", type=float, default=2.0, help="friction (SwarmParams default: 1.0)")
+    sim.add_argument("--temperature", type=float, default=1.0, help="temperature T (SwarmParams default: 0.1)")
     sim.add_argument("--weights", default="kernel", choices=VISCOUS_WEIGHTS, help="viscous edge weights")
-    sim.add_argument("--nu", type=float, default=0.1, help="viscous coupling")
-    sim.add_argument("--eps-sigma", type=float, default=0.1, help="Hessian-metric floor (curvature, metric modes)")
-    sim.add_argument("--clone-rate", type=float, default=0.1)
-    sim.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=True)
+    sim.add_argument("--nu", type=float, default=0.1, help="viscous coupling nu")
+    sim.add_argument("--eps-sigma", type=float, default=0.1,
+                     help="Hessian-metric floor eps_Sigma (curvature, metric weights, --anisotropic)")
+    sim.add_argument("--clone-rate", type=float, default=0.1, help="scale of the cloning probability, in [0, 1]")
+    sim.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=True, help="Fractal Gas cloning")
     sim.add_argument("--anisotropic", action="store_true", help="diffusion D = g^-1 (adaptive gas)")
-    sim.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay")
+    sim.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
     sim.add_argument("--k", type=int, default=12, help="neighbours with --graph knn")
-    sim.add_argument("--rebuild-every", type=int, default=1)
+    sim.add_argument("--rebuild-every", type=int, default=1, help="steps between graph rebuilds")
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
-    sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress_flag(sim)
     return sim
 
 
@@ -102,31 +130,38 @@ def run_simulation(args) -> dict:
                                  cloning=args.cloning, anisotropic=args.anisotropic)
     start = time.perf_counter()
     state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k)
+    seconds_init = time.perf_counter() - start
     segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
     gap_every = args.gap_every if args.gap_every and segment % args.gap_every == 0 else 0
     snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0
-    while done < args.steps:
-        n = min(segment, args.steps - done)
-        state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
-                                          spectral_gap_every=gap_every if n % max(gap_every, 1) == 0 else 0,
-                                          progress=not args.no_progress)
-        parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
-        done += n
-        snapshots.append(_snapshot(fitness, params, state, done))
+    bar, owned = open_bar(progress_choice(args), args.steps, "simulate")
+    try:
+        while done < args.steps:
+            n = min(segment, args.steps - done)
+            state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
+                                              spectral_gap_every=gap_every if n % max(gap_every, 1) == 0 else 0,
+                                              progress=bar if bar is not None else False)
+            parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
+            done += n
+            snapshots.append(_snapshot(fitness, params, state, done))
+    finally:
+        close_bar(bar, owned)
     result = _merge(parts, float(args.dt))
     result.update(config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-                  seconds_total=time.perf_counter() - start, snapshots=snapshots,
+                  seconds_total=time.perf_counter() - start, seconds_init=seconds_init,
+                  seconds_snapshots=sum(snap.pop("seconds") for snap in snapshots), snapshots=snapshots,
                   fitness=fitness, box=(lo, hi), dtype=str(jnp.dtype(dtype)))
     return result
 
 
 def _snapshot(fitness, params, state, step: int) -> dict:
     """Positions and per-walker Ricci scalar (Hessian metric) of one state, for the figure."""
-    ricci = None
+    start, ricci = time.perf_counter(), None
     if state.tess.simplices is not None:
         g = metric_field(fitness, params, params.eps_sigma * state.eps_factor, state.positions)
         ricci = np.asarray(jaxgeom.ricci_scalar(state.tess, metric=g))
-    return {"step": step, "positions": np.asarray(state.positions), "ricci": ricci}
+    return {"step": step, "positions": np.asarray(state.positions), "ricci": ricci,
+            "seconds": time.perf_counter() - start}
 
 
 def _merge(parts, dt: float) -> dict:
@@ -163,9 +198,17 @@ def summary_table(result: dict) -> str:
         rows.append("ricci_resolution: |mean_ricci| below it is rounding (jaxgeom.ricci_resolution).")
     rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
                 f"capacity reallocations {result['n_reallocations']}, "
-                f"time {result['seconds_total']:.1f} s (rebuilds {result['seconds_rebuild']:.1f} s, "
-                f"steps {result['seconds_steps']:.1f} s)")
+                f"time {result['seconds_total']:.1f} s = {timing_breakdown(result)}")
     return "\n".join(rows)
+
+
+def timing_breakdown(result: dict) -> str:
+    """Where the wall time went; compilation of the step (the first call of each chunk length)
+    is inside "steps", the per-walker Ricci maps' in "snapshots"."""
+    parts = {"initial graph + compile": result["seconds_init"], "steps (incl. compile)": result["seconds_steps"],
+             "graph rebuilds": result["seconds_rebuild"], "curvature snapshots": result["seconds_snapshots"]}
+    parts["other (spectral gaps, end-of-chunk observables, their compilation)"] = result["seconds_total"] - sum(parts.values())
+    return " + ".join(f"{name} {seconds:.1f} s" for name, seconds in parts.items())
 
 
 def _json_ready(values):

@@ -27,43 +27,48 @@ import jaxgeom
 from .._forces import VISCOUS_WEIGHTS
 from .._tune import SOLVERS
 from .._tuning import OBJECTIVES
-from ._simulate import load_landscape
+from .._landscapes import LANDSCAPES
+from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
 MATCHED = ("velocity_variance", "mean_fitness")
 
 
 def add_tune_parser(sub) -> argparse.ArgumentParser:
-    tune = sub.add_parser("tune", help="tune nu and eps_Sigma by gradient through whole simulations")
-    tune.add_argument("--landscape", default="rastrigin", help="a built-in landscape or a .py file defining V(x)")
-    tune.add_argument("--n", type=int, default=200, help="walkers")
-    tune.add_argument("--dim", type=int, default=2)
+    tune = sub.add_parser("tune", help="tune nu and eps_Sigma by gradient through whole simulations",
+                          description=__doc__, formatter_class=HelpFormatter)
+    tune.add_argument("--landscape", default="rastrigin",
+                      help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x)")
+    tune.add_argument("--n", type=int, default=200, help="walkers per simulation")
+    tune.add_argument("--dim", type=int, default=2, help="dimension of the walkers' space")
     tune.add_argument("--steps", type=int, default=20, help="steps of each simulation (longer runs: rougher gradients)")
     tune.add_argument("--seeds", type=int, default=8, help="runs averaged per loss evaluation (vmapped)")
     tune.add_argument("--tune", nargs="+", default=["nu", "eps_sigma"], choices=TUNED_CHOICES, metavar="NAME",
-                      help=f"parameters to tune, from {', '.join(TUNED_CHOICES)} (default: nu eps_sigma)")
-    tune.add_argument("--objective", default="match", choices=OBJECTIVES)
-    tune.add_argument("--nu", type=float, default=0.05, help="start value")
-    tune.add_argument("--eps-sigma", type=float, default=0.2, help="start value")
-    tune.add_argument("--dt", type=float, default=0.05, help="start value (fixed unless tuned)")
+                      help=f"parameters to tune, from {', '.join(TUNED_CHOICES)}")
+    tune.add_argument("--objective", default="match", choices=OBJECTIVES,
+                      help="match: recover --true-* from their observables; the others: minimise that fitness")
+    tune.add_argument("--nu", type=float, default=0.05, help="viscous coupling nu: start value")
+    tune.add_argument("--eps-sigma", type=float, default=0.2, help="Hessian-metric floor eps_Sigma: start value")
+    tune.add_argument("--dt", type=float, default=0.05, help="time step: start value (fixed unless tuned)")
     tune.add_argument("--temperature", type=float, default=0.5, help="start value (fixed unless tuned)")
     tune.add_argument("--true-nu", type=float, default=0.3, help="objective match: the value to recover")
     tune.add_argument("--true-eps-sigma", type=float, default=0.05, help="objective match: the value to recover")
-    tune.add_argument("--true-dt", type=float, default=None, help="objective match (default: --dt)")
-    tune.add_argument("--true-temperature", type=float, default=None, help="objective match (default: --temperature)")
-    tune.add_argument("--gamma", type=float, default=0.5, help="friction")
-    tune.add_argument("--weights", default="metric_full", choices=VISCOUS_WEIGHTS)
+    tune.add_argument("--true-dt", type=float, default=None, help="objective match (None: --dt)")
+    tune.add_argument("--true-temperature", type=float, default=None, help="objective match (None: --temperature)")
+    tune.add_argument("--gamma", type=float, default=0.5, help="friction gamma")
+    tune.add_argument("--weights", default="metric_full", choices=VISCOUS_WEIGHTS, help="viscous edge weights")
     tune.add_argument("--anisotropic", action=argparse.BooleanOptionalAction, default=True,
-                      help="diffusion D = g^-1 (default on: it makes the run depend on eps_Sigma)")
+                      help="diffusion D = g^-1 (on: it makes the run depend on eps_Sigma)")
     tune.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=False,
-                      help="cloning (off by default: its gradient is pathwise, selection held fixed)")
-    tune.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay")
-    tune.add_argument("--solver", default="bfgs", choices=SOLVERS)
+                      help="cloning (off: its gradient is pathwise, selection held fixed)")
+    tune.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
+    tune.add_argument("--solver", default="bfgs", choices=SOLVERS,
+                      help="optimistix BFGS / nonlinear CG, or jaxopt's L-BFGS-B")
     tune.add_argument("--max-steps", type=int, default=30, help="solver steps")
     tune.add_argument("--grid", type=int, default=6, help="contour grid points per axis in the figure (0: none)")
-    tune.add_argument("--seed", type=int, default=0)
+    tune.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
     tune.add_argument("--out", type=Path, help="directory for tune.json and tune.png")
-    tune.add_argument("--no-progress", action="store_true", help="no per-iteration lines on stderr")
+    add_progress_flag(tune)
     return tune
 
 
@@ -147,7 +152,7 @@ def tune_main(args) -> int:
     try:
         loss, start, truth = build_loss(args)
         result = jaxgeom.tune(loss, start, solver=args.solver, max_steps=args.max_steps,
-                              progress=not args.no_progress)
+                              progress=progress_choice(args))
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
         print(f"jaxgeom tune: error: {err}", file=sys.stderr)
         return 2

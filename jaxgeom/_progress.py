@@ -1,0 +1,48 @@
+"""Progress display: one `tqdm.auto` bar per run (a widget in Jupyter when ipywidgets is
+installed, text on stderr in a terminal)."""
+
+from __future__ import annotations
+
+import sys
+
+PROGRESS_CHOICES = "False, True, 'auto' or a tqdm bar"
+
+
+def interactive() -> bool:
+    """True in a terminal (stderr is a TTY) or inside a Jupyter kernel."""
+    in_kernel = "ipykernel" in sys.modules
+    return in_kernel or bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
+def is_bar(progress) -> bool:
+    return all(hasattr(progress, name) for name in ("update", "close", "set_postfix_str"))
+
+
+def _is_auto(progress) -> bool:
+    return isinstance(progress, str) and progress == "auto"
+
+
+def check_progress(progress) -> None:
+    """Refuse a `progress` argument that is none of the accepted kinds."""
+    if progress is None or isinstance(progress, bool) or _is_auto(progress) or is_bar(progress):
+        return
+    raise TypeError(f"`progress` must be {PROGRESS_CHOICES}; got {progress!r}.")
+
+
+def open_bar(progress, total: int, desc: str, unit: str = "step"):
+    """(bar, owned): a new bar for `progress` True or "auto" (shown only when `interactive()`),
+    the caller's bar itself (not owned: several calls advance one bar), or (None, False).
+    The owner closes it with `close_bar`."""
+    check_progress(progress)
+    if is_bar(progress):
+        return progress, False
+    if not progress or (_is_auto(progress) and not interactive()):
+        return None, False
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True), True
+
+
+def close_bar(bar, owned: bool) -> None:
+    if bar is not None and owned:
+        bar.close()
