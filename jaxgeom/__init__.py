@@ -37,6 +37,9 @@ from ._observables import OBSERVABLES as OBSERVABLES
 from ._plots import plot_estimation_quality as plot_estimation_quality
 from ._simulate import init_swarm as init_swarm
 from ._simulate import simulate as simulate
+from ._simulate import stack_swarms as stack_swarms
+from ._sharding import batch_mesh as batch_mesh
+from ._sharding import shard_batch as shard_batch
 from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap

@@ -45,6 +45,7 @@ from ._metric import eigh
 from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
 from ._progress import check_progress, close_bar, open_bar
 from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace, update_on_device
+from ._sharding import check_mesh, over_batch
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance
 
@@ -272,7 +273,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
 
 def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, rebuild_every: int = 1,
              observe: tuple[str, ...] = OBSERVABLES, rebuild: str = "host", spectral_gap_every: int = 0,
-             progress=False, checkpoint: bool = False):
+             progress=False, checkpoint: bool = False, mesh=None):
     """Run `n_steps` swarm steps (`jax.lax.scan`), rebuilding the tessellation as walkers move.
 
     **Arguments:**
@@ -300,6 +301,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       through the run grows like sqrt(n_steps) instead of n_steps, for about two more
       forward passes of time; the forward result is unchanged (`jaxgeom.simulation_loss`
       turns it on).
+    - `mesh`: for a batch of swarms (`jaxgeom.stack_swarms`: every array with a leading
+      (B,) axis; rebuild="callback" or "device"), a `jax.sharding.Mesh` with a "batch" axis
+      (`jaxgeom.batch_mesh()`) splits the B swarms over its devices with `jax.shard_map`;
+      None runs them under `vmap` on one device. Both give the same results (bitwise on CPU).
 
     **Returns:**
 
@@ -310,8 +315,15 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
     `diverged_step` (-1, or under a trace the first step whose state failed).
+    For a batch: the same with a leading (B,) axis on every array of both.
     """
     observe = tuple(observe)
+    if is_batch(state):
+        return _simulate_batch(fitness, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
+                               observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh)
+    if mesh is not None:
+        raise ValueError("`mesh` splits a batch of swarms over devices (jaxgeom.stack_swarms); this state is one "
+                         "swarm (positions of shape (N, d)).")
     check_progress(progress)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if not isinstance(checkpoint, bool):
@@ -323,6 +335,44 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     if rebuild in ("callback", "device"):
         return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
+
+
+def is_batch(state) -> bool:
+    """Whether `state` is a stack of swarms (positions (B, N, d))."""
+    return isinstance(state, SwarmState) and state.positions.ndim == 3
+
+
+def stack_swarms(states) -> SwarmState:
+    """One `SwarmState` holding several swarms of the same shape along a leading (B,) axis, for
+    `simulate(..., rebuild="callback")` and `mesh=`. The swarms need equal capacities: build
+    them with `init_swarm(..., capacity=jaxgeom.Capacity(...))` (Delaunay) or the same k."""
+    states = list(states)
+    if not states or not all(isinstance(s, SwarmState) and not is_batch(s) for s in states):
+        raise TypeError("`states` must be a non-empty sequence of single-swarm jaxgeom.SwarmState (init_swarm).")
+    structures = {jax.tree_util.tree_structure(s) for s in states}
+    shapes = {tuple(leaf.shape for leaf in jax.tree_util.tree_leaves(s)) for s in states}
+    if len(structures) > 1 or len(shapes) > 1:
+        raise ValueError("the swarms differ in walkers, dimension or graph capacity; build every one with the same "
+                         "N and init_swarm(..., capacity=jaxgeom.Capacity(simplices=S, neighbors=K)).")
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
+
+
+def _simulate_batch(fitness, state, params, *, n_steps, rebuild_every, observe, rebuild, checkpoint, mesh):
+    """`simulate` of every swarm of a batch: vmap, split over `mesh` when given."""
+    if rebuild == "host":
+        raise ValueError("a batch of swarms runs inside one traced program: use rebuild='callback' or 'device' "
+                         "(rebuild='host' drives one swarm from Python).")
+    lane = jax.tree_util.tree_map(lambda leaf: leaf[0], state)
+    _check_simulate_args(fitness, lane, params, n_steps, rebuild_every, observe, rebuild, 0)
+    check_mesh(mesh, state.positions.shape[0], "the number of swarms B")
+    options = (("n_steps", n_steps), ("rebuild_every", rebuild_every), ("observe", observe), ("rebuild", rebuild),
+               ("checkpoint", checkpoint))
+    return _run_lanes(fitness, state, params, mesh, options)
+
+
+@eqx.filter_jit
+def _run_lanes(fitness, state, params, mesh, options):
+    return over_batch(lambda st, p: simulate(fitness, st, p, **dict(options)), mesh)(state, params)
 
 
 _health = jax.jit(health)

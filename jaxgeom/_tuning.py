@@ -35,6 +35,7 @@ from jaxtyping import Array, Float
 from ._checks import check_choice
 from ._dynamics import SwarmParams, SwarmState
 from ._observables import OBSERVABLES
+from ._sharding import check_mesh, over_batch
 from ._simulate import REBUILD_MODES, simulate
 
 TUNABLE = ("nu", "eps_sigma", "dt", "gamma", "temperature", "alpha", "clone_rate", "clone_jitter", "nu_initial")
@@ -83,6 +84,7 @@ class SimulationLoss(eqx.Module):
     rebuild: str = eqx.field(static=True)
     rebuild_every: int = eqx.field(static=True)
     checkpoint: bool = eqx.field(static=True)
+    mesh: object = eqx.field(static=True, default=None)  # a jax.sharding.Mesh splitting the seeds, or None
 
     @property
     def n_seeds(self) -> int:
@@ -117,14 +119,12 @@ class SimulationLoss(eqx.Module):
 
     def histories(self, theta):
         """(final states, histories) of every seed, stacked on a leading (n_seeds,) axis."""
-        params = self.to_params(theta)
-
-        def run(key):
+        def run(key, params):
             state = eqx.tree_at(lambda s: s.key, self.state, key)
             return simulate(self.fitness, state, params, n_steps=self.n_steps, rebuild=self.rebuild,
                             rebuild_every=self.rebuild_every, observe=self.observe, checkpoint=self.checkpoint)
 
-        return jax.vmap(run)(self.keys)
+        return over_batch(run, self.mesh)(self.keys, self.to_params(theta))
 
     def per_seed(self, theta) -> Float[Array, " n_seeds"]:
         """The objective of each seed's run; +inf where the swarm diverged or the objective is
@@ -172,7 +172,7 @@ def _check_inside(name: str, value: float, lower, upper) -> None:
 def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_steps: int, params: SwarmParams,
                     tuned=("nu", "eps_sigma"), n_seeds: int = 1, key=None, targets: dict | None = None,
                     bounds: dict | None = None, window: float = 0.5, observe=None, rebuild: str = "callback",
-                    rebuild_every: int = 1, checkpoint: bool = True) -> SimulationLoss:
+                    rebuild_every: int = 1, checkpoint: bool = True, mesh=None) -> SimulationLoss:
     """A differentiable loss of the swarm's parameters: theta -> objective of whole simulations.
 
     **Arguments:**
@@ -196,6 +196,9 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     - `window`: fraction of the run (at its end) that time averages cover, in (0, 1].
     - `rebuild`: "callback" (default) or "device" (2D Delaunay swarms); `rebuild_every`.
     - `checkpoint`: nested sqrt(n_steps) rematerialisation (memory ~ sqrt(n_steps)).
+    - `mesh`: a `jax.sharding.Mesh` with a "batch" axis (`jaxgeom.batch_mesh()`): the seeds
+      are split over its devices (`jax.shard_map`; `n_seeds` a multiple of its size), the
+      loss and its gradient equal the one-device ones. None: `vmap` on one device.
 
     **Returns:** a [`jaxgeom.SimulationLoss`][] `loss`, with `loss(theta)` jittable and
     differentiable and `loss.to_theta({"nu": 0.1})` the theta of given values.
@@ -207,8 +210,9 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     observe = _observables_for(objective, targets, observe)
     base = state.key if key is None else _key_like(key, state.key)
     keys = jax.random.split(base, n_seeds)
+    check_mesh(mesh, n_seeds, "`n_seeds`")
     loss = SimulationLoss(fitness, state, params, keys, tuned, bounds, objective, targets, observe, int(n_steps),
-                          float(window), rebuild, int(rebuild_every), bool(checkpoint))
+                          float(window), rebuild, int(rebuild_every), bool(checkpoint), mesh)
     for name, (lower, upper) in zip(tuned, bounds):
         _check_inside(name, float(getattr(params, name)), lower, upper)
     if callable(objective):

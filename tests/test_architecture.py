@@ -12,7 +12,7 @@ LAYERS = [
     ("_simplex", "_planar"),  # small dense linear algebra; 2D triangle-fan rows
     ("_graph",),  # the Tessellation pytree and its gathers
     ("_checks",),  # host-boundary validation
-    ("_landscapes", "_progress"),  # the built-in fitness functions; the tqdm progress bar
+    ("_landscapes", "_progress", "_sharding"),  # built-in fitness functions; tqdm bars; device meshes
     ("_contacts",),
     ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
     ("_cellgrid",),  # the device cell list

@@ -1,0 +1,74 @@
+"""Ensembles over devices. The multi-device checks run in a subprocess with 4 forced CPU
+devices (tests/sharded_checks.py), so this process keeps one device; the argument checks
+run here."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxgeom
+from jaxgeom._landscapes import rastrigin
+
+
+def swarm(n, seed=0, **kwargs):
+    return jaxgeom.init_swarm(rastrigin, np.random.default_rng(seed).uniform(-2.0, 2.0, (n, 2)), key=seed, **kwargs)
+
+
+@pytest.mark.multidevice
+def test_sharded_ensembles_and_gradients_equal_one_device():
+    script = Path(__file__).with_name("sharded_checks.py")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900,
+                          env=dict(os.environ))
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
+    assert "sharded checks passed" in done.stdout
+
+
+def test_stack_swarms_needs_equal_shapes():
+    with pytest.raises(ValueError, match=r"init_swarm\(\.\.\., capacity=jaxgeom.Capacity"):
+        jaxgeom.stack_swarms([swarm(30), swarm(40, seed=1)])
+    with pytest.raises(TypeError, match="non-empty sequence of single-swarm"):
+        jaxgeom.stack_swarms([])
+
+
+def two_swarms():
+    cap = jaxgeom.Capacity(simplices=128, neighbors=16)
+    return jaxgeom.stack_swarms([swarm(30, seed=i, capacity=cap) for i in range(2)]), jaxgeom.SwarmParams(cloning=False)
+
+
+def test_batch_arguments_are_checked():
+    batch, params = two_swarms()
+    with pytest.raises(ValueError, match="use rebuild='callback' or 'device'"):
+        jaxgeom.simulate(rastrigin, batch, params, n_steps=1)
+    with pytest.raises(ValueError, match="this state is one swarm"):
+        jaxgeom.simulate(rastrigin, swarm(30), params, n_steps=1, mesh=jaxgeom.batch_mesh())
+    with pytest.raises(TypeError, match="`mesh` must be a jax.sharding.Mesh"):
+        jaxgeom.simulate(rastrigin, batch, params, n_steps=1, rebuild="callback", mesh="gpu")
+    with pytest.raises(ValueError, match="`devices` is empty"):
+        jaxgeom.batch_mesh([])
+
+
+def test_one_device_mesh_equals_vmap():
+    batch, params = two_swarms()
+    run = dict(n_steps=2, rebuild="callback", observe=("mean_fitness",))
+    alone = jaxgeom.simulate(rastrigin, batch, params, **run)
+    meshed = jaxgeom.simulate(rastrigin, batch, params, mesh=jaxgeom.batch_mesh(), **run)
+    np.testing.assert_array_equal(np.asarray(meshed[0].positions), np.asarray(alone[0].positions))
+    assert alone[0].positions.shape == (2, 30, 2) and alone[1]["mean_fitness"].shape == (2, 3)
+
+
+@pytest.mark.multidevice
+def test_multihost_recipe_runs_with_two_processes_on_this_machine():
+    """bench/multihost.py: jax.distributed.initialize with two CPU processes (gloo collectives)."""
+    script = Path(__file__).parent.parent / "bench" / "multihost.py"
+    port = str(12000 + os.getpid() % 1000)
+    procs = [subprocess.Popen([sys.executable, str(script), "--process-id", str(i), "--coordinator",
+                               f"127.0.0.1:{port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for i in range(2)]
+    outputs = [p.communicate(timeout=600) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [o[1][-3000:] for o in outputs]
+    assert "multi-process ensemble equals one process: True" in outputs[0][0], outputs[0]
+    assert "process 1 of 2: 1 local of 2 devices" in outputs[1][0], outputs[1]
