@@ -51,6 +51,16 @@ def check_ensemble():
         raise AssertionError("6 swarms on 4 devices were accepted")
 
 
+def check_device_rebuild_ensemble():
+    """The 2D device rebuild (no Qhull unless uncertified) splits the same way."""
+    batch = jaxgeom.stack_swarms([swarm(i) for i in range(B)])
+    run = dict(n_steps=3, rebuild="device", observe=("mean_fitness",))
+    mesh = jaxgeom.batch_mesh()
+    params = jaxgeom.SwarmParams(cloning=False)
+    alone = jaxgeom.simulate(rastrigin, batch, params, **run)
+    assert same(alone, jaxgeom.simulate(rastrigin, jaxgeom.shard_batch(batch, mesh), params, mesh=mesh, **run))
+
+
 def check_loss_and_gradient():
     params = jaxgeom.SwarmParams(cloning=False, weights="metric_full", anisotropic=True, temperature=0.5)
     results = []
@@ -68,5 +78,6 @@ def check_loss_and_gradient():
 
 if __name__ == "__main__":
     check_ensemble()
+    check_device_rebuild_ensemble()
     check_loss_and_gradient()
     print("sharded checks passed")
