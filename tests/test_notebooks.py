@@ -76,3 +76,21 @@ def test_notebook_runs_and_writes_its_figures(path, tmp_path):
         assert (tmp_path / name).stat().st_size > 10_000, name
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]
     assert not errors
+
+
+@pytest.mark.notebooks
+def test_progress_auto_is_a_widget_in_a_notebook():
+    """simulate(progress="auto") is silent in a pipe (tests/test_presentation.py) and a tqdm
+    widget inside a Jupyter kernel."""
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    pytest.importorskip("ipywidgets")
+    nb = nbformat.v4.new_notebook(metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
+                                                           "language": "python"}})
+    nb.cells = [nbformat.v4.new_code_cell(
+        "import numpy as np, jaxgeom\nfrom jaxgeom._landscapes import rastrigin\n"
+        "st = jaxgeom.init_swarm(rastrigin, np.random.default_rng(0).uniform(-2, 2, (50, 2)))\n"
+        "_ = jaxgeom.simulate(rastrigin, st, jaxgeom.SwarmParams(cloning=False), n_steps=3, progress='auto')")]
+    nbclient.NotebookClient(nb, timeout=300, kernel_name="python3").execute(env=kernel_environment(Path(".")))
+    kinds = [key for o in nb.cells[0].outputs for key in o.get("data", {})]
+    assert "application/vnd.jupyter.widget-view+json" in kinds, nb.cells[0].outputs
