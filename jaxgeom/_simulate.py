@@ -320,7 +320,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     observe = tuple(observe)
     if is_batch(state):
         return _simulate_batch(fitness, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
-                               observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh)
+                               observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh,
+                               spectral_gap_every=spectral_gap_every)
     if mesh is not None:
         raise ValueError("`mesh` splits a batch of swarms over devices (jaxgeom.stack_swarms); this state is one "
                          "swarm (positions of shape (N, d)).")
@@ -357,13 +358,15 @@ def stack_swarms(states) -> SwarmState:
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
 
 
-def _simulate_batch(fitness, state, params, *, n_steps, rebuild_every, observe, rebuild, checkpoint, mesh):
-    """`simulate` of every swarm of a batch: vmap, split over `mesh` when given."""
+def _simulate_batch(fitness, state, params, *, n_steps, rebuild_every, observe, rebuild, checkpoint, mesh,
+                    spectral_gap_every):
+    """`simulate` of every swarm of a batch: vmap, split over `mesh` when given (no progress bar:
+    one traced program)."""
     if rebuild == "host":
         raise ValueError("a batch of swarms runs inside one traced program: use rebuild='callback' or 'device' "
                          "(rebuild='host' drives one swarm from Python).")
     lane = jax.tree_util.tree_map(lambda leaf: leaf[0], state)
-    _check_simulate_args(fitness, lane, params, n_steps, rebuild_every, observe, rebuild, 0)
+    _check_simulate_args(fitness, lane, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     check_mesh(mesh, state.positions.shape[0], "the number of swarms B")
     options = (("n_steps", n_steps), ("rebuild_every", rebuild_every), ("observe", observe), ("rebuild", rebuild),
                ("checkpoint", checkpoint))

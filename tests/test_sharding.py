@@ -43,6 +43,8 @@ def test_batch_arguments_are_checked():
     batch, params = two_swarms()
     with pytest.raises(ValueError, match="use rebuild='callback' or 'device'"):
         jaxgeom.simulate(rastrigin, batch, params, n_steps=1)
+    with pytest.raises(ValueError, match="`spectral_gap_every` .* needs rebuild='host'"):
+        jaxgeom.simulate(rastrigin, batch, params, n_steps=2, rebuild="callback", spectral_gap_every=2)
     with pytest.raises(ValueError, match="this state is one swarm"):
         jaxgeom.simulate(rastrigin, swarm(30), params, n_steps=1, mesh=jaxgeom.batch_mesh())
     with pytest.raises(TypeError, match="`mesh` must be a jax.sharding.Mesh"):
