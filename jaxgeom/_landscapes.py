@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import jax
@@ -90,7 +91,13 @@ def _sample_by_rejection(fitness, n: int, dim: int, beta: float, rng, box):
 
 
 def _values(fitness, points):
-    return np.asarray(jax.jit(jax.vmap(fitness))(points), dtype=float)
+    return np.asarray(_batched(fitness)(points), dtype=float)
+
+
+@functools.lru_cache(maxsize=16)
+def _batched(fitness: Callable):
+    """jit(vmap(fitness)), made once per landscape: a new jit per rejection round recompiled."""
+    return jax.jit(jax.vmap(fitness))
 
 
 def _rejection(fitness, n: int, dim: int, beta: float, rng, box, v_min: float, max_rounds: int = 200):
