@@ -40,6 +40,7 @@ from ._simulate import simulate as simulate
 from ._simulate import stack_swarms as stack_swarms
 from ._sharding import batch_mesh as batch_mesh
 from ._sharding import shard_batch as shard_batch
+from ._sharding import walker_mesh as walker_mesh
 from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap

@@ -27,6 +27,7 @@ flagged instead of returned wrong.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -37,6 +38,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._delaunay import planar_tessellation
 from ._graph import Tessellation, lower_bound_in_rows
+from ._sharding import WALKER_AXIS, check_mesh, split_rows
 from ._cellgrid import block_walkers, build_grid, grid_side, walker_reach, within
 
 FAR = -1  # label of the square's sides (the cell reaches "infinity": a hull walker)
@@ -386,15 +388,15 @@ class Triangulation(NamedTuple):
 FIRST_PASS_CANDIDATES = 22  # walkers expected within the first pass's radius
 
 
-def first_candidates(points: Float[Array, "N 2"], *, expected: int = FIRST_PASS_CANDIDATES, width: int = 32,
-                     per_row: int = 16):
-    """Every walker's candidates for the first pass, in block order (padding N): the walkers
-    of its grid block (`_cellgrid`) within the radius that holds about `expected` of them
-    at the block's density (at most the radius the block
+def first_candidates(points: Float[Array, "N 2"], rows=None, *, expected: int = FIRST_PASS_CANDIDATES,
+                     width: int = 32, per_row: int = 16):
+    """The candidates of walkers `rows` (default all) for the first pass, in block order
+    (padding N): the walkers of its grid block (`_cellgrid`) within the radius that holds about
+    `expected` of them at the block's density (at most the radius the block
     covers), at most `width`. Returns `(candidates, covered2)`: every walker closer than
     sqrt(covered2) is a candidate (0 where the block or the list was cut short)."""
     n = points.shape[0]
-    rows = jnp.arange(n, dtype=jnp.int32)
+    rows = jnp.arange(n, dtype=jnp.int32) if rows is None else rows
     grid = build_grid(points, grid_side(n))
     ids, d2, r2, complete = block_walkers(points, grid, rows, walker_reach(grid, rows), per_row=per_row)
     inside = jnp.sum(d2 < r2[:, None], axis=1, dtype=jnp.int32)
@@ -422,9 +424,28 @@ def _take_suspects(suspect, capacity: int, rounds):
     return jnp.where(picked < n, jnp.mod(picked + offset, n), n).astype(jnp.int32)
 
 
+def _first_pass(points, rows, *, expected: int, max_edges: int):
+    """(labels, count, overflowed, settled) of the cells of walkers `rows` clipped by their
+    `first_candidates`; `settled`: Ray et al.'s security radius holds (a cell whose farthest
+    vertex is closer than half the radius searched exhaustively is exact, whatever the
+    certificate says of its neighbours)."""
+    candidates, covered2 = first_candidates(points, rows, expected=expected)
+    labels, count, overflowed, vertices = voronoi_cycles(points, candidates, rows, max_edges=max_edges)
+    return labels, count, overflowed, (4 * cell_reach2(vertices, count) < covered2) & ~overflowed
+
+
+def _redone_cells(points, labels, count, rows, local, *, max_edges: int, exact_capacity: int):
+    """(labels, count, overflowed) of the cells of walkers `rows` clipped again, by
+    `repair_candidates` (`local`) or `cutter_candidates` (the first `exact_capacity` rows)."""
+    candidates = jax.lax.cond(
+        local, lambda: repair_candidates(points, labels, rows, 2 * max_edges),
+        lambda: cutter_candidates(points, labels, count, rows, active=exact_capacity))
+    return voronoi_cycles(points, candidates, rows, max_edges=max_edges)[:3]
+
+
 def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24, repair_capacity: int | None = None,
                 local_rounds: int = 3, exact_capacity: int = 128, exact_rounds: int = 6,
-                first_pass: int = FIRST_PASS_CANDIDATES) -> Triangulation:
+                first_pass: int = FIRST_PASS_CANDIDATES, mesh=None) -> Triangulation:
     """The Delaunay triangulation of `points`, jittable: each cell clipped by its
     `first_candidates`, then repair rounds in which the cells of walkers in a failed
     condition of the certificate (and not settled by the security radius) are redone:
@@ -432,14 +453,16 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
     then `exact_rounds` rounds with `cutter_candidates` (at most `exact_capacity` cells each). Never silently wrong:
     `certified` is False when the certificate still fails or a cell or the triangle list
     overflowed. `repair_capacity` defaults to N / 4 (at least 64); `first_pass` is the
-    number of candidates the first pass aims for."""
+    number of candidates the first pass aims for. `mesh`: a mesh with a "walkers" axis
+    (`jaxgeom.walker_mesh`) splits the cells to clip over its devices (`split_rows`): each
+    device clips its share of the cells from all the positions; same result."""
     n = points.shape[0]
     repair_capacity = max(64, n // 4) if repair_capacity is None else repair_capacity
-    candidates, covered2 = first_candidates(points, expected=first_pass)
-    labels, count, overflowed, vertices = voronoi_cycles(points, candidates, max_edges=max_edges)
-    # Ray et al.'s security radius: a cell whose farthest vertex is closer than half the
-    # radius searched exhaustively is exact, whatever the certificate says of its neighbours.
-    settled = (4 * cell_reach2(vertices, count) < covered2) & ~overflowed
+    devices = 1 if mesh is None else mesh.shape[WALKER_AXIS]
+    all_rows = jnp.arange(n, dtype=jnp.int32)
+    labels, count, overflowed, settled = split_rows(
+        lambda rows, p: _first_pass(p, rows, expected=first_pass, max_edges=max_edges), mesh, all_rows, n, points)
+    redo = functools.partial(_redone_cells, max_edges=max_edges, exact_capacity=-(-exact_capacity // devices))
 
     def checks_of(labels, count, overflowed):
         checks = check_cycles(points, _cycles(labels, count, n))
@@ -450,10 +473,8 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
         local = rounds < local_rounds
         rows = _take_suspects(checks.suspect, repair_capacity, rounds)
         rows = jnp.where(local | (jnp.arange(repair_capacity, dtype=jnp.int32) < exact_capacity), rows, n)
-        candidates = jax.lax.cond(
-            local, lambda: repair_candidates(points, labels, rows, 2 * max_edges),
-            lambda: cutter_candidates(points, labels, count, rows, active=exact_capacity))
-        new_labels, new_count, new_over, _ = voronoi_cycles(points, candidates, rows, max_edges=max_edges)
+        new_labels, new_count, new_over = split_rows(lambda r, *a: redo(a[0], a[1], a[2], r, a[3]), mesh, rows, n,
+                                                     points, labels, count, local)
         labels = labels.at[rows].set(new_labels, mode="drop")
         count = count.at[rows].set(new_count, mode="drop")
         overflowed = overflowed.at[rows].set(new_over, mode="drop")
@@ -479,7 +500,7 @@ def describe_graph(tess: Tessellation) -> str:
     return "a k-NN graph" if tess.simplices is None else f"{tess.dim}D{' periodic' if tess.periodic else ''}"
 
 
-def rebuild(tess: Tessellation, points) -> Tessellation:
+def rebuild(tess: Tessellation, points, *, mesh=None) -> Tessellation:
     """The Delaunay `Tessellation` of new positions, built on the device (jittable, vmappable).
 
     The jittable half of an allocate / update pair (after jax-md's neighbour lists):
@@ -496,6 +517,8 @@ def rebuild(tess: Tessellation, points) -> Tessellation:
 
     - `tess`: a 2D, non-periodic Delaunay `Tessellation` (3D and periodic graphs: not yet).
     - `points`: (N, 2) new positions, the dtype of `tess.points`.
+    - `mesh`: None, or a `jax.sharding.Mesh` with a "walkers" axis (`jaxgeom.walker_mesh()`):
+      each of its devices clips its share of the cells (from all the positions); the same graph.
 
     **Returns:** the `Tessellation` of `points`; when `overflow` is set its arrays are not a
     valid Delaunay graph and must not be used.
@@ -510,13 +533,14 @@ def rebuild(tess: Tessellation, points) -> Tessellation:
     if points.shape != tess.points.shape or points.dtype != tess.points.dtype:
         raise ValueError(f"`points` must have the shape and dtype of tess.points, {tess.points.shape} "
                          f"{tess.points.dtype}; got {points.shape} {points.dtype}.")
-    return rebuild_unchecked(tess, points)
+    check_mesh(mesh, None, "", WALKER_AXIS)
+    return rebuild_unchecked(tess, points, mesh)
 
 
-@jax.jit
-def rebuild_unchecked(tess: Tessellation, points) -> Tessellation:
+@functools.partial(jax.jit, static_argnames="mesh")
+def rebuild_unchecked(tess: Tessellation, points, mesh=None) -> Tessellation:
     """`rebuild` without the host checks (inside a trace)."""
     cap = tess.capacity
-    result = triangulate(points, s_cap=cap.simplices)
+    result = triangulate(points, s_cap=cap.simplices, mesh=mesh)
     new = planar_tessellation(points, result.simplices, result.adjacency, tess.box, k_cap=cap.neighbors)
     return eqx.tree_at(lambda t: t.overflow, new, new.overflow | ~result.certified)

@@ -1,7 +1,14 @@
-"""Ensembles over devices: a leading batch axis (swarms, seeds) split over a 1-D device mesh
-with `jax.shard_map`. Each device runs its own lanes under `vmap`, so a lane's work, Qhull
-callbacks included, never leaves its device, and the results equal the unsharded `vmap`
-(bitwise on CPU: each lane runs the same program)."""
+"""Work split over devices with `jax.shard_map`, two ways.
+
+- Ensembles: a leading batch axis (swarms, seeds) split over a 1-D mesh named "batch". Each
+  device runs its own lanes under `vmap`, so a lane's work, Qhull callbacks included, never
+  leaves its device, and the results equal the unsharded `vmap` (bitwise on CPU: each lane
+  runs the same program).
+- One large swarm: the walker axis split over a 1-D mesh named "walkers". The per-walker
+  arrays of the state live split over the devices; the device rebuild's per-cell work (each
+  cell clipped from the gathered positions) runs for each device's own rows (`split_rows`),
+  and XLA's partitioner splits the step's per-walker kernels, gathering neighbours' rows and
+  reducing the swarm-wide sums across devices."""
 
 from __future__ import annotations
 
@@ -10,6 +17,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 BATCH_AXIS = "batch"
+WALKER_AXIS = "walkers"
 
 
 def batch_mesh(devices=None) -> Mesh:
@@ -21,17 +29,28 @@ def batch_mesh(devices=None) -> Mesh:
     return Mesh(np.array(devices), (BATCH_AXIS,))
 
 
-def check_mesh(mesh, batch: int, what: str) -> None:
-    """Refuse a mesh that is not a `jax.sharding.Mesh` with a "batch" axis dividing `batch`."""
+def walker_mesh(devices=None) -> Mesh:
+    """A 1-D mesh named "walkers" over `devices` (default: every device of the default
+    backend), to split one swarm's walkers (`simulate(..., mesh=walker_mesh())`)."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("`devices` is empty; give at least one device (jax.devices()).")
+    return Mesh(np.array(devices), (WALKER_AXIS,))
+
+
+def check_mesh(mesh, batch: int | None, what: str, axis: str = BATCH_AXIS) -> None:
+    """Refuse a mesh that is not a `jax.sharding.Mesh` with an axis `axis` dividing `batch`
+    (any length when `batch` is None)."""
     if mesh is None:
         return
+    maker = "jaxgeom.batch_mesh()" if axis == BATCH_AXIS else "jaxgeom.walker_mesh()"
     if not isinstance(mesh, Mesh):
-        raise TypeError(f"`mesh` must be a jax.sharding.Mesh (jaxgeom.batch_mesh()) or None; got {type(mesh).__name__}.")
-    if BATCH_AXIS not in mesh.axis_names:
-        raise ValueError(f"`mesh` must have an axis named {BATCH_AXIS!r} (jaxgeom.batch_mesh()); got {mesh.axis_names}.")
-    size = mesh.shape[BATCH_AXIS]
-    if batch % size:
-        raise ValueError(f"{what} = {batch} must be a multiple of the mesh's {size} devices along {BATCH_AXIS!r}; "
+        raise TypeError(f"`mesh` must be a jax.sharding.Mesh ({maker}) or None; got {type(mesh).__name__}.")
+    if axis not in mesh.axis_names:
+        raise ValueError(f"`mesh` must have an axis named {axis!r} ({maker}); got {mesh.axis_names}.")
+    size = mesh.shape[axis]
+    if batch is not None and batch % size:
+        raise ValueError(f"{what} = {batch} must be a multiple of the mesh's {size} devices along {axis!r}; "
                          f"use {size * -(-batch // size)} or a mesh over fewer devices.")
 
 
@@ -56,3 +75,37 @@ def shard_batch(tree, mesh: Mesh):
         return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
     return jax.tree_util.tree_map(place, tree)
+
+
+def shard_walkers(tree, mesh: Mesh, n: int):
+    """Place every array of `tree` whose leading axis has length `n` (the walkers) split over
+    the mesh's "walkers" axis, every other array (simplices, scalars, keys) whole on each device."""
+    split, whole = NamedSharding(mesh, PartitionSpec(WALKER_AXIS)), NamedSharding(mesh, PartitionSpec())
+
+    def place(leaf):
+        if not isinstance(leaf, jax.Array):
+            return leaf
+        return jax.device_put(leaf, split if leaf.ndim and leaf.shape[0] == n else whole)
+
+    return jax.tree_util.tree_map(place, tree)
+
+
+def split_rows(fn, mesh: Mesh | None, rows, n: int, *shared):
+    """`fn(rows, *shared)`, a computation whose outputs have one row per entry of `rows` (padding
+    `n`), with the rows dealt round-robin over the mesh's "walkers" axis (so a list whose live
+    rows come first still spreads them evenly) and `shared` whole on every device. Each output
+    row is computed from the same inputs as without a mesh."""
+    if mesh is None:
+        return fn(rows, *shared)
+    devices, m = mesh.shape[WALKER_AXIS], rows.shape[0]
+    per_device = -(-m // devices)
+    padded = jax.numpy.pad(rows, (0, per_device * devices - m), constant_values=n)
+    dealt = padded.reshape(per_device, devices).T.reshape(-1)  # device d: rows d, d + D, ...
+    out = jax.shard_map(fn, mesh=mesh, in_specs=(PartitionSpec(WALKER_AXIS),) + (PartitionSpec(),) * len(shared),
+                        out_specs=PartitionSpec(WALKER_AXIS), check_vma=False)(dealt, *shared)
+
+    def undeal(a):
+        a = a.reshape((devices, per_device) + a.shape[1:]).swapaxes(0, 1)
+        return a.reshape((per_device * devices,) + a.shape[2:])[:m]
+
+    return jax.tree_util.tree_map(undeal, out)

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse.linalg
+from jax.sharding import Mesh
 
 from ._cellclip import describe_graph, rebuilds_on_device
 from ._checks import check_choice, check_min_points, host_points, real_array
@@ -45,7 +46,7 @@ from ._metric import eigh
 from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
 from ._progress import check_progress, close_bar, open_bar
 from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace, update_on_device
-from ._sharding import check_mesh, over_batch
+from ._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, over_batch, shard_walkers
 from ._spectral import bulk_spectral_gap
 from ._weights import mean_nearest_neighbor_distance
 
@@ -166,15 +167,19 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
-                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False):
+                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False, mesh=None):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
     in the trace every `rebuild_every` steps (`update_in_trace`, or `update_on_device` for
     mode "device", which records its fallbacks as `_fallback`). Returns `(state, observables)`.
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
     as in the host chunks (a constant divisor could be folded differently). `checkpoint`:
-    nested rematerialisation (`checkpointed_scan`), for gradients through long runs."""
+    nested rematerialisation (`checkpointed_scan`), for gradients through long runs. `mesh`: a
+    "walkers" mesh over which the device rebuild splits its cells (mode "device")."""
     dtype = state.positions.dtype
-    update = update_on_device if mode == "device" else lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
+    if mode == "device":
+        update = functools.partial(update_on_device, mesh=mesh)
+    else:
+        update = lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
 
     def body(st, i):
         progress = _progress(i, n_total, dtype)
@@ -219,7 +224,7 @@ def _progress(step, n_total, dtype):
 # with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
 _run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode",
-                                                         "checkpoint"))
+                                                         "checkpoint", "mesh"))
 _begin_step = jax.jit(begin_step)
 
 
@@ -322,11 +327,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
         return _simulate_batch(fitness, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
                                observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh,
                                spectral_gap_every=spectral_gap_every)
-    if mesh is not None:
-        raise ValueError("`mesh` splits a batch of swarms over devices (jaxgeom.stack_swarms); this state is one "
-                         "swarm (positions of shape (N, d)).")
     check_progress(progress)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
+    if mesh is not None:
+        state = _split_walkers(state, mesh, rebuild)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
     if checkpoint and rebuild == "host":
@@ -334,7 +338,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
                          "or 'device' (rebuild='host' cannot be differentiated).")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     if rebuild in ("callback", "device"):
-        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)
+        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint, mesh)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
@@ -500,11 +504,25 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
         return float("nan"), -1
 
 
-def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
+def _split_walkers(state: SwarmState, mesh, rebuild: str) -> SwarmState:
+    """One swarm's state placed with its walker axis split over `mesh` (checked)."""
+    if isinstance(mesh, Mesh) and BATCH_AXIS in mesh.axis_names and WALKER_AXIS not in mesh.axis_names:
+        raise ValueError("a mesh with a 'batch' axis splits a batch of swarms (jaxgeom.stack_swarms); this state "
+                         "is one swarm (positions (N, d)): split its walkers with mesh=jaxgeom.walker_mesh().")
+    check_mesh(mesh, state.positions.shape[0], "the number of walkers N", WALKER_AXIS)
+    if rebuild != "device":
+        raise ValueError("splitting one swarm's walkers over devices needs the device rebuild: use "
+                         f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
+                         "rebuilds the whole graph with Qhull in one place).")
+    return shard_walkers(state, mesh, state.positions.shape[0])
+
+
+def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False, mesh=None):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
-        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint,
+                                   mesh)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "

@@ -74,3 +74,30 @@ def test_multihost_recipe_runs_with_two_processes_on_this_machine():
     assert all(p.returncode == 0 for p in procs), [o[1][-3000:] for o in outputs]
     assert "multi-process ensemble equals one process: True" in outputs[0][0], outputs[0]
     assert "process 1 of 2: 1 local of 2 devices" in outputs[1][0], outputs[1]
+
+
+def test_walker_mesh_arguments_are_checked():
+    state, params = swarm(30), jaxgeom.SwarmParams(cloning=False)
+    mesh = jaxgeom.walker_mesh()
+    with pytest.raises(ValueError, match="needs the device rebuild: use rebuild='device'"):
+        jaxgeom.simulate(rastrigin, state, params, n_steps=1, rebuild="host", mesh=mesh)
+    with pytest.raises(ValueError, match="split its walkers with mesh=jaxgeom.walker_mesh"):
+        jaxgeom.simulate(rastrigin, state, params, n_steps=1, rebuild="device", mesh=jaxgeom.batch_mesh())
+    with pytest.raises(TypeError, match=r"`mesh` must be a jax.sharding.Mesh \(jaxgeom.walker_mesh\(\)\)"):
+        jaxgeom.rebuild(state.tess, state.positions, mesh="gpu")
+    with pytest.raises(ValueError, match="`devices` is empty"):
+        jaxgeom.walker_mesh([])
+
+
+@pytest.mark.multidevice  # with the sharding checks: two compilations of the device rebuild (~25 s)
+def test_one_device_walker_mesh_equals_no_mesh():
+    """The split code path (shard_map over the cells) on a one-device mesh: the same run."""
+    x = np.random.default_rng(2).normal(size=(60, 2))
+    state = jaxgeom.init_swarm(rastrigin, x, key=2, capacity=jaxgeom.Capacity(simplices=240, neighbors=24))
+    params = jaxgeom.SwarmParams(cloning=False, dt=0.005)
+    run = dict(n_steps=2, rebuild="device", observe=("mean_fitness",))
+    alone = jaxgeom.simulate(rastrigin, state, params, **run)
+    meshed = jaxgeom.simulate(rastrigin, state, params, mesh=jaxgeom.walker_mesh(), **run)
+    np.testing.assert_array_equal(np.asarray(meshed[0].tess.simplices), np.asarray(alone[0].tess.simplices))
+    np.testing.assert_allclose(np.asarray(meshed[0].positions), np.asarray(alone[0].positions), rtol=0, atol=1e-14)
+    assert int(alone[1]["n_fallbacks"]) == 0
