@@ -94,13 +94,15 @@ def gaussian_swarm(n: int):
 
 
 def planned_bytes(state, params, steps: int, mesh) -> int:
-    """Per-device bytes of XLA's buffer plan for the whole run (temporaries, arguments, outputs)."""
+    """Per-device bytes of XLA's buffer plan for the whole run (temporaries, arguments, outputs):
+    the split run's program, with the cells split over `mesh` or (None) on one device."""
     from jaxgeom._sharding import shard_walkers
-    from jaxgeom._simulate import _run_callback
+    from jaxgeom._simulate import _run_split
 
     placed = state if mesh is None else shard_walkers(state, mesh, state.positions.shape[0])
-    memory = _run_callback.lower(rastrigin, params, placed, jax.numpy.asarray(steps, jax.numpy.int32), steps,
-                                 ("mean_fitness",), 1, 24, "device", False, mesh).compile().memory_analysis()
+    count = jax.numpy.asarray(steps, jax.numpy.int32)
+    memory = _run_split.lower(rastrigin, params, placed, count, count * 0, steps, ("mean_fitness",), 1,
+                              mesh).compile().memory_analysis()
     return int(memory.temp_size_in_bytes + memory.argument_size_in_bytes + memory.output_size_in_bytes)
 
 

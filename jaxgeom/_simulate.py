@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse.linalg
 from jax.sharding import Mesh
 
-from ._cellclip import describe_graph, rebuilds_on_device
+from ._cellclip import describe_graph, rebuild_unchecked, rebuilds_on_device
 from ._checks import check_choice, check_min_points, host_points, real_array
 from ._delaunay import delaunay
 from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
@@ -167,19 +167,15 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
-                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False, mesh=None):
+                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
     in the trace every `rebuild_every` steps (`update_in_trace`, or `update_on_device` for
     mode "device", which records its fallbacks as `_fallback`). Returns `(state, observables)`.
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
     as in the host chunks (a constant divisor could be folded differently). `checkpoint`:
-    nested rematerialisation (`checkpointed_scan`), for gradients through long runs. `mesh`: a
-    "walkers" mesh over which the device rebuild splits its cells (mode "device")."""
+    nested rematerialisation (`checkpointed_scan`), for gradients through long runs."""
     dtype = state.positions.dtype
-    if mode == "device":
-        update = functools.partial(update_on_device, mesh=mesh)
-    else:
-        update = lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
+    update = update_on_device if mode == "device" else lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
 
     def body(st, i):
         progress = _progress(i, n_total, dtype)
@@ -224,7 +220,7 @@ def _progress(step, n_total, dtype):
 # with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
 _run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode",
-                                                         "checkpoint", "mesh"))
+                                                         "checkpoint"))
 _begin_step = jax.jit(begin_step)
 
 
@@ -310,6 +306,12 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       (B,) axis; rebuild="callback" or "device"), a `jax.sharding.Mesh` with a "batch" axis
       (`jaxgeom.batch_mesh()`) splits the B swarms over its devices with `jax.shard_map`;
       None runs them under `vmap` on one device. Both give the same results (bitwise on CPU).
+      For one swarm (rebuild="device", 2D), a mesh with a "walkers" axis
+      (`jaxgeom.walker_mesh()`, N a multiple of its devices) splits the walkers: each device
+      clips its share of the cells in every rebuild and runs the step's per-walker kernels
+      for its walkers; the same graphs as one device, positions equal to rounding. Graphs the
+      device rebuild cannot certify are rebuilt by Qhull on the host between scans, so this
+      mode cannot run under jax.jit / jax.grad.
 
     **Returns:**
 
@@ -330,15 +332,17 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     check_progress(progress)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if mesh is not None:
-        state = _split_walkers(state, mesh, rebuild)
+        state = _split_walkers(state, params, mesh, rebuild, checkpoint)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
     if checkpoint and rebuild == "host":
         raise ValueError("`checkpoint=True` serves gradients through a traced run: use it with rebuild='callback' "
                          "or 'device' (rebuild='host' cannot be differentiated).")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
+    if mesh is not None:
+        return _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh)
     if rebuild in ("callback", "device"):
-        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint, mesh)
+        return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)
     return _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, spectral_gap_every, k, progress)
 
 
@@ -504,7 +508,7 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
         return float("nan"), -1
 
 
-def _split_walkers(state: SwarmState, mesh, rebuild: str) -> SwarmState:
+def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) -> SwarmState:
     """One swarm's state placed with its walker axis split over `mesh` (checked)."""
     if isinstance(mesh, Mesh) and BATCH_AXIS in mesh.axis_names and WALKER_AXIS not in mesh.axis_names:
         raise ValueError("a mesh with a 'batch' axis splits a batch of swarms (jaxgeom.stack_swarms); this state "
@@ -514,15 +518,79 @@ def _split_walkers(state: SwarmState, mesh, rebuild: str) -> SwarmState:
         raise ValueError("splitting one swarm's walkers over devices needs the device rebuild: use "
                          f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
                          "rebuilds the whole graph with Qhull in one place).")
+    if checkpoint or any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params))):
+        raise TypeError("simulate(..., mesh=walker_mesh()) drives the split swarm from Python (graphs the device "
+                        "rebuild cannot certify are rebuilt by Qhull on the host), so it cannot run under jax.jit, "
+                        "jax.grad or checkpoint=True; differentiate ensembles (batch_mesh) or one device instead.")
     return shard_walkers(state, mesh, state.positions.shape[0])
 
 
-def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False, mesh=None):
+def _split_scan(fitness, params: SwarmParams, state: SwarmState, n_total, first, n_steps: int, observe: tuple,
+                rebuild_every: int, mesh):
+    """Steps first, first + 1, ... (< n_total) of one swarm with its walkers split over `mesh`,
+    each rebuild on the device with the cells split (`rebuild_unchecked(..., mesh)`). A rebuild
+    that is not certified stops the run after its step, for the host to rebuild with Qhull: a
+    callback inside a program split over devices would leave the devices waiting on each other
+    (on CPU it deadlocks). Returns `(state, stopped, observables)`, `_live` marking the steps run."""
+    dtype = state.positions.dtype
+
+    def rebuilt(q):
+        new = rebuild_unchecked(q.tess, jax.lax.stop_gradient(q.positions), mesh)
+        new = eqx.tree_at(lambda t: t.points, new, q.positions)
+        return jax.lax.cond(new.overflow, lambda: (q, jnp.asarray(True)),
+                            lambda: (eqx.tree_at(lambda s: s.tess, q, new), jnp.asarray(False)))
+
+    def advance(st, i):
+        progress = _progress(i, n_total, dtype)
+        st, obs = _observed(fitness, params, st, progress, observe)
+        rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
+        q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
+        q, failed = jax.lax.cond(rebuild, rebuilt, lambda r: (r, jnp.asarray(False)), q)
+        return q, failed, dict(obs, _health=health(st))
+
+    def body(carry, j):
+        st, stopped = carry
+        i, shapes = first + j, jax.eval_shape(advance, st, first)[2]
+        skip = lambda s, _: (s, jnp.asarray(False), jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), shapes))
+        live = (i < n_total) & ~stopped
+        st, failed, obs = jax.lax.cond(live, advance, skip, st, i)
+        return (st, stopped | failed), dict(obs, _live=live)
+
+    (final, stopped), obs = jax.lax.scan(body, (state, jnp.asarray(False)), jnp.arange(n_steps, dtype=jnp.int32))
+    return final, stopped, obs
+
+
+_run_split = jax.jit(_split_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "mesh"))
+
+
+def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh):
+    """`simulate` of one swarm with its walkers split over `mesh`: `_split_scan` from the first
+    step not yet run, and a Qhull rebuild on the host (counted in `n_fallbacks`) wherever it stopped."""
+    n, total = state.positions.shape[0], jnp.asarray(n_steps, jnp.int32)
+    done, chunks, fallbacks, reallocations = 0, [], 0, 0
+    while done < n_steps:
+        entering = state
+        state, stopped, obs = _run_split(fitness, params, state, total, jnp.asarray(done, jnp.int32), n_steps,
+                                         observe, rebuild_every, mesh)
+        ran = int(np.sum(np.asarray(obs["_live"])))
+        chunks.append({name: np.asarray(values)[:ran] for name, values in obs.items()})
+        check_health(fitness, params, [*chunks[-1]["_health"], int(health(state))], done, entering)
+        done += ran
+        if bool(stopped):
+            state, grew, _ = update_host(state, k)
+            state = shard_walkers(state, mesh, n)
+            fallbacks, reallocations = fallbacks + 1, reallocations + grew
+    state, last = _observe_final(fitness, params, state, observe)
+    series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(last[name])[None]]) for name in observe}
+    nan = {"rebuild": jnp.nan, "steps": jnp.nan}
+    return state, _history(series, [], reallocations, nan, state.n_separated, -1, state.positions.dtype, fallbacks)
+
+
+def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
     traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
     total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
-        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint,
-                                   mesh)
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
         final, last = _observe_final(fitness, params, final, observe)
         if traced:
             final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import numpy as np
 import pytest
 
@@ -101,3 +102,12 @@ def test_one_device_walker_mesh_equals_no_mesh():
     np.testing.assert_array_equal(np.asarray(meshed[0].tess.simplices), np.asarray(alone[0].tess.simplices))
     np.testing.assert_allclose(np.asarray(meshed[0].positions), np.asarray(alone[0].positions), rtol=0, atol=1e-14)
     assert int(alone[1]["n_fallbacks"]) == 0
+
+
+def test_walker_split_refuses_traces_and_checkpointing():
+    state, params = swarm(30), jaxgeom.SwarmParams(cloning=False)
+    run = dict(n_steps=1, rebuild="device", mesh=jaxgeom.walker_mesh())
+    with pytest.raises(TypeError, match="cannot run under jax.jit, jax.grad or checkpoint=True"):
+        jaxgeom.simulate(rastrigin, state, params, checkpoint=True, **run)
+    with pytest.raises(TypeError, match="cannot run under jax.jit"):
+        eqx.filter_jit(lambda s: jaxgeom.simulate(rastrigin, s, params, **run))(state)
