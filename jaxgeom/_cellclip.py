@@ -462,7 +462,10 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
     all_rows = jnp.arange(n, dtype=jnp.int32)
     labels, count, overflowed, settled = split_rows(
         lambda rows, p: _first_pass(p, rows, expected=first_pass, max_edges=max_edges), mesh, all_rows, n, points)
-    redo = functools.partial(_redone_cells, max_edges=max_edges, exact_capacity=-(-exact_capacity // devices))
+    exact_per_device = -(-exact_capacity // devices)
+
+    def redo(rows, points, labels, count, local):
+        return _redone_cells(points, labels, count, rows, local, max_edges=max_edges, exact_capacity=exact_per_device)
 
     def checks_of(labels, count, overflowed):
         checks = check_cycles(points, _cycles(labels, count, n))
@@ -473,8 +476,7 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
         local = rounds < local_rounds
         rows = _take_suspects(checks.suspect, repair_capacity, rounds)
         rows = jnp.where(local | (jnp.arange(repair_capacity, dtype=jnp.int32) < exact_capacity), rows, n)
-        new_labels, new_count, new_over = split_rows(lambda r, *a: redo(a[0], a[1], a[2], r, a[3]), mesh, rows, n,
-                                                     points, labels, count, local)
+        new_labels, new_count, new_over = split_rows(redo, mesh, rows, n, points, labels, count, local)
         labels = labels.at[rows].set(new_labels, mode="drop")
         count = count.at[rows].set(new_count, mode="drop")
         overflowed = overflowed.at[rows].set(new_over, mode="drop")
