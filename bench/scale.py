@@ -102,7 +102,7 @@ def planned_bytes(state, params, steps: int, mesh) -> int:
     placed = state if mesh is None else shard_walkers(state, mesh, state.positions.shape[0])
     count = jax.numpy.asarray(steps, jax.numpy.int32)
     memory = _run_split.lower(rastrigin, params, placed, count, count * 0, steps, ("mean_fitness",), 1,
-                              mesh).compile().memory_analysis()
+                              state.tess.neighbors.shape[1], mesh).compile().memory_analysis()
     return int(memory.temp_size_in_bytes + memory.argument_size_in_bytes + memory.output_size_in_bytes)
 
 

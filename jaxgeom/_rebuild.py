@@ -208,15 +208,18 @@ def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     return _apply_rebuild(state, new, x, code, moved)
 
 
-def update_on_device(state: SwarmState, k: int) -> tuple[SwarmState, jax.Array]:
-    """(state, fell_back): the graph rebuilt on the device (`jaxgeom.rebuild`, 2D), or, where
-    that rebuild is not certified, by Qhull through `update_in_trace` (then `fell_back`).
+def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bool = True
+                     ) -> tuple[SwarmState, jax.Array]:
+    """(state, fell_back): the graph rebuilt on the device (`jaxgeom.rebuild`, 2D; the cells
+    split over `mesh`'s walker axis when given), or, where that rebuild is not certified
+    (`fell_back`), by Qhull through `update_in_trace`, or (`qhull_in_trace=False`) not at all:
+    the state keeps its graph for the caller to rebuild on the host.
     The topology is discrete: no gradient flows into the rebuild, the positions pass through."""
-    new = rebuild_unchecked(state.tess, jax.lax.stop_gradient(state.positions))
+    new = rebuild_unchecked(state.tess, jax.lax.stop_gradient(state.positions), mesh)
     new = eqx.tree_at(lambda t: t.points, new, state.positions)
     certified = ~new.overflow
-    state = jax.lax.cond(certified, lambda s: eqx.tree_at(lambda q: q.tess, s, new),
-                         lambda s: update_in_trace(s, k), state)
+    fallback = (lambda s: update_in_trace(s, k)) if qhull_in_trace else (lambda s: s)
+    state = jax.lax.cond(certified, lambda s: eqx.tree_at(lambda q: q.tess, s, new), fallback, state)
     return state, ~certified
 
 

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse.linalg
 from jax.sharding import Mesh
 
-from ._cellclip import describe_graph, rebuild_unchecked, rebuilds_on_device
+from ._cellclip import describe_graph, rebuilds_on_device
 from ._checks import check_choice, check_min_points, host_points, real_array
 from ._delaunay import delaunay
 from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
@@ -174,20 +174,27 @@ def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_s
     `n_total` is `n_steps` as a traced array, so that the schedules' clock is computed exactly
     as in the host chunks (a constant divisor could be folded differently). `checkpoint`:
     nested rematerialisation (`checkpointed_scan`), for gradients through long runs."""
-    dtype = state.positions.dtype
-    update = update_on_device if mode == "device" else lambda r, k: (update_in_trace(r, k), jnp.asarray(False))
-
-    def body(st, i):
-        progress = _progress(i, n_total, dtype)
-        st, obs = _observed(fitness, params, st, progress, observe)
-        rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
-        q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
-        q, fell_back = jax.lax.cond(rebuild, lambda r: update(r, k), lambda r: (r, jnp.asarray(False)), q)
-        return q, dict(obs, _health=health(st), _fallback=fell_back)
-
+    if mode == "device":
+        update = lambda r: update_on_device(r, k)
+    else:
+        update = lambda r: (update_in_trace(r, k), jnp.asarray(False))
+    body = lambda st, i: _traced_step(fitness, params, st, i, n_total, observe, rebuild_every, update)
     if checkpoint:
         return checkpointed_scan(body, state, n_steps)
     return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
+
+
+def _traced_step(fitness, params: SwarmParams, st: SwarmState, i, n_total, observe: tuple, rebuild_every: int,
+                 update):
+    """Step `i` of a traced run: the observables of the state entering it, the step, and the
+    graph rebuilt by `update(state) -> (state, fell_back)` when the schedule says so. Returns
+    `(state, observables)` with `_health` (of the entering state) and `_fallback`."""
+    progress = _progress(i, n_total, st.positions.dtype)
+    st, obs = _observed(fitness, params, st, progress, observe)
+    rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
+    q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
+    q, fell_back = jax.lax.cond(rebuild, update, lambda r: (r, jnp.asarray(False)), q)
+    return q, dict(obs, _health=health(st), _fallback=fell_back)
 
 
 def checkpointed_scan(body, carry, n_steps: int):
@@ -245,6 +252,11 @@ def _observe_final(fitness, params, state, observe):
     return observe_state(fitness, params, state, jnp.asarray(1.0, state.positions.dtype), observe)
 
 
+def _is_traced(*trees) -> bool:
+    """Whether any leaf is a tracer (simulate called under jax.jit, jax.grad or jax.vmap)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+
+
 def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every):
     check_callable_fitness(fitness)
     if not isinstance(state, SwarmState):
@@ -257,7 +269,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     for name in observe:
         check_choice(name, "observable", OBSERVABLES)
     check_choice(rebuild, "rebuild", REBUILD_MODES)
-    if rebuild == "host" and any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params))):
+    if rebuild == "host" and _is_traced(state, params):
         raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
                         "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
                         "traceable, differentiable simulation.")
@@ -331,8 +343,6 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
                                spectral_gap_every=spectral_gap_every)
     check_progress(progress)
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
-    if mesh is not None:
-        state = _split_walkers(state, params, mesh, rebuild, checkpoint)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
     if checkpoint and rebuild == "host":
@@ -340,6 +350,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
                          "or 'device' (rebuild='host' cannot be differentiated).")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     if mesh is not None:
+        state = _split_walkers(state, params, mesh, rebuild, checkpoint)
         return _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh)
     if rebuild in ("callback", "device"):
         return _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, rebuild, checkpoint)
@@ -518,7 +529,7 @@ def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) ->
         raise ValueError("splitting one swarm's walkers over devices needs the device rebuild: use "
                          f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
                          "rebuilds the whole graph with Qhull in one place).")
-    if checkpoint or any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params))):
+    if checkpoint or _is_traced(state, params):
         raise TypeError("simulate(..., mesh=walker_mesh()) drives the split swarm from Python (graphs the device "
                         "rebuild cannot certify are rebuilt by Qhull on the host), so it cannot run under jax.jit, "
                         "jax.grad or checkpoint=True; differentiate ensembles (batch_mesh) or one device instead.")
@@ -526,41 +537,28 @@ def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) ->
 
 
 def _split_scan(fitness, params: SwarmParams, state: SwarmState, n_total, first, n_steps: int, observe: tuple,
-                rebuild_every: int, mesh):
+                rebuild_every: int, k: int, mesh):
     """Steps first, first + 1, ... (< n_total) of one swarm with its walkers split over `mesh`,
-    each rebuild on the device with the cells split (`rebuild_unchecked(..., mesh)`). A rebuild
-    that is not certified stops the run after its step, for the host to rebuild with Qhull: a
-    callback inside a program split over devices would leave the devices waiting on each other
-    (on CPU it deadlocks). Returns `(state, stopped, observables)`, `_live` marking the steps run."""
-    dtype = state.positions.dtype
-
-    def rebuilt(q):
-        new = rebuild_unchecked(q.tess, jax.lax.stop_gradient(q.positions), mesh)
-        new = eqx.tree_at(lambda t: t.points, new, q.positions)
-        return jax.lax.cond(new.overflow, lambda: (q, jnp.asarray(True)),
-                            lambda: (eqx.tree_at(lambda s: s.tess, q, new), jnp.asarray(False)))
-
-    def advance(st, i):
-        progress = _progress(i, n_total, dtype)
-        st, obs = _observed(fitness, params, st, progress, observe)
-        rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
-        q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
-        q, failed = jax.lax.cond(rebuild, rebuilt, lambda r: (r, jnp.asarray(False)), q)
-        return q, failed, dict(obs, _health=health(st))
+    each rebuild on the device with the cells split. A rebuild that is not certified stops the
+    run after its step, for the host to rebuild with Qhull: a callback inside a program split
+    over devices would leave the devices waiting on each other (on CPU it deadlocks). Returns
+    `(state, stopped, observables)`, `_live` marking the steps run."""
+    update = lambda r: update_on_device(r, k, mesh=mesh, qhull_in_trace=False)
+    step = lambda st, i: _traced_step(fitness, params, st, i, n_total, observe, rebuild_every, update)
+    shapes = jax.eval_shape(step, state, first)[1]
+    skip = lambda st, _: (st, jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), shapes))
 
     def body(carry, j):
         st, stopped = carry
-        i, shapes = first + j, jax.eval_shape(advance, st, first)[2]
-        skip = lambda s, _: (s, jnp.asarray(False), jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), shapes))
-        live = (i < n_total) & ~stopped
-        st, failed, obs = jax.lax.cond(live, advance, skip, st, i)
-        return (st, stopped | failed), dict(obs, _live=live)
+        live = (first + j < n_total) & ~stopped
+        st, obs = jax.lax.cond(live, step, skip, st, first + j)
+        return (st, stopped | obs["_fallback"]), dict(obs, _live=live)
 
     (final, stopped), obs = jax.lax.scan(body, (state, jnp.asarray(False)), jnp.arange(n_steps, dtype=jnp.int32))
     return final, stopped, obs
 
 
-_run_split = jax.jit(_split_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "mesh"))
+_run_split = jax.jit(_split_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mesh"))
 
 
 def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh):
@@ -571,10 +569,10 @@ def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, 
     while done < n_steps:
         entering = state
         state, stopped, obs = _run_split(fitness, params, state, total, jnp.asarray(done, jnp.int32), n_steps,
-                                         observe, rebuild_every, mesh)
+                                         observe, rebuild_every, k, mesh)
         ran = int(np.sum(np.asarray(obs["_live"])))
         chunks.append({name: np.asarray(values)[:ran] for name, values in obs.items()})
-        check_health(fitness, params, [*chunks[-1]["_health"], int(health(state))], done, entering)
+        check_health(fitness, params, [*chunks[-1]["_health"], int(_health(state))], done, entering)
         done += ran
         if bool(stopped):
             state, grew, _ = update_host(state, k)
@@ -587,7 +585,7 @@ def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, 
 
 
 def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
-    traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((state, params)))
+    traced = _is_traced(state, params)
     total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
     while True:
         final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
