@@ -190,7 +190,8 @@ def test_an_uncertified_device_rebuild_falls_back_to_qhull_and_is_counted(rng, m
 
     real = jaxgeom._rebuild.rebuild_unchecked
     monkeypatch.setattr(jaxgeom._rebuild, "rebuild_unchecked",
-                        lambda tess, x: eqx.tree_at(lambda t: t.overflow, real(tess, x), jnp.asarray(True)))
+                        lambda tess, x, mesh=None: eqx.tree_at(lambda t: t.overflow, real(tess, x, mesh),
+                                                               jnp.asarray(True)))
     state = swarm(rng, n=140)
     params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
     a, _ = jaxgeom.simulate(bowl, state, params, n_steps=6, rebuild="callback")
