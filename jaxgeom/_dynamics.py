@@ -123,9 +123,14 @@ class SwarmState(eqx.Module):
     - `positions`, `velocities`: (N, d); `fitness`: (N,) V at the positions;
       `force`: (N, d) -grad V there (reused by the next step's first kick).
     - `alive`: (N,) finite fitness; `cloned`: (N,) cloned in the latest step.
-    - `volumes`: (N,) Voronoi volumes at the positions (NaN for unbounded
-      cells, everywhere on a k-NN graph); `interior`: (N,) tier 2 at that time.
-      Both serve the Raychaudhuri expansion and the volume weighting.
+    - `volumes`: (N,) Voronoi volumes at the positions of step `volumes_step` (the
+      latest observation; NaN for unbounded cells, everywhere on a k-NN graph);
+      `interior`: (N,) tier 2 at that time. They serve the volume weighting.
+    - `previous_volumes`, `previous_interior`: the same one step earlier (NaN / False
+      when that step was not observed): the Raychaudhuri expansion compares them with
+      `volumes`. They travel with the state, so a `simulate` call that continues another
+      measures the expansion of its first step as one uninterrupted call does.
+    - `volumes_step`: int32 step at which `volumes` were measured (-1: never).
     - `key`: PRNG key; `tess`: the current tessellation (its `points` follow
       `positions` between rebuilds); `step`: int32 step count.
     - `spacing0`: mean nearest-neighbour distance of the initial swarm.
@@ -144,6 +149,9 @@ class SwarmState(eqx.Module):
     cloned: Bool[Array, " N"]
     volumes: Float[Array, " N"]
     interior: Bool[Array, " N"]
+    previous_volumes: Float[Array, " N"]
+    previous_interior: Bool[Array, " N"]
+    volumes_step: Int[Array, ""]
     key: PRNGKeyArray
     tess: Tessellation
     step: Int[Array, ""]

@@ -30,7 +30,10 @@ TWO_RING_FRACTION = {2: 0.2, 3: 0.0625}
 # Columns of each neighbour row used for the 2-ring (rows keep padding last, so these are
 # the first real neighbours): a subset of the 2-ring, still exact for quadratics, 2.5x (2D)
 # to 6x (3D) fewer points than all K + K^2 slots.
+# Beyond 3D the 2-ring is a fallback only (analyze's k covers the fit): 4 columns keep its
+# normal equations (~d^4/8 entries over K + 4K points) in memory at d = 10.
 TWO_RING_WIDTH = {2: 8, 3: 16}
+TWO_RING_WIDTH_HIGH_D = 4
 # Relative conditioning (smallest squared Cholesky pivot over the mean diagonal) below
 # which a fit is degenerate, and below which a 1-ring quadratic fit moves to the 2-ring.
 RCOND = 1e-10
@@ -191,7 +194,7 @@ def _two_ring(tess: Tessellation, values, walkers):
     several paths appear several times (a weight).
     """
     n, k_cap = tess.neighbors.shape
-    width = min(k_cap, TWO_RING_WIDTH.get(tess.dim, k_cap))
+    width = min(k_cap, TWO_RING_WIDTH.get(tess.dim, TWO_RING_WIDTH_HIGH_D))
     nbrs_pad = jnp.concatenate([tess.neighbors[:, :width], jnp.full((1, width), n, tess.neighbors.dtype)])
     first = nbrs_pad[walkers]  # (F, m)
     second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, m*m)

@@ -43,6 +43,8 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     ks, medians = _error_by_neighbour_count(points, comparison["values"], reference, valid)
     axes[1, 0].loglog(ks, medians, "o-")
     axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="convergence with neighbours")
+    if medians:
+        axes[1, 0].set_ylim(*_decade_limits(medians))
     axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
     axes[1, 1].set(xlabel="log10 relative Hessian error", ylabel="walkers", title="error distribution")
     if truth is None:
@@ -50,6 +52,17 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
                      "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
                      "errors are expected", fontsize=9)
     return save_figure(fig, path, dpi=dpi)
+
+
+def _decade_limits(values) -> tuple[float, float]:
+    """Log-axis limits on whole decades holding `values`, at least one decade apart, so that a
+    flat series is drawn flat (matplotlib would stretch 0.99016..0.99029 over the axis)."""
+    finite = np.asarray(values, float)
+    finite = finite[np.isfinite(finite) & (finite > 0)]
+    if not finite.size:
+        return 0.1, 1.0
+    low, high = np.floor(np.log10(finite.min())), np.ceil(np.log10(finite.max()))
+    return 10.0 ** low, 10.0 ** max(high, low + 1)
 
 
 def _relative_error(estimate, reference):
@@ -110,12 +123,12 @@ def save_figure(fig, path, dpi: int = 100, layout: bool = True) -> Path:
 OBSERVABLE_LABELS = {
     "mean_fitness": ("mean fitness", "<V> over walkers"),
     "best_fitness": ("best fitness", "min V"),
-    "velocity_variance": ("velocity variance", "Var(v), per component"),
-    "degree_weighted_variance": ("degree-weighted velocity variance", "Var(v), viscous-degree weights"),
+    "velocity_variance": ("velocity variance per component", "tr Cov(v) / d"),
+    "degree_weighted_variance": ("degree-weighted velocity variance", "tr Cov_w(v) / d, w: viscous degree"),
     "mean_ricci": ("mean Ricci scalar (Hessian metric)", "<R>_g, tier-2 walkers"),
     "volume_distortion": ("volume distortion", "Var(V_i / <V>), tier 2"),
     "mean_shape_distortion": ("mean shape ratio", "<r_in / r_circ>, tier 2 (1: round)"),
-    "mean_expansion": ("mean Raychaudhuri expansion", "<theta> = <d ln V_i / dt>"),
+    "mean_expansion": ("expansion (volume-weighted)", "d ln(sum V_i)/dt, tier 2, no clones"),
     "n_clones": ("clones per step", "walkers cloned"),
     "nu": ("viscous coupling", "nu"),
     "eps_sigma": ("metric floor", "eps_Sigma"),
@@ -173,7 +186,7 @@ def _symlog_ticks(norm):
 
 def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
     """Walkers coloured by their Ricci scalar (one symmetric-log colour scale for every panel)
-    over contours of V, one panel per snapshot `{"step", "positions", "ricci"}` (ricci None on
+    over contours of V, one panel per snapshot, all in one frame that holds every walker `{"step", "positions", "ricci"}` (ricci None on
     a k-NN graph: walkers coloured by V instead). Beyond 2D the panels show the projection on
     (x_1, x_2) and the contours V(x_1, x_2, 0, ..., 0); the figure says so."""
     plt = pyplot()
@@ -184,10 +197,10 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
     norm = _shared_ricci_norm(snapshots) if has_ricci else None
     fig, axes = plt.subplots(1, len(snapshots), figsize=(3.4 * len(snapshots) + 1.4, 3.8), squeeze=False,
                              layout="constrained")
+    lo, hi = _frame(np.concatenate([snap["positions"] for snap in snapshots]), box)  # one frame: comparable
+    gx, gy, values = _landscape_grid(fitness, lo, hi, d)
     for ax, snap in zip(axes[0], snapshots):
         x = snap["positions"]
-        lo, hi = _frame(x, box)
-        gx, gy, values = _landscape_grid(fitness, lo, hi, d)
         ax.contour(gx, gy, values, levels=_contour_levels(values), colors="0.55", linewidths=0.5)
         if has_ricci:
             ok = np.isfinite(snap["ricci"]) if snap["ricci"] is not None else np.zeros(len(x), bool)
@@ -208,7 +221,7 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
             "tiers, no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
     where = (f"{d}D swarm projected on (x_1, x_2), contours of V(x_1, x_2, 0, ..., 0)" if d > 2
              else "contours of V")
-    fig.suptitle(f"{what}\n{where}; each panel framed to hold every walker", fontsize=9)
+    fig.suptitle(f"{what}\n{where}; one frame for all panels, holding every walker", fontsize=9)
     return save_figure(fig, path, dpi=72, layout=False)
 
 
@@ -228,11 +241,12 @@ def _constant(values) -> bool:
     return finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300)
 
 
-def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
+def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None) -> Path:
     """Every observable of a `jaxgeom.simulate` history against time, one panel each, with
     labelled axes. Constant series (nu, eps_Sigma without annealing) are named in the title
     instead of drawn; observables that are NaN throughout (the Voronoi ones on a k-NN graph)
-    are listed; NaN entries (the expansion at step 0) are skipped, the line joins the rest."""
+    are listed; NaN entries (the expansion at step 0) are skipped, the line joins the rest.
+    `gap_rounding` (bool per gap) marks the gaps below float64 resolution, drawn as x at 0."""
     plt = pyplot()
     names, constant, undefined = observable_panels(series, gaps)
     cols = 3
@@ -241,7 +255,7 @@ def plot_observables(series: dict, gap_steps, gaps, path) -> Path:
     t = np.asarray(series["time"])
     dt = t[1] - t[0] if len(t) > 1 else 1.0
     for ax, name in zip(axes.ravel(), names):
-        _plot_one(ax, name, series, t, np.asarray(gap_steps) * dt, gaps)
+        _plot_one(ax, name, series, t, np.asarray(gap_steps) * dt, gaps, gap_rounding)
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
     notes = []
@@ -263,10 +277,15 @@ def observable_panels(series: dict, gaps) -> tuple[list, list, list]:
     return drawn, constant, undefined
 
 
-def _plot_one(ax, name, series, t, gap_times, gaps):
+def _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding=None):
     title, ylabel = OBSERVABLE_LABELS.get(name, (name, name))
     if name == "spectral_gap":
-        ax.plot(gap_times, gaps, "o-", ms=3)
+        rounding = np.zeros(len(gaps), bool) if gap_rounding is None else np.asarray(gap_rounding, bool)
+        gaps = np.asarray(gaps)
+        ax.plot(gap_times[~rounding], gaps[~rounding], "o-", ms=3)
+        if rounding.any():
+            ax.plot(gap_times[rounding], np.zeros(rounding.sum()), "rx", label="below float64 resolution")
+            ax.legend(fontsize=7)
     else:
         y = np.asarray(series[name])
         ok = np.isfinite(y)

@@ -43,11 +43,11 @@ from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RA
                         runaway_radius)
 from ._graph import Tessellation
 from ._metric import eigh
-from ._observables import OBSERVABLES, measure, observe_state, refresh_cells
+from ._observables import OBSERVABLES, cell_fields, measure, observe_state, refresh_cells
 from ._progress import check_progress, close_bar, open_bar
 from ._rebuild import GRAPHS, allocate_graph, grown, update_host, update_in_trace, update_on_device
 from ._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, over_batch, shard_walkers
-from ._spectral import bulk_spectral_gap
+from ._spectral import bulk_spectral_gap, gap_rounding_level
 from ._weights import mean_nearest_neighbor_distance
 
 REBUILD_MODES = ("host", "callback", "device")
@@ -124,15 +124,11 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     values, force = fitness_and_force(fitness, xj)
     n = len(x)
     zero = jnp.asarray(0, jnp.int32)
+    unmeasured = jnp.full(n, jnp.nan, dtype)
     return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
-                      jnp.full(n, jnp.nan, dtype), jnp.zeros(n, bool), key, tess, zero,
+                      unmeasured, jnp.zeros(n, bool), unmeasured, jnp.zeros(n, bool), jnp.asarray(-1, jnp.int32),
+                      key, tess, zero,
                       jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero)
-
-
-def _observed(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple):
-    """(state with refreshed cells, its observables)."""
-    new = refresh_cells(params, state, observe)
-    return new, measure(fitness, params, state, new, progress, observe)
 
 
 def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
@@ -142,7 +138,7 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
     computed ahead. Two pieces of work need no new graph and are left to the host loop, for
     XLA to run while Qhull runs: the first state's observables (NaN here, `_measure_first`)
     and the last step's closing kick (`_finish_and_begin`).
-    Returns `(state, observables, cells)`, `cells` the first state's refreshed volumes and tiers."""
+    Returns `(state, observables, cells)`, `cells` the first state's refreshed `cell_fields`."""
     dtype = state.positions.dtype
     entering = refresh_cells(params, state, observe)
     nan = {name: jnp.asarray(jnp.nan, dtype) for name in observe}
@@ -153,7 +149,7 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
         if length == 1:  # rebuild every step: compile only the branches taken
             return move_on_graph(fitness, params, st, first, progress, True), dict(nan, _health=health(st))
         last = (i == length - 1) | (s == n_total - 1)  # clone only before a rebuild
-        st, obs = jax.lax.cond(i == 0, lambda q: (q, nan), lambda q: _observed(fitness, params, q, progress, observe), st)
+        st, obs = jax.lax.cond(i == 0, lambda q: (q, nan), lambda q: observe_state(fitness, params, q, progress, observe), st)
 
         def advance(q):
             opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
@@ -163,7 +159,7 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
         return jax.lax.cond(s < n_total, advance, lambda q: q, st), dict(obs, _health=health(st))
 
     final, obs = jax.lax.scan(body, entering, jnp.arange(length, dtype=jnp.int32))
-    return final, obs, (entering.volumes, entering.interior)
+    return final, obs, cell_fields(entering)
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
@@ -190,7 +186,7 @@ def _traced_step(fitness, params: SwarmParams, st: SwarmState, i, n_total, obser
     graph rebuilt by `update(state) -> (state, fell_back)` when the schedule says so. Returns
     `(state, observables)` with `_health` (of the entering state) and `_fallback`."""
     progress = _progress(i, n_total, st.positions.dtype)
-    st, obs = _observed(fitness, params, st, progress, observe)
+    st, obs = observe_state(fitness, params, st, progress, observe)
     rebuild = ((i + 1) % rebuild_every == 0) | (i == n_total - 1)  # clone only before a rebuild
     q = finish_step(fitness, params, move_on_graph(fitness, params, st, begin_step(params, st), progress, rebuild))
     q, fell_back = jax.lax.cond(rebuild, update, lambda r: (r, jnp.asarray(False)), q)
@@ -234,9 +230,9 @@ _begin_step = jax.jit(begin_step)
 @functools.partial(jax.jit, static_argnums=(0, 5))
 def _measure_first(fitness, params: SwarmParams, state: SwarmState, cells, progress, observe: tuple):
     """The observables of a host chunk's first state (`state` as it entered the chunk, `cells`
-    its refreshed volumes and tiers from `_host_chunk`)."""
-    new = eqx.tree_at(lambda s: (s.volumes, s.interior), state, cells)
-    return measure(fitness, params, state, new, progress, observe)
+    its refreshed `cell_fields` from `_host_chunk`)."""
+    new = eqx.tree_at(cell_fields, state, cells)
+    return measure(fitness, params, new, progress, observe)
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -304,8 +300,9 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       same, with the 2D graph rebuilt in JAX and Qhull only on the steps the device rebuild
       cannot certify; module docstring).
     - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
-      component (`bulk_spectral_gap`) and the number of components every M steps
-      (host, rebuild="host"); a gap that fails to converge is NaN with a warning.
+      component (`bulk_spectral_gap`) and the number of components at every step whose
+      count `state.step` is a multiple of M (host, rebuild="host"; a continued call keeps
+      the schedule); a gap that fails to converge is NaN with a warning.
     - `progress`: a `tqdm.auto` progress bar (rebuild="host"): False (default), True,
       "auto" (shown in a terminal or a notebook, silent otherwise) or a tqdm bar of the
       caller's, advanced by `n_steps` and left open (one bar over several calls).
@@ -328,8 +325,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     **Returns:**
 
     `(final_state, history)`, history a dict of JAX arrays with the same keys in both
-    rebuild modes: each observable (n_steps + 1,); `spectral_gap_step`, `spectral_gap`,
-    `spectral_components` (one entry per gap computed; empty with rebuild="callback");
+    rebuild modes: each observable (n_steps + 1,); `spectral_gap_step` (index into the
+    observables), `spectral_gap`, `spectral_components` and `spectral_gap_rounding` (the
+    gap is below float64 resolution, `gap_rounding_level`: read it as "< that level") (one
+    entry per gap computed; empty with rebuild="callback");
     `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
     by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
@@ -451,7 +450,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     n_total = jnp.asarray(n_steps, jnp.int32)
     gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
     bar, owned = open_bar(progress, n_steps, "simulate")
-    if gap_every:
+    first_step = int(state.step)  # the gap schedule counts the swarm's steps, across calls
+    if gap_every and first_step % gap_every == 0:
         gaps.append((0,) + _bulk_gap(state.tess))
     opening, pending = _begin_step(params, state), []
     dtype = state.positions.dtype
@@ -478,7 +478,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         reallocations += grew
         seconds["steps"] += t1 - t0
         seconds["rebuild"] += time.perf_counter() - t1
-        if gap_every and end % gap_every == 0:
+        if gap_every and (first_step + end) % gap_every == 0:
             gaps.append((end,) + _bulk_gap(state.tess))
         if bar is not None:
             bar.update(end - start)
@@ -501,22 +501,24 @@ def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated
         spectral_gap_step=jnp.asarray([g[0] for g in gaps], jnp.int32).reshape(-1),
         spectral_gap=jnp.asarray([g[1] for g in gaps], dtype).reshape(-1),
         spectral_components=jnp.asarray([g[2] for g in gaps], jnp.int32).reshape(-1),
+        spectral_gap_rounding=jnp.asarray([g[3] for g in gaps], bool).reshape(-1),
         n_reallocations=jnp.asarray(reallocations, jnp.int32), n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
         seconds_rebuild=jnp.asarray(seconds["rebuild"], dtype), seconds_steps=jnp.asarray(seconds["steps"], dtype),
         n_separated=jnp.asarray(n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32))
     return history
 
 
-def _bulk_gap(tess: Tessellation) -> tuple[float, int]:
-    """(gap, components) of `bulk_spectral_gap`; a diagnostic never ends a run: a failure
+def _bulk_gap(tess: Tessellation) -> tuple[float, int, bool]:
+    """(gap, components, whether the gap is at rounding level) of `bulk_spectral_gap`;
+    a diagnostic never ends a run: a failure
     (no convergence) is NaN with a warning."""
     try:
-        gap, n_comp, _ = bulk_spectral_gap(tess)
-        return gap, n_comp
+        gap, n_comp, outside = bulk_spectral_gap(tess)
+        return gap, n_comp, bool(gap < gap_rounding_level(tess.n_points - outside))
     except (ArithmeticError, RuntimeError, ValueError, scipy.sparse.linalg.ArpackError) as err:
         warnings.warn(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
                       RuntimeWarning, stacklevel=3)
-        return float("nan"), -1
+        return float("nan"), -1, False
 
 
 def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) -> SwarmState:

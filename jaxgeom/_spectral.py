@@ -22,8 +22,16 @@ LAPLACIAN_WEIGHTS = ("kernel", "uniform")
 SPECTRAL_METHODS = ("scipy", "lobpcg")
 LOBPCG_RTOL = 1e-2
 # Edges lighter than this fraction of the heaviest count as absent when the graph is split
-# into connected components (kernel weights of stragglers underflow to 0 in float32).
-COMPONENT_RTOL = 1e-12
+# into connected components (kernel weights of stragglers underflow to 0 in float32). At
+# 1e-12 clusters joined by such edges formed one "component" whose gap (~1e-15) was below
+# float64 rounding; kernel weights fall below 1e-8 at 6.1 length scales.
+COMPONENT_RTOL = 1e-8
+
+
+def gap_rounding_level(n_walkers: int) -> float:
+    """The largest spectral gap indistinguishable from 0 in float64 for a normalized Laplacian
+    of `n_walkers` walkers (||L|| <= 2): 2 n eps. Gaps below it are reported as rounding."""
+    return 2.0 * max(int(n_walkers), 1) * float(np.finfo(np.float64).eps)
 
 
 class GraphLaplacian(eqx.Module):
@@ -166,10 +174,12 @@ def bulk_spectral_gap(tess: Tessellation, *, length_scale=None, weights: str = "
     """(gap, n_components, n_outside): the spectral gap of the largest connected component
     of the weighted graph, the number of components, and the walkers outside the largest.
 
-    Edges lighter than `COMPONENT_RTOL` x the heaviest are absent: a few stragglers far
-    from a clustered swarm (kernel weights exp(-134), 0 in float32) split the graph, and
-    its gap is then 0 (or ~1e-58) although the bulk mixes at a definite rate. Host,
-    scipy; the gap is NaN when the largest component has fewer than 3 walkers.
+    Edges lighter than `COMPONENT_RTOL` x the heaviest are absent, both for the component
+    test and in the component's Laplacian: a few stragglers far from a clustered swarm
+    (kernel weights exp(-134), 0 in float32) split the graph, and its gap is then 0 (or
+    ~1e-58) although the bulk mixes at a definite rate. Host, scipy; the gap is NaN when
+    the largest component has fewer than 3 walkers. A gap below `gap_rounding_level` of the
+    component's size is rounding (a bottleneck lighter than float64 resolves).
     """
     lap = graph_laplacian(tess, length_scale=length_scale, weights=weights, alpha=alpha)
     w = np.asarray(lap.weights, np.float64)

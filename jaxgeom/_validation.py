@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -55,6 +57,7 @@ def compare_estimation_methods(tess: Tessellation, values, *, eps_sigma, compute
     h_fd = estimate_hessian(tess, values, kind=kind)
     h_geo = geometric_hessian(tess, eps_sigma, eps_reg=eps_reg)
     finite = jnp.all(jnp.isfinite(h_fd.reshape(tess.n_points, -1)), axis=1) & jnp.all(jnp.isfinite(grad), axis=1)
+    warn_if_undetermined(tess, np.asarray(finite), "compare_estimation_methods")
     valid = np.asarray(tess.interior & finite & jnp.all(jnp.isfinite(h_geo.reshape(tess.n_points, -1)), axis=1))
     eig_fd = jnp.linalg.eigvalsh(jnp.where(valid[:, None, None], h_fd, 0.0)) if compute_full_hessian \
         else jnp.sort(h_fd, axis=1)
@@ -64,6 +67,19 @@ def compare_estimation_methods(tess: Tessellation, values, *, eps_sigma, compute
     return {"gradient": grad, "hessian_fd": h_fd, "hessian_geometric": h_geo, "eigenvalues_fd": eig_fd,
             "eigenvalues_geometric": eig_geo, "valid": valid, "metrics": metrics,
             "points": np.asarray(tess.points), "values": np.asarray(values)}
+
+
+def warn_if_undetermined(tess: Tessellation, determined: np.ndarray, caller: str) -> None:
+    """A RuntimeWarning when the Hessian fit is NaN at most walkers, with the fix."""
+    n, d = tess.n_points, tess.dim
+    if determined.sum() >= 0.5 * n:
+        return
+    needed = (d + 1) * (d + 2) // 2
+    fix = (f"build the k-NN graph with k >= {2 * needed} (knn_graph(points, k), or analyze's --k)"
+           if tess.simplices is None else "use a k-NN graph with more neighbours")
+    warnings.warn(f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
+                  f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
+                  f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning, stacklevel=3)
 
 
 def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:

@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._boxclip import clip_to_box
 from ._checks import takes_tessellation
 from ._graph import Tessellation, simplex_coords
 from ._simplex import dual_pieces, simplex_circumcenter
 
 
 @takes_tessellation
-@jax.jit
-def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
+@functools.partial(jax.jit, static_argnames="clip")
+def voronoi_volumes(tess: Tessellation, *, clip: bool = True) -> Float[Array, " N"]:
     """Voronoi cell volume (area in 2D) of every walker.
 
     Circumcentric decomposition: each simplex is cut into signed orthoschemes
@@ -26,17 +29,26 @@ def voronoi_volumes(tess: Tessellation) -> Float[Array, " N"]:
     **Arguments:**
 
     - `tess`: a Delaunay [`jaxgeom.Tessellation`][] (d = 2, 3 or 4).
+    - `clip`: with a `box` (not periodic, d = 2 or 3), the cells that reach the box
+      (tier 0, hull walkers included) are clipped to it (`jaxgeom._boxclip`), so every
+      walker has a finite cell and the volumes tile the box. Tier-1 and tier-2 cells lie
+      inside the box and are unchanged, and the tiers keep their meaning (curvature and
+      the cell proxies still read tier 2). `clip=False`: the unclipped cells.
 
     **Returns:**
 
-    (N,) volumes in the dtype of `tess.points`. Unbounded cells (hull walkers of a
-    non-periodic graph) are NaN; bounded cells reaching outside `box` keep their
-    unclipped volume (their tier is 0). Periodic volumes sum to the box volume.
+    (N,) volumes in the dtype of `tess.points`. Without a box (or `clip=False`, or in
+    4D), unbounded cells (hull walkers of a non-periodic graph) are NaN and bounded
+    cells reaching outside the box keep their unclipped volume. Periodic volumes sum to
+    the box volume.
     """
     pieces = jax.vmap(dual_pieces)(simplex_coords(tess))
     pieces = jnp.where(tess.simplex_mask[:, None], pieces, 0.0)
     volumes = jax.ops.segment_sum(pieces.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
-    return jnp.where(tess.hull, jnp.nan, volumes)
+    volumes = jnp.where(tess.hull, jnp.nan, volumes)
+    if clip and tess.box is not None and not tess.periodic and tess.dim in (2, 3):
+        return clip_to_box(tess, volumes)
+    return volumes
 
 
 @takes_tessellation

@@ -72,7 +72,7 @@ def test_analyze_periodic_points_file(tmp_path):
                  "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["graph"]["tier2"] == 300
-    assert abs(report["volumes"]["total_finite"] - 1.0) < 1e-9
+    assert abs(report["volumes"]["tier2_total"] - 1.0) < 1e-9 and abs(report["volumes"]["total_in_box"] - 1.0) < 1e-9
 
 
 @pytest.mark.slow

@@ -336,7 +336,8 @@ def test_analyze_periodic_on_its_own_sample_and_notes_the_geometric_reference(tm
 
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["graph"]["tier2"] == 2000
-    np.testing.assert_allclose(report["volumes"]["total_finite"], 25.0, rtol=1e-9)
+    np.testing.assert_allclose(report["volumes"]["tier2_total"], 25.0, rtol=1e-9)
+    np.testing.assert_allclose(report["volumes"]["total_in_box"], 25.0, rtol=1e-9)
     assert "spacing" in report["estimation"]["geometric_reference"]
     assert report["curvature"]["tier2_volume_weighted_ricci_resolution"] > 0
 

@@ -61,7 +61,10 @@ def _stats(values: np.ndarray, prefix: str) -> dict:
 
 def section_swarm(a: Analysis) -> dict:
     n, d = a.points.shape
-    out = {"source": a.source, "n_walkers": n, "dim": d, "graph": a.args.graph, "periodic": a.args.periodic}
+    out = {"source": a.source, "n_walkers": n, "dim": d, "graph": a.args.graph, "periodic": a.args.periodic,
+           "landscape": a.args.landscape or NO_LANDSCAPE}
+    if a.args.graph == "knn":
+        out["k"] = a.args.k
     if a.box is not None:
         out["box_lower"], out["box_upper"] = np.asarray(a.box[0]).tolist(), np.asarray(a.box[1]).tolist()
     return out
@@ -94,8 +97,11 @@ def needs_simplices(section: Callable[[Analysis], dict]) -> Callable[[Analysis],
 def section_volumes(a: Analysis) -> dict:
     vol = np.asarray(timed_warm(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
     a.cache["volumes"] = vol
-    out = {"total_finite": float(np.nansum(vol)), "n_unbounded": int(np.isnan(vol).sum())}
-    out.update(_stats(vol[np.asarray(a.tess.interior)], "tier2"))
+    interior = np.asarray(a.tess.interior)
+    out = {"tier2_total": float(vol[interior].sum()), "n_unbounded": int(np.isnan(vol).sum())}
+    if a.tess.box is not None:  # cells clipped to the box: they tile it
+        out["total_in_box"] = float(np.sum(vol))
+    out.update(_stats(vol[interior], "tier2"))
     return out
 
 
@@ -114,7 +120,7 @@ def analysis_metric(a: Analysis):
 
 def section_metric(a: Analysis) -> dict:
     out = {"kind": a.args.metric}
-    if a.args.metric == "hessian":
+    if a.args.metric == "hessian":  # only with a landscape (`resolve_landscape`)
         out.update(landscape=a.args.landscape, eps_sigma=a.args.eps_sigma)
     g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
     if g is not None:
@@ -165,17 +171,21 @@ def section_graph_proxies(a: Analysis) -> dict:
     k = min(6, a.tess.n_points - 1)
     gaps = np.asarray(timed(a, "spectral_gap", jaxgeom.spectral_gap, a.tess, k=k))
     out.update(spectral_gap=float(gaps[1]) if k > 1 else float("nan"), smallest_eigenvalues=gaps.tolist())
-    fitness = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
-    best = int(np.argmin(fitness))
+    if a.fitness is not None:  # from the best (lowest-V) walker
+        fitness = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
+        source, role = int(np.argmin(fitness)), "best_walker"
+        out.update(best_walker=source, best_fitness=float(fitness[source]))
+    else:  # no landscape: from the walker nearest the centroid
+        source, role = int(np.argmin(np.sum((a.points - a.points.mean(axis=0)) ** 2, axis=1))), "central_walker"
+        out.update(central_walker=source)
     metric = analysis_metric(a)
     method = "heat" if a.tess.simplices is not None else "dijkstra"  # a k-NN graph has no simplices
-    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, best, metric=metric,
+    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, source, metric=metric,
                             method=method))[0]
     reachable = np.isfinite(dist)
-    out.update(best_walker=best, best_fitness=float(fitness[best]), geodesic_method=method,
-               best_walker_geodesic_eccentricity=float(dist[reachable].max()),
-               best_walker_mean_geodesic_distance=float(dist[reachable].mean()),
-               unreachable_walkers=int((~reachable).sum()))
+    out.update({"geodesic_method": method, f"{role}_geodesic_eccentricity": float(dist[reachable].max()),
+                f"{role}_mean_geodesic_distance": float(dist[reachable].mean()),
+                "unreachable_walkers": int((~reachable).sum())})
     return out
 
 
@@ -183,12 +193,15 @@ def section_estimation(a: Analysis) -> dict:
     """Gradient and Hessian of the fitness field estimated from its values at the walkers,
     and their agreement with the geometric (emergent-metric) Hessian."""
 
+    if a.fitness is None:
+        return {"skipped": f"needs fitness values: {NO_LANDSCAPE}"}
     values = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
     result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
                    eps_sigma=a.args.eps_sigma)
     a.cache["estimation"] = result
     valid = result["valid"]
-    out = _stats(np.linalg.norm(np.asarray(result["gradient"])[valid], axis=1), "tier2_gradient_norm")
+    out = {"walkers_with_hessian": int(valid.sum()), "walkers": len(valid)}
+    out |= _stats(np.linalg.norm(np.asarray(result["gradient"])[valid], axis=1), "tier2_gradient_norm")
     eig = np.asarray(result["eigenvalues_fd"])[valid]
     out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))
     out.update(_stats(eig[:, -1], "tier2_hessian_max_eigenvalue"))
@@ -215,22 +228,60 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
 
 
 def write_maps(a: Analysis, path: Path) -> None:
-    """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates)."""
+    """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates;
+    the title says so beyond 2D), with labelled axes and colour bars."""
     fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
-    for ax, key, title, cmap in [(axes[0], "ricci", "Ricci scalar", "coolwarm"),
-                                 (axes[1], "shape", "shape distortion r_in / r_circ", "viridis")]:
+    metric = a.args.metric + (f" of {a.args.landscape}" if a.args.metric == "hessian" else "")
+    for ax, key, title, cmap in [(axes[0], "ricci", f"Ricci scalar R (metric: {metric})", "coolwarm"),
+                                 (axes[1], "shape", "shape distortion r_in / r_circ (1: round)", "viridis")]:
         values = a.cache[key]
         ok = np.isfinite(values)
-        ax.scatter(pts[~ok, 0], pts[~ok, 1], s=3, c="k", label="tier 0 (no value)")
+        ax.scatter(pts[~ok, 0], pts[~ok, 1], s=3, c="k", label="no value (hull tiers)")
         lo, hi = np.percentile(values[ok], [2, 98]) if ok.any() else (0, 1)
         if key == "ricci":
             lo, hi = -max(abs(lo), abs(hi)), max(abs(lo), abs(hi))
         sc = ax.scatter(pts[ok, 0], pts[ok, 1], s=4, c=np.clip(values[ok], lo, hi), cmap=cmap, vmin=lo, vmax=hi)
-        fig.colorbar(sc, ax=ax)
-        ax.set_title(f"{title}, metric={a.args.metric}")
-        ax.set_aspect("equal")
+        fig.colorbar(sc, ax=ax, label=title.split(" (")[0] + " (2-98% range)")
+        ax.set(title=title, xlabel="x_1", ylabel="x_2", aspect="equal")
+        ax.legend(loc="upper right", fontsize=7)
+    d = pts.shape[1]
+    where = f"{d}D walkers projected on (x_1, x_2)" if d > 2 else "2D walkers"
+    fig.suptitle(f"{a.source}: {where}; landscape: {a.args.landscape or 'none'}", fontsize=9)
     save_figure(fig, path, dpi=110)
+
+
+NO_LANDSCAPE = "none (--points without --landscape: landscape-free geometry only)"
+
+
+def resolve_options(args) -> None:
+    """Fill the options whose default depends on others: the landscape (double_well for a
+    sampled swarm, none for --points), the metric (hessian with a landscape, else none) and
+    k (enough neighbours for a quadratic fit in d dimensions)."""
+    if args.landscape is None and args.points is None:
+        args.landscape = "double_well"
+    if args.metric is None:
+        args.metric = "hessian" if args.landscape else "none"
+    if args.metric == "hessian" and not args.landscape:
+        raise ValueError("--metric hessian is the Hessian metric of a landscape: give --landscape with --points, "
+                         "or choose --metric none / emergent.")
+    if args.dim < 1:
+        raise ValueError(f"--dim must be >= 1; got {args.dim}.")
+    if args.graph == "delaunay" and args.points is None:
+        check_delaunay_dim(args.dim, "--dim")
+
+
+def check_delaunay_dim(d: int, what: str) -> None:
+    if not 2 <= d <= 4:
+        raise ValueError(f"{what} {d} needs --graph knn (Delaunay tessellations exist for d = 2, 3, 4; "
+                         "k-NN graphs in any dimension).")
+
+
+def default_k(d: int) -> int:
+    """k-NN neighbours for `analyze`: the (d + 1)(d + 2)/2 coefficients of a quadratic fit (the
+    Hessian estimate) plus d, at least 12 (d = 10: 76 neighbours; every walker's fit is then
+    determined on the 1-ring of a Boltzmann sample, where k = 12 left 4687 of 5000 NaN)."""
+    return max(12, (d + 1) * (d + 2) // 2 + d)
 
 
 def load_swarm(args, fitness, bounds) -> tuple[np.ndarray, tuple | None, str]:
@@ -271,8 +322,13 @@ def analysis_graph(a: Analysis):
 
 def run_analysis(args) -> dict:
     start = time.perf_counter()
-    fitness, bounds = load_landscape(args.landscape, args.dim)
+    resolve_options(args)
+    fitness, bounds = load_landscape(args.landscape, args.dim) if args.landscape else (None, None)
     points, box, source = load_swarm(args, fitness, bounds)
+    if args.graph == "delaunay":
+        check_delaunay_dim(points.shape[1], "--points of dimension")
+    if args.k is None:
+        args.k = default_k(points.shape[1])
     a = Analysis(args=args, points=points, box=box, source=source, fitness=fitness)
     a.timings["load"] = time.perf_counter() - start
     a.tess = analysis_graph(a)
@@ -308,19 +364,24 @@ def add_analyze_parser(sub) -> argparse.ArgumentParser:
     an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry",
                         description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     an.add_argument("--points", type=Path, help="(N, d) .npy file; None: sample exp(-beta V) of --landscape")
-    an.add_argument("--landscape", default="double_well",
+    an.add_argument("--landscape", default=None,
                     help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
-                         "BOX = (lower, upper)): the sampled density and the Hessian metric")
+                         "BOX = (lower, upper)): the sampled density, the Hessian metric, the fitness values "
+                         "(None: double_well for a sampled swarm; with --points no landscape, so only "
+                         "landscape-free geometry is reported)")
     an.add_argument("--beta", type=float, default=2.0, help="inverse temperature of the default sample")
     an.add_argument("--dim", type=int, default=2, help="dimension of the sampled walkers")
     an.add_argument("--n", type=int, default=5000, help="walkers sampled")
     an.add_argument("--seed", type=int, default=0, help="seed of the sample")
     an.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
-    an.add_argument("--k", type=int, default=12, help="neighbours per walker with --graph knn")
+    an.add_argument("--k", type=int, default=None,
+                    help="neighbours per walker with --graph knn (None: max(12, (d + 1)(d + 2)/2 + d), what a "
+                         "quadratic fit of the Hessian needs plus d)")
     an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
     an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"), help="domain bounds for every axis")
-    an.add_argument("--metric", choices=["none", "hessian", "emergent"], default="hessian",
-                    help="metric for curvature and Riemannian volumes (hessian: of --landscape)")
+    an.add_argument("--metric", choices=["none", "hessian", "emergent"], default=None,
+                    help="metric for curvature and Riemannian volumes (hessian: of the landscape; None: hessian "
+                         "when there is a landscape, else none)")
     an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
     an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
     return an

@@ -16,6 +16,7 @@ import numpy as np
 import jaxgeom
 from .._dynamics import metric_field
 from .._forces import VISCOUS_WEIGHTS
+from .._observables import OBSERVABLE_TABLE
 from .._landscapes import LANDSCAPES
 from .._plots import plot_observables, plot_swarm_snapshots
 from .._progress import close_bar, open_bar
@@ -44,7 +45,7 @@ the observables, and with --out write history.json, swarm.png and observables.pn
 
 The command line's defaults (temperature 1, gamma 2) are hotter and more damped than
 jaxgeom.SwarmParams' (temperature 0.1, gamma 1): the built-in landscapes span boxes of half
-width 3 to 5.12 with barriers of order 10, which a swarm at T = 0.1 does not cross within a
+width 2 to 5.12 with barriers of order 10, which a swarm at T = 0.1 does not cross within a
 few hundred steps. The library's defaults suit a unit-scale landscape."""
 
 
@@ -132,14 +133,13 @@ def run_simulation(args) -> dict:
     state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k)
     seconds_init = time.perf_counter() - start
     segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
-    gap_every = args.gap_every if args.gap_every and segment % args.gap_every == 0 else 0
     snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0
     bar, owned = open_bar(progress_choice(args), args.steps, "simulate")
     try:
         while done < args.steps:
             n = min(segment, args.steps - done)
             state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
-                                              spectral_gap_every=gap_every if n % max(gap_every, 1) == 0 else 0,
+                                              spectral_gap_every=args.gap_every,
                                               progress=bar if bar is not None else False)
             parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
             done += n
@@ -172,34 +172,56 @@ def _merge(parts, dt: float) -> dict:
     gap_steps = np.concatenate([done + h["spectral_gap_step"] for done, h in parts])
     gaps = np.concatenate([h["spectral_gap"] for _, h in parts])
     components = np.concatenate([h["spectral_components"] for _, h in parts])
+    rounding = np.concatenate([h["spectral_gap_rounding"] for _, h in parts])
     keep = np.r_[True, np.diff(gap_steps) > 0] if gap_steps.size else np.zeros(0, bool)
     return {"series": series, "spectral_gap_step": gap_steps[keep], "spectral_gap": gaps[keep],
-            "spectral_components": components[keep],
+            "spectral_components": components[keep], "spectral_gap_rounding": rounding[keep],
             "n_reallocations": int(sum(h["n_reallocations"] for _, h in parts)),
             "seconds_rebuild": float(sum(h["seconds_rebuild"] for _, h in parts)),
             "seconds_steps": float(sum(h["seconds_steps"] for _, h in parts))}
 
 
 def summary_table(result: dict) -> str:
+    skipped = delaunay_only(result)
     rows = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"]
     for name, values in result["series"].items():
-        if name == "time":
+        if name == "time" or name in skipped:
             continue
         finite = values[np.isfinite(values)]
         cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
         rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
     if result["spectral_gap"].size:
-        gaps, comps = result["spectral_gap"], result["spectral_components"]
-        rows.append(f"{'spectral_gap (largest comp.)':<26}{gaps[0]:>12.5g}{gaps[-1]:>12.5g}")
-        rows.append(f"{'graph components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}")
-    if "mean_expansion" in result["series"]:
-        rows.append("mean_expansion is NaN at step 0: it compares each cell with its volume one step earlier.")
-    if "ricci_resolution" in result["series"]:
+        rows += _gap_rows(result)
+    if skipped:
+        rows.append(f"Not reported on a k-NN graph (they need Voronoi cells, --graph delaunay): {', '.join(skipped)}.")
+    if "mean_expansion" in result["series"] and "mean_expansion" not in skipped:
+        rows.append("mean_expansion = d ln(sum V_i)/dt over tier-2 walkers not cloned (volume-weighted); "
+                    "NaN at step 0, which has no previous step.")
+    if "ricci_resolution" in result["series"] and "ricci_resolution" not in skipped:
         rows.append("ricci_resolution: |mean_ricci| below it is rounding (jaxgeom.ricci_resolution).")
     rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
                 f"capacity reallocations {result['n_reallocations']}, "
                 f"time {result['seconds_total']:.1f} s = {timing_breakdown(result)}")
     return "\n".join(rows)
+
+
+def delaunay_only(result: dict) -> list[str]:
+    """The observables of the series that need Voronoi cells, when the run's graph is k-NN."""
+    if result["config"].get("graph") != "knn":
+        return []
+    return [name for name in result["series"] if name in OBSERVABLE_TABLE and OBSERVABLE_TABLE[name].geometric]
+
+
+def _gap_rows(result: dict) -> list[str]:
+    gaps, comps, rounding = result["spectral_gap"], result["spectral_components"], result["spectral_gap_rounding"]
+    shown = [f"{'rounding':>12}" if r else f"{g:>12.5g}" for g, r in zip(gaps[[0, -1]], rounding[[0, -1]])]
+    rows = [f"{'spectral_gap (largest comp.)':<26}" + "".join(shown),
+            f"{'graph components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}",
+            f"spectral gap at steps {result['spectral_gap_step'].tolist()}"]
+    if rounding.any():
+        rows.append(f"spectral gap at rounding level (below 2 n eps, float64) at steps "
+                    f"{result['spectral_gap_step'][rounding].tolist()}")
+    return rows
 
 
 def timing_breakdown(result: dict) -> str:
@@ -221,13 +243,14 @@ def write_outputs(result: dict, out: Path) -> dict:
                "series": {k: _json_ready(v) for k, v in result["series"].items()},
                "spectral_gap": {"step": result["spectral_gap_step"].tolist(),
                                 "value": _json_ready(result["spectral_gap"]),
-                                "components": result["spectral_components"].tolist()},
+                                "components": result["spectral_components"].tolist(),
+                                "at_rounding_level": result["spectral_gap_rounding"].tolist()},
                "n_reallocations": result["n_reallocations"], "seconds_total": result["seconds_total"],
                "seconds_rebuild": result["seconds_rebuild"], "seconds_steps": result["seconds_steps"]}
     (out / "history.json").write_text(json.dumps(payload, indent=1))
     swarm = plot_swarm_snapshots(result["fitness"], result["snapshots"], result["box"], out / "swarm.png")
     series = plot_observables(result["series"], result["spectral_gap_step"], result["spectral_gap"],
-                              out / "observables.png")
+                              out / "observables.png", gap_rounding=result["spectral_gap_rounding"])
     return {"history": str(out / "history.json"), "swarm": str(swarm), "observables": str(series)}
 
 

@@ -111,7 +111,8 @@ def build_loss(args):
     _, history = eqx.filter_jit(lambda loss, t: loss.histories(t))(record, record.to_theta())
     late = args.steps // 2
     targets = {name: float(np.mean(np.asarray(history[name])[:, late:])) for name in MATCHED}
-    loss = jaxgeom.simulation_loss(fitness, state, "match", params=_params(args), targets=targets, **common)
+    held = {name: value for name, value in truth.items() if name not in args.tune}  # the loss is 0 at the truth
+    loss = jaxgeom.simulation_loss(fitness, state, "match", params=_params(args, **held), targets=targets, **common)
     return loss, start, {name: truth[name] for name in args.tune}
 
 
@@ -176,6 +177,17 @@ def write_outputs(args, result, truth, grid, seconds: float) -> dict:
     return {"json": str(out / "tune.json"), "figure": str(figure)}
 
 
+def _sparse_log_ticks(ax) -> None:
+    """Log axes spanning less than a decade label their minor ticks, which overlap: label
+    1, 2, 5 x 10^k only."""
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
+        axis.set_minor_formatter(NullFormatter())
+
+
 def plot_tuning(result, truth, grid, path) -> Path:
     from .._plots import pyplot
 
@@ -191,6 +203,7 @@ def plot_tuning(result, truth, grid, path) -> Path:
         contour = axes[1].contourf(x, y, z.T, levels=14, cmap="viridis")
         fig.colorbar(contour, ax=axes[1], label="log10 loss")
         axes[1].set(xscale="log", yscale="log")
+        _sparse_log_ticks(axes[1])
     if len(names) == 2:
         path_x = [it["values"][names[0]] for it in result.iterations]
         path_y = [it["values"][names[1]] for it in result.iterations]
@@ -201,8 +214,11 @@ def plot_tuning(result, truth, grid, path) -> Path:
         axes[1].set(xlabel=names[0], ylabel=names[1], title="path over the loss")
         axes[1].legend(loc="best")
     else:
-        axes[1].plot([it["values"][names[0]] for it in result.iterations], "o-")
-        axes[1].set(xlabel="iteration", ylabel=names[0])
+        axes[1].plot([it["values"][names[0]] for it in result.iterations], "o-", label="iterates")
+        if truth:
+            axes[1].axhline(truth[names[0]], color="r", ls="--", label=f"truth {truth[names[0]]:.4g}")
+        axes[1].set(xlabel="iteration", ylabel=names[0], title=f"{names[0]} against iteration")
+        axes[1].legend(loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
