@@ -17,6 +17,7 @@ LAYERS = [
     ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
     ("_cellgrid",),  # the device cell list
     ("_cellclip",),  # the Delaunay rebuild on the device (per-cell Voronoi clipping, certified)
+    ("_boxclip",),  # Voronoi cells clipped to the box (volumes of tier-0 cells)
     ("_volumes",),
     ("_metric",),
     ("_cells", "_curvature", "_heat"),
