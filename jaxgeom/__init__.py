@@ -45,6 +45,7 @@ from ._spectral import GraphLaplacian as GraphLaplacian
 from ._spectral import graph_laplacian as graph_laplacian
 from ._spectral import spectral_gap as spectral_gap
 from ._tune import TuneResult as TuneResult
+from ._tune import parameter_errors as parameter_errors
 from ._tune import TuningFailed as TuningFailed
 from ._tune import tune as tune
 from ._tuning import OBJECTIVES as OBJECTIVES

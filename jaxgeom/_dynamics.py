@@ -162,7 +162,7 @@ class SwarmState(eqx.Module):
 
 
 # Health bits: the state entering a step is checked before it moves (`health`).
-NONFINITE, RUNAWAY, ALL_DEAD, REBUILD_FAILED = 1, 2, 4, 8
+NONFINITE, RUNAWAY, ALL_DEAD, REBUILD_FAILED, OVERFLOWED_GRAPH = 1, 2, 4, 8, 16
 # A walker farther than this many initial swarm radii (N^(1/d) x the initial mean spacing)
 # from the swarm's mean position counts as diverged.
 RUNAWAY_RADII = 1e6
@@ -175,13 +175,14 @@ def runaway_radius(state: SwarmState):
 
 def health(state: SwarmState):
     """Bit flags (int32) of a state: non-finite positions/velocities, runaway walkers,
-    no walker with a finite fitness, and any problem recorded in `state.status`."""
+    no walker with a finite fitness, a graph that outgrew its capacity (a traced rebuild
+    then keeps the old graph), and any problem recorded in `state.status`."""
     x, v = state.positions, state.velocities
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(v))
     centre = jnp.mean(x, axis=0)
     far = jnp.max(jnp.sum((x - centre) ** 2, axis=1)) > runaway_radius(state) ** 2
     flags = (jnp.where(finite, 0, NONFINITE) | jnp.where(far, RUNAWAY, 0)
-             | jnp.where(jnp.any(state.alive), 0, ALL_DEAD))
+             | jnp.where(jnp.any(state.alive), 0, ALL_DEAD) | jnp.where(state.tess.overflow, OVERFLOWED_GRAPH, 0))
     return (flags | state.status).astype(jnp.int32)
 
 

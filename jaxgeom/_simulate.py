@@ -14,7 +14,8 @@ Three rebuild strategies (why, with the measurements: bench/README.md):
   `jax.pure_callback` (`jaxgeom._rebuild.update_in_trace`): the whole simulation is
   one jittable, differentiable function of the parameters (tuning nu and eps_Sigma
   with optimistix). Its capacity cannot grow inside the scan, so an overflow re-runs
-  the simulation with larger capacities when called eagerly and raises under a trace.
+  the simulation with larger capacities when called eagerly; under a trace it is recorded
+  like a divergence (`diverged_step`, so a `simulation_loss` is +inf there).
 - `rebuild="device"` is the same scan with the graph rebuilt in JAX (`jaxgeom.rebuild`,
   2D non-periodic Delaunay swarms): no host round trip on the steps it certifies; a step
   it cannot certify falls back to the callback's Qhull and is counted (`n_fallbacks`).
@@ -38,9 +39,9 @@ from jax.sharding import Mesh
 from ._cellclip import describe_graph, rebuilds_on_device
 from ._checks import check_choice, check_min_points, host_points, real_array
 from ._delaunay import delaunay
-from ._dynamics import (ALL_DEAD, NONFINITE, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart, SwarmParams,
-                        SwarmState, begin_step, finish_step, fitness_and_force, health, metric_field, move_on_graph,
-                        runaway_radius)
+from ._dynamics import (ALL_DEAD, NONFINITE, OVERFLOWED_GRAPH, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, StepStart,
+                        SwarmParams, SwarmState, begin_step, finish_step, fitness_and_force, health, metric_field,
+                        move_on_graph, runaway_radius)
 from ._graph import Tessellation
 from ._metric import eigh
 from ._observables import OBSERVABLES, cell_fields, measure, observe_state, refresh_cells
@@ -332,7 +333,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
     by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
-    `diverged_step` (-1, or under a trace the first step whose state failed).
+    `diverged_step` (-1, or under a trace the first step whose state failed: non-finite,
+    runaway, all dead, a failed rebuild, or a graph that outgrew its capacity).
     For a batch: the same with a leading (B,) axis on every array of both.
     """
     observe = tuple(observe)
@@ -418,6 +420,9 @@ def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: i
                     "swarm radii) from the swarm's centre")
     if code & ALL_DEAD:
         what.append("no walker has a finite fitness")
+    if code & OVERFLOWED_GRAPH:
+        what.append("the graph outgrew its capacity (build the state with init_swarm(..., capacity=a larger "
+                    "jaxgeom.Capacity))")
     if code & REBUILD_FAILED:
         what.append("Qhull could not triangulate the walkers (degenerate or non-finite positions)")
     return (f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
@@ -592,11 +597,7 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     while True:
         final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
         final, last = _observe_final(fitness, params, final, observe)
-        if traced:
-            final = eqx.error_if(final, final.tess.overflow, "jaxgeom.simulate: the tessellation outgrew its "
-                                 "capacity; build the state with init_swarm(..., capacity=a larger Capacity)")
-            break
-        if not bool(final.tess.overflow):
+        if traced or not bool(final.tess.overflow):  # traced: recorded in `diverged_step` (health)
             break
         state = eqx.tree_at(lambda s: s.tess, state, grown(state.tess))
         reallocations += 1

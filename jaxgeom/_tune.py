@@ -50,6 +50,9 @@ class TuneResult:
       loss / scale (`scaled(loss, scale)`), so that its first step has unit length in
       theta (log parameters) whatever the loss's units. `optimistix.minimise(scaled(loss,
       scale), solver, theta0)` reproduces the iterates.
+    - `standard_errors`: {name: standard error of the value}, the sandwich (delta-method)
+      estimate of a "match" fit (`parameter_errors`); NaN, with the reason in
+      `error_note`, where it is not defined. `covariance`: its (p, p) matrix in theta.
     """
 
     theta: np.ndarray
@@ -63,6 +66,9 @@ class TuneResult:
     message: str
     seconds: float
     scale: float
+    standard_errors: dict = dataclasses.field(default_factory=dict)
+    covariance: np.ndarray | None = None
+    error_note: str = ""
 
 
 def _solver_of(solver, rtol: float, atol: float):
@@ -89,7 +95,7 @@ def _start(loss: SimulationLoss, start):
 
 
 def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, rtol: float = 1e-4,
-         atol: float = 1e-6, bounds: dict | None = None, progress=False) -> TuneResult:
+         atol: float = 1e-6, bounds: dict | None = None, progress=False, target_seeds: int | None = None) -> TuneResult:
     """Minimise a [`jaxgeom.SimulationLoss`][] over its tuned parameters.
 
     **Arguments:**
@@ -105,6 +111,9 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
       optimistix Cauchy termination (L-BFGS-B: `rtol` is scipy's `tol`).
     - `progress`: a `tqdm.auto` bar over the iterations, showing the loss and the values:
       False (default), True, "auto" (shown in a terminal or a notebook) or a tqdm bar.
+    - `target_seeds`: the number of independent runs that the targets of a "match" loss
+      were averaged over, for their share of the standard errors (None: the targets are
+      exact, the errors are the simulation's alone).
 
     **Returns:** a [`jaxgeom.TuneResult`][]. **Raises:** `TuningFailed` (naming the
     iteration) when an accepted iterate has a non-finite loss or gradient, e.g. a start
@@ -133,10 +142,62 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
             theta, n_steps, converged, message = _run_optimistix(loss, minimiser, theta0, scale, max_steps, recorder)
     finally:
         close_bar(bar, owned)
+    errors, covariance, note = parameter_errors(loss, theta, target_seeds)
     best = recorder.iterations[-1]
     return TuneResult(np.asarray(theta), loss.values(theta), loss.to_params(jnp.asarray(theta)), best["loss"],
                       recorder.iterations, name, n_steps, converged, message, time.perf_counter() - began,
-                      float(scale))
+                      float(scale), errors, covariance, note)
+
+
+def parameter_errors(loss: SimulationLoss, theta, target_seeds: int | None = None):
+    """Standard errors of the parameters of a "match" fit at theta (`tune` reports them).
+
+    **Arguments:**
+
+    - `loss`: a [`jaxgeom.SimulationLoss`][] with objective "match" and n_seeds >= 2.
+    - `theta`: where (the fit's optimum: `TuneResult.theta`).
+    - `target_seeds`: the number of independent runs the targets average (None: exact).
+
+    **Returns:** `({name: standard error of the value}, covariance of theta (p, p), note)`.
+
+    The fit is a method of moments: theta solves min |W^(1/2) (m(theta) - t)|^2 with m the
+    seed mean of the matched observables and W = diag(1 / target_scale^2). To first order
+    theta_hat - theta = B J^T W (t - m), B = (J^T W J)^-1, J = dm/dtheta (forward-mode
+    derivative through the simulations), so Cov(theta_hat) = B J^T W Sigma W J B (the
+    sandwich), Sigma = S (1 / n_seeds + 1 / target_seeds) with S the seed-to-seed covariance
+    of the observables at theta_hat. The values' errors follow through the parameter map.
+    NaN (with the reason) for other objectives, one seed, or observables that do not
+    identify every parameter (J^T W J singular)."""
+    nan = {name: float("nan") for name in loss.tuned}
+    if loss.objective != "match":
+        return nan, None, "standard errors are computed for objective='match' (a fit to observables)"
+    if loss.n_seeds < 2:
+        return nan, None, "standard errors need n_seeds >= 2 (the seed-to-seed spread)"
+    if target_seeds is not None and (not isinstance(target_seeds, (int, np.integer)) or target_seeds < 1):
+        raise ValueError(f"`target_seeds` must be an integer >= 1 or None; got {target_seeds!r}.")
+    moments, jac, rates = (np.asarray(a, float) for a in _error_ingredients(loss, jnp.asarray(theta)))
+    weight = np.diag(1.0 / loss.target_scales() ** 2)
+    information = jac.T @ weight @ jac
+    if not np.all(np.isfinite(information)) or np.linalg.cond(information) > 1e12:
+        return nan, None, "the matched observables do not identify every tuned parameter (J^T W J is singular)"
+    spread = np.atleast_2d(np.cov(moments, rowvar=False))
+    sigma = spread * (1.0 / loss.n_seeds + (1.0 / target_seeds if target_seeds else 0.0))
+    bread = np.linalg.inv(information)
+    covariance = bread @ jac.T @ weight @ sigma @ weight @ jac @ bread
+    errors = np.abs(rates) * np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return dict(zip(loss.tuned, errors.tolist())), covariance, ""
+
+
+@eqx.filter_jit
+def _error_ingredients(loss, theta):
+    """(per-seed moments (n_seeds, m), J = d mean / d theta (m, p), d value / d theta (p,))."""
+    def mean_and_moments(t):
+        moments = loss.seed_moments(t)
+        return jnp.mean(moments, axis=0), moments
+
+    jac, moments = jax.jacfwd(mean_and_moments, has_aux=True)(theta)
+    values = lambda t: jnp.stack([getattr(loss.to_params(t), name) for name in loss.tuned])  # noqa: E731
+    return moments, jac, jnp.diag(jax.jacfwd(values)(theta))
 
 
 class _Recorder:

@@ -138,10 +138,25 @@ class SimulationLoss(eqx.Module):
             return jnp.mean(self.per_seed(theta))
         # Matching compares the seed average of each observable with its target (a method of
         # moments), so that the target's own parameters give exactly 0 on the same seeds.
+        moments, diverged = self._moments(theta)
+        targets = jnp.asarray([target for _, target in self.targets], moments.dtype)
+        scales = jnp.asarray(self.target_scales(), moments.dtype)
+        value = jnp.sum(((jnp.mean(moments, axis=0) - targets) / scales) ** 2)
+        return jnp.where(diverged | ~jnp.isfinite(value), jnp.inf, value)
+
+    def seed_moments(self, theta) -> Float[Array, "n_seeds n_targets"]:
+        """"match": each seed's average of every matched observable over the last `window`
+        of its run (the loss compares their seed mean with `targets`)."""
+        return self._moments(theta)[0]
+
+    def target_scales(self) -> np.ndarray:
+        """The divisor of each target's error in the "match" loss: |target|, or 1 for a target 0."""
+        return np.asarray([abs(target) or 1.0 for _, target in self.targets])
+
+    def _moments(self, theta):
         _, history = self.histories(theta)
-        value = sum(((jnp.mean(jax.vmap(self._late_mean)(history[name])) - target) / (abs(target) or 1.0)) ** 2
-                    for name, target in self.targets)
-        return jnp.where(jnp.any(history["diverged_step"] >= 0) | ~jnp.isfinite(value), jnp.inf, value)
+        moments = jnp.stack([jax.vmap(self._late_mean)(history[name]) for name, _ in self.targets], axis=1)
+        return moments, jnp.any(history["diverged_step"] >= 0)
 
     def _objective(self, history: dict):
         if callable(self.objective):

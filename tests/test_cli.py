@@ -133,9 +133,10 @@ def test_simulate_reports_bad_input(argv, message, capsys):
 
 def test_tune_prints_iterations_and_writes_json_and_figure(tmp_path, capsys):
     assert main(["tune", "--n", "40", "--steps", "4", "--seeds", "2", "--max-steps", "2", "--grid", "2",
-                 "--no-progress", "--out", str(tmp_path)]) == 0
+                 "--tune", "nu", "eps_sigma", "--no-progress", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert re.search(r"iter\s+loss\s+\|grad\|\s+nu\s+eps_sigma", out) and "true values:" in out
+    assert re.search(r"found:\s+nu=\S+ \+- \S+\s+eps_sigma=\S+ \+- \S+", out)
     report = json.loads((tmp_path / "tune.json").read_text())
     first = report["iterations"][0]
     assert first["iteration"] == 0 and first["values"] == {"nu": 0.05, "eps_sigma": pytest.approx(0.2)}

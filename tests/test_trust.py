@@ -273,7 +273,8 @@ def _tune_result(values_path):
     from types import SimpleNamespace
 
     iterations = [{"iteration": i, "loss": 10.0 ** -i, "values": v} for i, v in enumerate(values_path)]
-    return SimpleNamespace(iterations=iterations, values=values_path[-1], solver="bfgs", message="converged")
+    return SimpleNamespace(iterations=iterations, values=values_path[-1], solver="bfgs", message="converged",
+                           standard_errors={name: 0.02 for name in values_path[-1]})
 
 
 def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(saved_figures, tmp_path):
@@ -287,6 +288,8 @@ def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(save
     plot_tuning(_tune_result([{"nu": v["nu"]} for v in path]), {"nu": 0.3}, None, tmp_path / "tune.png")
     panel = saved_figures[-1].axes[1]
     assert any(line.get_label().startswith("truth") and np.allclose(line.get_ydata(), 0.3) for line in panel.lines)
+    band = [patch for patch in panel.patches if patch.get_label() == "found +- 1 s.e."]
+    assert len(band) == 1 and np.allclose([band[0].get_y(), band[0].get_height()], [0.29 - 0.02, 0.04])
 
 
 def test_swarm_panels_share_one_frame(saved_figures, tmp_path):

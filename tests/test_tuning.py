@@ -213,3 +213,85 @@ def test_bad_arguments_are_refused():
         jaxgeom.tune(lambda t: t**2, jnp.zeros(2))
     with pytest.raises(ValueError, match="checkpoint=True` serves gradients"):
         jaxgeom.simulate(V, state, params, n_steps=2, checkpoint=True)
+
+
+def error_problem(tuned=("nu", "eps_sigma"), targets=("velocity_variance", "mean_fitness")):
+    """A small match problem: targets from 4 runs at nu 0.3, eps 0.1 with seeds of their own."""
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.5, gamma=0.5, nu=0.3, eps_sigma=0.1, weights="metric_full",
+                                 anisotropic=True, cloning=False)
+    state = swarm(n=40)
+    common = dict(n_steps=4, params=params, tuned=tuned, n_seeds=4, rebuild_every=4)
+    record = jaxgeom.simulation_loss(V, state, "match", targets={name: 1.0 for name in targets}, key=99, **common)
+    values = np.asarray(record.seed_moments(record.to_theta())).mean(axis=0)
+    return jaxgeom.simulation_loss(V, state, "match", targets=dict(zip(targets, values.tolist())), **common)
+
+
+def test_standard_errors_are_the_sandwich_of_the_seed_spread():
+    """tune's standard errors against the delta method built independently: J by central
+    differences of the seed-mean observables, S the seeds' sample covariance."""
+    from jaxgeom._tune import parameter_errors
+
+    loss = error_problem()
+    theta = loss.to_theta({"nu": 0.25, "eps_sigma": 0.12})
+    errors, covariance, note = parameter_errors(loss, theta, target_seeds=4)
+    assert note == "" and all(np.isfinite(list(errors.values())))
+    mean = lambda t: np.asarray(loss.seed_moments(jnp.asarray(t))).mean(axis=0)  # noqa: E731
+    h = 1e-6
+    jac = np.stack([(mean(theta + h * e) - mean(theta - h * e)) / (2 * h) for e in np.eye(2)], axis=1)
+    w = np.diag(1.0 / loss.target_scales() ** 2)
+    sigma = np.cov(np.asarray(loss.seed_moments(theta)), rowvar=False) * (1 / 4 + 1 / 4)
+    bread = np.linalg.inv(jac.T @ w @ jac)
+    reference = bread @ jac.T @ w @ sigma @ w @ jac @ bread
+    np.testing.assert_allclose(covariance, reference, rtol=1e-4)
+    values = loss.values(theta)  # exp map: d value / d theta = value
+    np.testing.assert_allclose([errors["nu"], errors["eps_sigma"]],
+                               [values["nu"] * np.sqrt(reference[0, 0]), values["eps_sigma"] * np.sqrt(reference[1, 1])],
+                               rtol=1e-4)
+
+
+def test_standard_errors_are_nan_with_a_reason_where_undefined():
+    from jaxgeom._tune import parameter_errors
+
+    loss = error_problem(targets=("velocity_variance",))  # one observable cannot pin two parameters
+    errors, covariance, note = parameter_errors(loss, loss.to_theta())
+    assert np.isnan(list(errors.values())).all() and covariance is None and "do not identify" in note
+    fitness_loss = jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=2, params=jaxgeom.SwarmParams(),
+                                           n_seeds=2)
+    errors, _, note = parameter_errors(fitness_loss, fitness_loss.to_theta())
+    assert np.isnan(list(errors.values())).all() and "objective='match'" in note
+    with pytest.raises(ValueError, match="target_seeds"):
+        parameter_errors(error_problem(), error_problem().to_theta(), target_seeds=0)
+
+
+@pytest.mark.slow
+def test_the_cli_demo_recovers_its_truth_within_5_percent(tmp_path, capsys):
+    import json
+
+    from jaxgeom.cli import main
+
+    assert main(["tune", "--no-progress", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "tune.json").read_text())
+    assert report["truth"] == {"nu": 0.3}
+    np.testing.assert_allclose(report["values"]["nu"], 0.3, rtol=0.05)
+    assert 0 < report["standard_errors"]["nu"] < 0.3
+    assert "+-" in capsys.readouterr().out
+
+
+def test_a_graph_outgrowing_its_capacity_under_a_trace_is_an_infinite_loss():
+    """Under a trace the capacity cannot grow: the overflow is recorded like a divergence
+    (`diverged_step`), so a line search backs off instead of the program raising."""
+    grid = np.linspace(-3, 3, 8)  # a perturbed lattice: degree <= 8, which a shuffled swarm exceeds
+    x0 = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2) + 0.02 * np.random.default_rng(0).normal(size=(64, 2))
+    first = jaxgeom.delaunay(x0)
+    tight = jaxgeom.Capacity(simplices=first.capacity.simplices, neighbors=int(np.max(np.asarray(first.degree))))
+    state = jaxgeom.init_swarm(V, x0, key=0, capacity=tight)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=100.0, cloning=False)  # the walkers reshuffle
+    run = jax.jit(lambda p: jaxgeom.simulate(V, state, p, n_steps=12, rebuild="callback", observe=("mean_fitness",)))
+    final, history = run(params)
+    assert bool(final.tess.overflow) and int(history["diverged_step"]) >= 0
+    loss = jaxgeom.simulation_loss(V, state, "mean_fitness", n_steps=12, params=params, n_seeds=4)
+    finals, histories = eqx.filter_jit(lambda l, t: l.histories(t))(loss, loss.to_theta())
+    overflowed = np.asarray(finals.tess.overflow)
+    assert overflowed.any() and (np.asarray(histories["diverged_step"])[overflowed] >= 0).all()
+    per_seed = np.asarray(eqx.filter_jit(lambda l, t: l.per_seed(t))(loss, loss.to_theta()))
+    assert np.isinf(per_seed[overflowed]).all() and np.isinf(float(loss(loss.to_theta())))
