@@ -128,7 +128,7 @@ OBSERVABLE_LABELS = {
     "mean_ricci": ("mean Ricci scalar (Hessian metric)", "<R>_g, tier-2 walkers"),
     "volume_distortion": ("volume distortion", "Var(V_i / <V>), tier 2"),
     "mean_shape_distortion": ("mean shape ratio", "<r_in / r_circ>, tier 2 (1: round)"),
-    "mean_expansion": ("expansion (volume-weighted)", "d ln(sum V_i)/dt, tier 2, no clones"),
+    "mean_expansion": ("expansion (volume-weighted)", "d ln(sum V_i)/dt, tier 2 at both steps"),
     "n_clones": ("clones per step", "walkers cloned"),
     "nu": ("viscous coupling", "nu"),
     "eps_sigma": ("metric floor", "eps_Sigma"),

@@ -53,15 +53,17 @@ def test_a_continued_simulation_equals_one_uninterrupted_call(rng):
 
 
 def test_expansion_is_the_volume_weighted_rate_of_the_states(rng):
-    """mean_expansion of one noisy step, recomputed from the two states with scipy's Voronoi cells."""
+    """mean_expansion of one noisy step with cloning, recomputed from the two states with scipy's
+    Voronoi cells: the walkers tier 2 at both steps, clones included."""
     state = jaxgeom.init_swarm(bowl, rng.normal(size=(200, 2)), key=5)
-    params = jaxgeom.SwarmParams(dt=0.05, temperature=1.0, cloning=False)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=1.0, clone_rate=1.0)
     observe = ("mean_expansion",)
     one, _ = jaxgeom.simulate(bowl, state, params, n_steps=1, observe=observe)
     two, history = jaxgeom.simulate(bowl, one, params, n_steps=1, observe=observe)
     before, after = scipy_voronoi_volumes(np.asarray(one.positions)), scipy_voronoi_volumes(np.asarray(two.positions))
     valid = np.asarray(one.tess.tier == 2) & np.asarray(two.tess.tier == 2)
     expected = np.log(after[valid].sum() / before[valid].sum()) / 0.05
+    assert np.asarray(two.cloned).sum() > 5
     np.testing.assert_allclose(history["mean_expansion"][-1], expected, rtol=1e-10)
     # the per-cell mean that the label used to show is dominated by the jitter (Jensen)
     per_cell = np.nanmean((after[valid] - before[valid]) / before[valid]) / 0.05

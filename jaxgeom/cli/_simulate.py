@@ -195,7 +195,7 @@ def summary_table(result: dict) -> str:
     if skipped:
         rows.append(f"Not reported on a k-NN graph (they need Voronoi cells, --graph delaunay): {', '.join(skipped)}.")
     if "mean_expansion" in result["series"] and "mean_expansion" not in skipped:
-        rows.append("mean_expansion = d ln(sum V_i)/dt over tier-2 walkers not cloned (volume-weighted); "
+        rows.append("mean_expansion = d ln(sum V_i)/dt over the walkers tier 2 at both steps (volume-weighted); "
                     "NaN at step 0, which has no previous step.")
     if "ricci_resolution" in result["series"] and "ricci_resolution" not in skipped:
         rows.append("ricci_resolution: |mean_ricci| below it is rounding (jaxgeom.ricci_resolution).")
