@@ -97,7 +97,7 @@ def planned_bytes(state, params, steps: int, mesh) -> int:
     """Per-device bytes of XLA's buffer plan for the whole run (temporaries, arguments, outputs):
     the split run's program, with the cells split over `mesh` or (None) on one device."""
     from jaxgeom._sharding import shard_walkers
-    from jaxgeom._simulate import _run_split
+    from jaxgeom._steps import _run_split
 
     placed = state if mesh is None else shard_walkers(state, mesh, state.positions.shape[0])
     count = jax.numpy.asarray(steps, jax.numpy.int32)

@@ -35,7 +35,7 @@ from ._metric import riemannian_mean as riemannian_mean
 from ._metric import riemannian_volumes as riemannian_volumes
 from ._observables import OBSERVABLES as OBSERVABLES
 from ._plots import plot_estimation_quality as plot_estimation_quality
-from ._simulate import init_swarm as init_swarm
+from ._swarm_init import init_swarm as init_swarm
 from ._simulate import simulate as simulate
 from ._simulate import stack_swarms as stack_swarms
 from ._sharding import batch_mesh as batch_mesh

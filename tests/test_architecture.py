@@ -27,7 +27,10 @@ LAYERS = [
     ("_dynamics",),  # SwarmParams, SwarmState, the three phases of a step
     ("_observables",),
     ("_rebuild",),  # graph lifecycle of a moving swarm
-    ("_simulate",),  # the scan driver
+    ("_swarm_init", "_divergence", "_history"),  # the initial state; divergence checks; the history
+    ("_steps",),  # the step bodies every driver shares
+    ("_drivers",),  # host chunks, one traced scan, the split swarm: one function each
+    ("_simulate",),  # the entry point: checks, dispatch, batches of swarms
     ("_tuning",),  # simulation_loss: theta -> objective of whole simulations
     ("_tune",),  # the optimistix / jaxopt driver
     ("_validation", "_plots"),

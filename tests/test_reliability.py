@@ -10,7 +10,7 @@ import pytest
 import jaxgeom
 from jaxgeom._delaunay import CapacityError
 from jaxgeom._planar import sort_rows
-from jaxgeom._simulate import SimulationDiverged
+from jaxgeom._divergence import SimulationDiverged
 from jaxgeom.cli import main
 
 from helpers import padded_sets, scipy_neighbor_sets
@@ -306,7 +306,7 @@ def test_the_bulk_gap_ignores_detached_stragglers(rng):
 def test_a_failing_spectral_gap_never_ends_a_run(monkeypatch, bowl_swarm):
     import scipy.sparse.linalg
 
-    import jaxgeom._simulate as sim
+    import jaxgeom._history as sim
 
     def broken(tess):
         raise scipy.sparse.linalg.ArpackNoConvergence("no convergence", np.zeros(0), np.zeros((0, 0)))

@@ -127,7 +127,7 @@ def test_the_largest_component_has_a_resolved_gap(rng):
 
 
 def test_a_gap_at_rounding_level_is_flagged_in_the_history(monkeypatch, rng):
-    import jaxgeom._simulate as sim
+    import jaxgeom._history as sim
 
     monkeypatch.setattr(sim, "bulk_spectral_gap", lambda tess: (2.5e-15, 64, 10))
     state = jaxgeom.init_swarm(bowl, rng.normal(size=(60, 2)), key=0)

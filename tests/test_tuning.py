@@ -9,7 +9,7 @@ import optimistix as optx
 import pytest
 
 import jaxgeom
-from jaxgeom._simulate import checkpointed_scan
+from jaxgeom._steps import checkpointed_scan
 from jaxgeom._tune import _theta_bounds, scaled
 
 
