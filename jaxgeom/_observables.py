@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._cells import raychaudhuri_expansion, shape_distortion, volume_distortion
+from ._cells import shape_distortion, volume_distortion
 from ._curvature import ricci_resolution, ricci_scalar
 from ._dynamics import SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length
 from ._metric import riemannian_mean, riemannian_volumes
@@ -135,7 +135,7 @@ def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ..
     adjacent = state.volumes_step == state.step - 1
     previous = jnp.where(measured, state.previous_volumes, jnp.where(adjacent, state.volumes, jnp.nan))
     previous_interior = jnp.where(measured, state.previous_interior, adjacent & state.interior)
-    return eqx.tree_at(lambda s: cell_fields(s), state,
+    return eqx.tree_at(cell_fields, state,
                        (volumes, interior, previous, previous_interior, state.step.astype(jnp.int32)))
 
 

@@ -186,8 +186,8 @@ def _symlog_ticks(norm):
 
 def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
     """Walkers coloured by their Ricci scalar (one symmetric-log colour scale for every panel)
-    over contours of V, one panel per snapshot, all in one frame that holds every walker `{"step", "positions", "ricci"}` (ricci None on
-    a k-NN graph: walkers coloured by V instead). Beyond 2D the panels show the projection on
+    over contours of V, one panel per snapshot `{"step", "positions", "ricci"}` (ricci None on
+    a k-NN graph: walkers coloured by V instead), all in one frame that holds every walker. Beyond 2D the panels show the projection on
     (x_1, x_2) and the contours V(x_1, x_2, 0, ..., 0); the figure says so."""
     plt = pyplot()
     from matplotlib.ticker import MaxNLocator

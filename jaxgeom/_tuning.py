@@ -167,8 +167,8 @@ class SimulationLoss(eqx.Module):
             return history["best_fitness"][-1]
         if self.objective == "mean_fitness":
             return self._late_mean(history["mean_fitness"])
-        terms = [((self._late_mean(history[name]) - value) / (abs(value) if value else 1.0)) ** 2
-                 for name, value in self.targets]
+        terms = [((self._late_mean(history[name]) - value) / scale) ** 2
+                 for (name, value), scale in zip(self.targets, self.target_scales())]
         return sum(terms)
 
     def _late_mean(self, series):

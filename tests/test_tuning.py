@@ -245,7 +245,8 @@ def test_standard_errors_are_the_sandwich_of_the_seed_spread():
     np.testing.assert_allclose(covariance, reference, rtol=1e-4)
     values = loss.values(theta)  # exp map: d value / d theta = value
     np.testing.assert_allclose([errors["nu"], errors["eps_sigma"]],
-                               [values["nu"] * np.sqrt(reference[0, 0]), values["eps_sigma"] * np.sqrt(reference[1, 1])],
+                               [values["nu"] * np.sqrt(reference[0, 0]),
+                                values["eps_sigma"] * np.sqrt(reference[1, 1])],
                                rtol=1e-4)
 
 

@@ -120,7 +120,7 @@ def analysis_metric(a: Analysis):
 
 def section_metric(a: Analysis) -> dict:
     out = {"kind": a.args.metric}
-    if a.args.metric == "hessian":  # only with a landscape (`resolve_landscape`)
+    if a.args.metric == "hessian":  # only with a landscape (`resolve_options`)
         out.update(landscape=a.args.landscape, eps_sigma=a.args.eps_sigma)
     g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
     if g is not None:
@@ -325,7 +325,7 @@ def run_analysis(args) -> dict:
     resolve_options(args)
     fitness, bounds = load_landscape(args.landscape, args.dim) if args.landscape else (None, None)
     points, box, source = load_swarm(args, fitness, bounds)
-    if args.graph == "delaunay":
+    if args.graph == "delaunay" and args.points is not None:  # a sample's --dim: `resolve_options`
         check_delaunay_dim(points.shape[1], "--points of dimension")
     if args.k is None:
         args.k = default_k(points.shape[1])
