@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
-from jaxgeom._cellclip import first_candidates, triangulate, voronoi_cycles
-from jaxgeom._landscapes import rastrigin
+from jaxgeom.tessellation._cellclip import first_candidates, triangulate, voronoi_cycles
+from jaxgeom.apps._landscapes import rastrigin
 
 
 def median_seconds(fn, repeats=3):

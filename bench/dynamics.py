@@ -33,8 +33,8 @@ import numpy as np
 import scipy.spatial
 
 import jaxgeom
-from jaxgeom._delaunay import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
-from jaxgeom._landscapes import rastrigin
+from jaxgeom.tessellation._delaunay import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
+from jaxgeom.apps._landscapes import rastrigin
 
 OBS_FITNESS = ("mean_fitness", "best_fitness", "n_clones")
 
@@ -52,7 +52,7 @@ class QhullClock:
     """Wall time spent inside scipy's Delaunay constructor (Qhull) while enabled."""
 
     def __init__(self):
-        self.seconds, self.calls, self._real = 0.0, 0, jaxgeom._delaunay.Delaunay
+        self.seconds, self.calls, self._real = 0.0, 0, jaxgeom.tessellation._delaunay.Delaunay
 
     def __enter__(self):
         def timed(*args, **kwargs):
@@ -63,11 +63,11 @@ class QhullClock:
                 self.seconds += time.perf_counter() - start
                 self.calls += 1
 
-        jaxgeom._delaunay.Delaunay = timed
+        jaxgeom.tessellation._delaunay.Delaunay = timed
         return self
 
     def __exit__(self, *exc):
-        jaxgeom._delaunay.Delaunay = self._real
+        jaxgeom.tessellation._delaunay.Delaunay = self._real
 
 
 def qhull_alone(positions, repeats=5) -> float:

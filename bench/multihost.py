@@ -33,7 +33,7 @@ def main() -> None:
     from jax.experimental import multihost_utils
 
     import jaxgeom
-    from jaxgeom._landscapes import rastrigin
+    from jaxgeom.apps._landscapes import rastrigin
 
     capacity = jaxgeom.Capacity(simplices=128, neighbors=16)
     batch = jaxgeom.stack_swarms([jaxgeom.init_swarm(rastrigin, np.random.default_rng(i).uniform(-2, 2, (40, 2)),

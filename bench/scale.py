@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 import jaxgeom  # noqa: E402
-from jaxgeom._landscapes import rastrigin  # noqa: E402
+from jaxgeom.apps._landscapes import rastrigin  # noqa: E402
 
 
 def batch_of(b: int, n: int):
@@ -96,8 +96,8 @@ def gaussian_swarm(n: int):
 def planned_bytes(state, params, steps: int, mesh) -> int:
     """Per-device bytes of XLA's buffer plan for the whole run (temporaries, arguments, outputs):
     the split run's program, with the cells split over `mesh` or (None) on one device."""
-    from jaxgeom._sharding import shard_walkers
-    from jaxgeom._steps import _run_split
+    from jaxgeom.base._sharding import shard_walkers
+    from jaxgeom.swarm._steps import _run_split
 
     placed = state if mesh is None else shard_walkers(state, mesh, state.positions.shape[0])
     count = jax.numpy.asarray(steps, jax.numpy.int32)

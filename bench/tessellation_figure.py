@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
 import jaxgeom  # noqa: E402
-from jaxgeom._landscapes import sample_boltzmann  # noqa: E402
+from jaxgeom.apps._landscapes import sample_boltzmann  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import jaxgeom  # noqa: E402
 from jaxgeom.cli import _parser  # noqa: E402
 from jaxgeom.cli._tune import build_loss  # noqa: E402
-from jaxgeom._progress import close_bar, open_bar  # noqa: E402
+from jaxgeom.base._progress import close_bar, open_bar  # noqa: E402
 
 
 def demo_args(*extra: str):

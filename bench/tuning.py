@@ -12,7 +12,7 @@ Run: python bench/tuning.py [--part memory time noise solvers] [--precision floa
 - noise: the seed-to-seed spread of the per-seed gradient (16 seeds) of the built-in
   objectives in d/dlog(nu) and d/dlog(eps_Sigma), for the Hessian floor "clip" and
   "softabs", in the precision given (run once per precision).
-- solvers: the recovery problem of tests/test_tuning.py (nu* = 0.3 from 0.05) with BFGS,
+- solvers: the recovery problem of tests/swarm/test_tuning.py (nu* = 0.3 from 0.05) with BFGS,
   NonlinearCG and L-BFGS-B: iterations, loss evaluations' wall time, the value found.
 """
 

@@ -263,7 +263,7 @@ def test_bellman_ford_sources_outside_the_walkers(tess):
 
 
 def test_a_checked_jax_metric_is_not_checked_again(tess, monkeypatch):
-    import jaxgeom._checks as checks
+    import jaxgeom.base._checks as checks
 
     g = jnp.asarray(np.tile(np.eye(2), (200, 1, 1)))
     jaxgeom.riemannian_volumes(tess, metric=g)

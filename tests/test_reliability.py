@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import jaxgeom
-from jaxgeom._delaunay import CapacityError
-from jaxgeom._planar import sort_rows
-from jaxgeom._divergence import SimulationDiverged
+from jaxgeom.tessellation._delaunay import CapacityError
+from jaxgeom.tessellation._planar import sort_rows
+from jaxgeom.swarm._divergence import SimulationDiverged
 from jaxgeom.cli import main
 
 from helpers import padded_sets, scipy_neighbor_sets
@@ -139,7 +139,7 @@ def test_init_swarm_keeps_a_pinned_capacity_or_raises(rng):
 
 @pytest.mark.parametrize("d", [2, 3, 4])
 def test_small_eigh_and_cholesky_match_lapack(rng, d):
-    from jaxgeom._simplex import small_cholesky, small_eigh
+    from jaxgeom.base._simplex import small_cholesky, small_eigh
 
     a = rng.normal(size=(500, d, d))
     a = a + np.swapaxes(a, 1, 2)
@@ -235,7 +235,7 @@ def test_a_constant_metric_is_flat_at_any_spacing(rng, h, dtype):
 
 @pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.slow)])
 def test_float32_curvature_error_stays_below_the_stated_resolution(rng, d):
-    from jaxgeom._landscapes import double_well
+    from jaxgeom.apps._landscapes import double_well
 
     x = (0.3 + 0.01 * rng.random((800, d))).astype(np.float32)  # the same points in both precisions
     metric = jaxgeom.hessian_metric(double_well, 0.1)
@@ -273,7 +273,7 @@ def test_float32_curvature_and_volumes_work_at_extreme_but_representable_scales(
 def test_float32_hessians_are_symmetric_at_every_batch_size(n):
     """jaxlib 0.10 miscompiled this on CPU (asymmetric, entries off by 15% at n = 16384 and
     30720): pyproject.toml pins jax < 0.9 until that is fixed."""
-    from jaxgeom._landscapes import double_well
+    from jaxgeom.apps._landscapes import double_well
 
     x = jnp.asarray((0.3 + np.random.default_rng(0).random((n, 3))).astype(np.float32))
     h = np.asarray(jax.jit(jax.vmap(jax.hessian(double_well)))(x))
@@ -282,7 +282,7 @@ def test_float32_hessians_are_symmetric_at_every_batch_size(n):
 
 
 def test_the_bulk_gap_ignores_detached_stragglers(rng):
-    from jaxgeom._spectral import bulk_spectral_gap
+    from jaxgeom.geometry._spectral import bulk_spectral_gap
 
     cluster = rng.normal(size=(300, 2)) * 0.1
     stragglers = np.array([[3.0, 0.0], [0.0, 3.0], [-3.0, 0.0], [0.0, -3.0], [2.5, 2.5]])
@@ -306,7 +306,7 @@ def test_the_bulk_gap_ignores_detached_stragglers(rng):
 def test_a_failing_spectral_gap_never_ends_a_run(monkeypatch, bowl_swarm):
     import scipy.sparse.linalg
 
-    import jaxgeom._history as sim
+    import jaxgeom.swarm._history as sim
 
     def broken(tess):
         raise scipy.sparse.linalg.ArpackNoConvergence("no convergence", np.zeros(0), np.zeros((0, 0)))
@@ -345,7 +345,7 @@ def test_analyze_periodic_on_its_own_sample_and_notes_the_geometric_reference(tm
 def test_high_dimensional_default_samples_are_fast_and_exact():
     import time
 
-    from jaxgeom._landscapes import double_well, sample_boltzmann
+    from jaxgeom.apps._landscapes import double_well, sample_boltzmann
 
     start = time.perf_counter()
     x, box = sample_boltzmann("double_well", 5000, 10)

@@ -12,8 +12,8 @@ import pytest
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 import jaxgeom
-from jaxgeom._landscapes import LANDSCAPES
-from jaxgeom._spectral import bulk_spectral_gap, gap_rounding_level
+from jaxgeom.apps._landscapes import LANDSCAPES
+from jaxgeom.geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from jaxgeom.cli import main
 
 from helpers import scipy_voronoi_volumes
@@ -127,7 +127,7 @@ def test_the_largest_component_has_a_resolved_gap(rng):
 
 
 def test_a_gap_at_rounding_level_is_flagged_in_the_history(monkeypatch, rng):
-    import jaxgeom._history as sim
+    import jaxgeom.swarm._history as sim
 
     monkeypatch.setattr(sim, "bulk_spectral_gap", lambda tess: (2.5e-15, 64, 10))
     state = jaxgeom.init_swarm(bowl, rng.normal(size=(60, 2)), key=0)
@@ -295,7 +295,7 @@ def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(save
 
 
 def test_swarm_panels_share_one_frame(saved_figures, tmp_path):
-    from jaxgeom._plots import plot_swarm_snapshots
+    from jaxgeom.apps._plots import plot_swarm_snapshots
 
     rng = np.random.default_rng(0)
     snaps = [{"step": 0, "positions": rng.uniform(-5, 5, (200, 2)), "ricci": None},
@@ -320,7 +320,7 @@ def test_analyze_figures_are_labelled(saved_figures, tmp_path, capsys):
 
 
 def test_observables_figure_labels_the_estimators(saved_figures, tmp_path):
-    from jaxgeom._plots import plot_observables
+    from jaxgeom.apps._plots import plot_observables
 
     t = np.arange(4) * 0.1
     series = {"time": t, "velocity_variance": np.array([1.0, 0.9, 0.8, 0.7]),

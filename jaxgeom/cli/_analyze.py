@@ -18,8 +18,8 @@ import jax
 import numpy as np
 
 import jaxgeom
-from .._landscapes import LANDSCAPES, sample_boltzmann
-from .._plots import pyplot, save_figure
+from ..apps._landscapes import LANDSCAPES, sample_boltzmann
+from ..apps._plots import pyplot, save_figure
 from ._simulate import HelpFormatter, load_landscape
 
 

@@ -14,12 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
-from .._dynamics import metric_field
-from .._forces import VISCOUS_WEIGHTS
-from .._observables import OBSERVABLE_TABLE
-from .._landscapes import LANDSCAPES
-from .._plots import plot_observables, plot_swarm_snapshots
-from .._progress import close_bar, open_bar
+from ..apps._landscapes import LANDSCAPES
+from ..apps._plots import plot_observables, plot_swarm_snapshots
+from ..base._progress import close_bar, open_bar
+from ..geometry._forces import VISCOUS_WEIGHTS
+from ..swarm._dynamics import metric_field
+from ..swarm._observables import OBSERVABLE_TABLE
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 

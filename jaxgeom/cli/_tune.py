@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
-from .._forces import VISCOUS_WEIGHTS
-from .._tune import SOLVERS
-from .._tuning import OBJECTIVES
-from .._landscapes import LANDSCAPES
-from .._metric import HESSIAN_FLOORS
+from ..apps._landscapes import LANDSCAPES
+from ..geometry._forces import VISCOUS_WEIGHTS
+from ..geometry._metric import HESSIAN_FLOORS
+from ..swarm._tune import SOLVERS
+from ..swarm._tuning import OBJECTIVES
 from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
@@ -210,7 +210,7 @@ def _sparse_log_ticks(ax) -> None:
 
 
 def plot_tuning(result, truth, grid, path) -> Path:
-    from .._plots import pyplot
+    from ..apps._plots import pyplot
 
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))

@@ -1,0 +1,272 @@
+"""Host-boundary validation: clear errors that name the argument and the fix."""
+
+from __future__ import annotations
+
+import functools
+import weakref
+from collections.abc import Iterable
+
+import jax
+import numpy as np
+
+
+
+def reject_tracer(value, name: str, func: str) -> None:
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(
+            f"{func} runs on the host (scipy Qhull) and cannot be traced: `{name}` is a "
+            f"JAX tracer. Call {func} outside jax.jit/vmap/grad and pass concrete arrays."
+        )
+
+
+def host_points(points, name: str = "points", *, func: str = "jaxgeom") -> np.ndarray:
+    """Validate an (N, d) float array of finite coordinates and return it as numpy."""
+    reject_tracer(points, name, func)
+    try:
+        arr = np.asarray(points)
+    except ValueError as err:
+        raise TypeError(f"`{name}` must be a rectangular (N, d) array; got a ragged sequence ({err}).") from None
+    if arr.ndim != 2 or arr.shape[1] < 1:
+        raise ValueError(
+            f"`{name}` must have shape (N, d) with one row per walker; got shape {arr.shape}. "
+            "Reshape with points.reshape(N, d)."
+        )
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise TypeError(
+            f"`{name}` must be a float array (float32 or float64); got dtype {arr.dtype}. "
+            "Convert with points.astype(float)."
+        )
+    if not np.isfinite(arr).all():  # whole-array test first: the per-row one is 40x slower
+        rows = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        raise ValueError(
+            f"`{name}` has NaN or inf coordinates in {rows.size} row(s), first rows {rows[:5].tolist()}. "
+            "Remove or repair those walkers."
+        )
+    return arr
+
+
+def real_array(value, name: str) -> np.ndarray:
+    """A concrete numeric argument as numpy; TypeError for strings, objects, ragged lists, complex."""
+    try:
+        arr = np.asarray(value)
+    except ValueError as err:  # ragged nested lists
+        raise TypeError(f"`{name}` must be a rectangular numeric array; got a ragged sequence ({err}).") from None
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
+        raise TypeError(f"`{name}` must be numeric; got {type(value).__name__} with dtype {arr.dtype}.")
+    if np.iscomplexobj(arr):
+        raise TypeError(f"`{name}` must be real; got complex dtype {arr.dtype}. Pass `x.real` if the "
+                        "imaginary part is meant to be zero.")
+    return arr
+
+
+def check_number(value, name: str, *, low=None, high=None, strict: bool = False, hint: str = "") -> None:
+    """A scalar parameter: real, finite, low <= value (low < value if `strict`) <= high.
+    None and JAX tracers pass (checked only where the value is concrete)."""
+    if value is None or isinstance(value, jax.core.Tracer):
+        return
+    arr = real_array(value, name)
+    if arr.ndim != 0:
+        raise ValueError(f"`{name}` must be a scalar; got shape {arr.shape}. For an ensemble of values, "
+                         "jax.vmap a function that builds the object from one value.")
+    v = float(arr)
+    below = low is not None and (v <= low if strict else v < low)
+    if not np.isfinite(v) or below or (high is not None and v > high):
+        rule = " and ".join(r for r in (f"{'>' if strict else '>='} {low}" if low is not None else "",
+                                         f"<= {high}" if high is not None else "") if r)
+        raise ValueError(f"`{name}` must be a finite number{' ' + rule if rule else ''}{hint}; got {v:g}.")
+
+
+def check_nonnegative(value, name: str) -> None:
+    """A physical parameter: a finite real scalar >= 0 (None and tracers pass)."""
+    check_number(value, name, low=0)
+
+
+def check_positive(value, name: str, hint: str = "") -> None:
+    """A finite real scalar > 0 (None and tracers pass); `hint` follows the rule in the message."""
+    check_number(value, name, low=0, strict=True, hint=hint)
+
+
+def _concrete(value) -> bool:
+    return value is not None and not callable(value) and not isinstance(value, (str, jax.core.Tracer))
+
+
+def check_walker_array(value, name: str, shape: tuple) -> None:
+    """A per-walker input of a kernel: of `shape` (static, so traced values too), and real."""
+    if value is None or callable(value) or isinstance(value, str):
+        return
+    if not isinstance(value, jax.core.Tracer):
+        value = real_array(value, name)
+    if np.shape(value) != shape:
+        raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {np.shape(value)}.")
+
+
+def check_metric_array(metric, n: int, d: int) -> None:
+    """A concrete (N, d, d) metric: real, symmetric to rounding and positive definite where it
+    is finite (NaN rows, e.g. the emergent metric of an isolated walker, are left alone)."""
+    if not _concrete(metric) or _already_checked(metric):
+        return
+    g = real_array(metric, "metric")
+    if g.shape != (n, d, d):
+        return  # the kernel's own shape message follows
+    asym, indefinite = metric_defect_masks(g, np)
+    if asym.any():
+        rows = np.flatnonzero(asym)
+        raise ValueError(f"`metric` must be symmetric; {rows.size} walker(s) are not, first rows "
+                         f"{rows[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2)).")
+    if indefinite.any():
+        rows = np.flatnonzero(indefinite)
+        raise ValueError(f"`metric` must be positive definite; {rows.size} walker(s) have an eigenvalue <= 0, "
+                         f"first rows {rows[:5].tolist()}. Floor the spectrum, e.g. "
+                         "jaxgeom.hessian_metric(V, eps_sigma) for a Hessian.")
+    _remember_checked(metric)
+
+
+# JAX arrays are immutable: one that passed is not checked again (the check is O(N) on the
+# host and costs as much as a kernel, bench/README.md). Keyed by id, dropped when the array is freed.
+_CHECKED: dict[int, weakref.ref] = {}
+
+
+def _already_checked(value) -> bool:
+    ref = _CHECKED.get(id(value))
+    return ref is not None and ref() is value
+
+
+def _remember_checked(value) -> None:
+    if isinstance(value, jax.Array):
+        key = id(value)
+        _CHECKED[key] = weakref.ref(value, lambda _, key=key: _CHECKED.pop(key, None))
+
+
+def metric_defect_masks(g, xp):
+    """(asymmetric, not positive definite), each (N,) bool over the finite rows of an
+    (N, d, d) metric `g`; rows with a NaN or inf entry are in neither. `xp` is numpy (the
+    host check) or jax.numpy (the jittable `jaxgeom.metric_defects`). Symmetric means to
+    100 eps of the row's largest entry; definiteness from Sylvester's leading minors up to
+    d = 3 (elementwise over (N,) columns), eigenvalues above."""
+    d = g.shape[-1]
+    wide = xp.float64 if xp is np else g.dtype
+    eps = float(xp.finfo(g.dtype if xp.issubdtype(g.dtype, xp.floating) else wide).eps)
+    c = {(i, j): g[:, i, j].astype(wide) for i in range(d) for j in range(d)}
+    finite = functools.reduce(xp.logical_and, [xp.isfinite(v) for v in c.values()])
+    scale = functools.reduce(xp.maximum, [xp.abs(v) for v in c.values()])
+    skew = functools.reduce(xp.maximum, [xp.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)],
+                            0 * scale)
+    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(c, g, d, xp)
+
+
+def _positive_definite(c: dict, g, d: int, xp):
+    """(N,) bool: Sylvester's leading minors up to d = 3 from the entry columns `c`,
+    eigenvalues of `g` above (NaN rows come out False and are masked by the caller)."""
+    if d > 3:
+        sym = xp.nan_to_num(0.5 * (g + g.swapaxes(-1, -2))).astype(c[0, 0].dtype)
+        return xp.linalg.eigvalsh(sym)[:, 0] > 0
+    ok = c[0, 0] > 0
+    if d >= 2:
+        ok &= c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0
+    if d == 3:
+        det = (c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1]) - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
+               + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0]))
+        ok &= det > 0
+    return ok
+
+
+def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
+    if n < minimum:
+        raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")
+
+
+def mean_spacing(points: np.ndarray) -> float:
+    """Mean walker spacing (bounding-box volume / N)^(1/d), over the axes of non-zero extent."""
+    n, d = points.shape
+    extent = np.ptp(np.asarray(points, np.float64), axis=0)
+    extent = extent[extent > 0]
+    return float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d) if extent.size else 0.0
+
+
+def check_representable_spacing(points: np.ndarray, dtype, name: str = "points") -> None:
+    """Cell volumes and circumcentres multiply up to four lengths (spacing^4): reject swarms
+    whose mean spacing puts that outside the dtype's normal range (float32: about 1e-9 to
+    4e9), with the fix, instead of returning zero or infinite volumes."""
+    spacing = mean_spacing(points)
+    if spacing == 0.0:
+        return
+    info = np.finfo(dtype)
+    lo, hi = 10.0 * float(info.tiny) ** 0.25, 0.1 * float(info.max) ** 0.25
+    if not lo <= spacing <= hi:
+        raise ValueError(
+            f"`{name}` has a mean spacing of {spacing:.3g}, outside what {np.dtype(dtype).name} cell volumes "
+            f"and curvature can represent (their products reach spacing^4: spacings in [{lo:.1g}, {hi:.1g}]). "
+            "Rescale the positions (e.g. x / spacing) or use float64 (jax.config.update('jax_enable_x64', True))."
+        )
+
+
+def check_full_rank(points: np.ndarray, name: str = "points") -> None:
+    """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D).
+
+    Scale-relative: the walkers are scaled to a unit box and centred on their mean first (no overflow
+    for huge coordinates), and a thin but genuine sample (a strip [0, 1] x [0, 1e-7]) passes.
+    A set is degenerate when its thinnest direction is at the rounding level of the input
+    coordinates (their float64 resolution at the largest |x|).
+    """
+    x = np.asarray(points, np.float64)
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    extent = float(np.max(hi - lo))
+    if extent > 0:
+        centred = (x - 0.5 * (lo + hi)) / extent
+        centred -= centred.mean(axis=0)  # the rank of the affine hull needs the mean, not the midrange
+        gram = centred.T @ centred
+        ev = np.linalg.eigvalsh(gram)
+        if ev[0] > 1e-8 * ev[-1]:  # the common case, decided by a cheap (d, d) Gram matrix
+            return
+        # Thin sets: singular values of the centred cloud itself (no squaring of the condition number).
+        sv = np.linalg.svd(centred, compute_uv=False)
+        rounding = 64.0 * np.finfo(np.float64).eps * max(float(np.max(np.abs(x))) / extent, 1.0)
+        if sv[-1] > rounding * np.sqrt(len(x)):
+            return
+    d = x.shape[1]
+    what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
+    raise ValueError(
+        f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "
+        "tessellation. Spread the walkers out, or drop the flat coordinate(s)."
+    )
+
+
+def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:
+    """Validate `box=(lower, upper)` and that every walker lies inside it."""
+    if box is None:
+        if periodic:
+            raise ValueError(
+                "`periodic=True` needs `box=(lower, upper)`: the periodic cell is not known otherwise."
+            )
+        return None
+    reject_tracer(box, "box", "jaxgeom")
+    d = points.shape[1]
+    if isinstance(box, str):
+        raise TypeError(f"`box` must be (lower, upper) with scalars or length-{d} vectors, e.g. box=(0.0, 1.0); "
+                        f"got the string {box!r}.")
+    arr = real_array(box, "box").astype(np.float64)
+    if arr.ndim == 1 and arr.size == 2:
+        arr = np.repeat(arr[:, None], d, axis=1)
+    if arr.shape != (2, d):
+        raise ValueError(
+            f"`box` must be (lower, upper) with scalars or length-{d} vectors; got shape {arr.shape}."
+        )
+    if not np.isfinite(arr).all() or np.any(arr[1] <= arr[0]):
+        raise ValueError(f"`box` must satisfy lower < upper in every coordinate; got lower={arr[0]}, upper={arr[1]}.")
+    upper_ok = points < arr[1] if periodic else points <= arr[1]
+    outside = ~np.all((points >= arr[0]) & upper_ok, axis=1)
+    if outside.any():
+        rows = np.flatnonzero(outside)
+        interval = "[lower, upper)" if periodic else "[lower, upper]"
+        raise ValueError(
+            f"{rows.size} walker(s) lie outside `box` {interval}, first rows {rows[:5].tolist()}. "
+            "Enlarge the box, or wrap periodic coordinates with lower + (x - lower) % (upper - lower)."
+        )
+    return arr
+
+
+def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
+    valid = tuple(valid)
+    if value not in valid:
+        raise ValueError(f"unknown {name} {value!r}; valid values are {', '.join(map(repr, valid))}.")
+    return value

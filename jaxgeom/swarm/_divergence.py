@@ -1,0 +1,71 @@
+"""Divergence is an error, never silent: health codes of the states, `SimulationDiverged`
+with the step and the likely cause (dt against the landscape's stiffness, a singular metric)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..geometry._metric import eigh
+from ._dynamics import (
+    ALL_DEAD, NONFINITE, OVERFLOWED_GRAPH, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, SwarmParams,
+    SwarmState, health, metric_field, runaway_radius,
+)
+
+
+class SimulationDiverged(FloatingPointError):
+    """The swarm left the representable or plausible range (`simulate` names the step and cause)."""
+
+
+_health = jax.jit(health)
+
+
+def check_health(fitness, params: SwarmParams, codes, first_step: int, before: SwarmState) -> None:
+    """Raise `SimulationDiverged` at the first non-zero health code (`codes[i]` belongs to the
+    state entering step `first_step + i`); `before` is the last state known to be sound."""
+    bad = np.flatnonzero(np.asarray(codes))
+    if bad.size:
+        step = first_step + int(bad[0])
+        raise SimulationDiverged(divergence_message(fitness, params, before, step, int(np.asarray(codes)[bad[0]])))
+
+
+def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: int, code: int) -> str:
+    """What went wrong by `step` (health bits `code`) and its likely cause, judged on `before`."""
+    what = []
+    if code & NONFINITE:
+        what.append("walkers have non-finite positions or velocities")
+    if code & RUNAWAY:
+        what.append(f"walkers lie farther than {float(runaway_radius(before)):.3g} ({RUNAWAY_RADII:g} initial "
+                    "swarm radii) from the swarm's centre")
+    if code & ALL_DEAD:
+        what.append("no walker has a finite fitness")
+    if code & OVERFLOWED_GRAPH:
+        what.append("the graph outgrew its capacity (build the state with init_swarm(..., capacity=a larger "
+                    "jaxgeom.Capacity))")
+    if code & REBUILD_FAILED:
+        what.append("Qhull could not triangulate the walkers (degenerate or non-finite positions)")
+    return (f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
+            f"{'; '.join(what)}. {_likely_cause(fitness, params, before)}")
+
+
+def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
+    x = np.asarray(state.positions)
+    x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
+    if params.anisotropic:
+        g = np.asarray(metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
+        lam = np.linalg.eigvalsh(np.where(np.isfinite(g), g, 0.0))[:, 0]
+        if not np.isfinite(g).all() or lam.min() <= 0:
+            return (f"Likely cause: the Hessian metric is singular or not positive definite at "
+                    f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s) "
+                    f"(smallest eigenvalue {lam.min():.3g}), so the anisotropic noise D = g^-1 is undefined; "
+                    "raise eps_sigma or use floor='softabs'.")
+    curvature = np.asarray(jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x))  # no batched LAPACK
+    curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
+    omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
+    if omega_dt > 2.0:
+        return (f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape: dt * sqrt(largest "
+                f"Hessian eigenvalue) = {omega_dt:.3g} at step {int(state.step)}, and the kicks are stable only "
+                f"below 2; reduce dt below {2.0 / np.sqrt(curvature):.3g}.")
+    return ("Likely cause: the forces grew faster than the step resolves (the landscape is steep or unbounded "
+            f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape.")

@@ -1,0 +1,132 @@
+"""The drivers of one swarm, one function each: `_simulate_host` (jitted chunks, Qhull on the
+host between them, overlapped with the graph-free work), `_simulate_callback` (one traced scan,
+rebuilt through a callback or on the device) and `_simulate_split` (the walkers split over
+devices, Qhull on the host where the device rebuild is not certified)."""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+
+from ..base._progress import close_bar, open_bar
+from ..base._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, shard_walkers
+from ._divergence import _health, check_health
+from ._dynamics import SwarmState, health
+from ._history import _bulk_gap, _history
+from ._rebuild import grown, update_host
+from ._steps import (
+    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final, _progress,
+    _run_callback, _run_chunk, _run_split,
+)
+
+
+def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_every, k, progress):
+    n_total = jnp.asarray(n_steps, jnp.int32)
+    gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
+    bar, owned = open_bar(progress, n_steps, "simulate")
+    first_step = int(state.step)  # the gap schedule counts the swarm's steps, across calls
+    if gap_every and first_step % gap_every == 0:
+        gaps.append((0,) + _bulk_gap(state.tess))
+    opening, pending = _begin_step(params, state), []
+    dtype = state.positions.dtype
+    for start in range(0, n_steps, rebuild_every):
+        t0 = time.perf_counter()
+        entering = state
+        moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32), n_total,
+                                       rebuild_every, observe)
+        # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
+        state, opening = _finish_and_begin(fitness, params, moved)
+        end = min(start + rebuild_every, n_steps)
+        first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
+        pending.append((obs, first, end - start))
+        jax.block_until_ready(moved.positions)
+        codes = [*np.asarray(obs["_health"])[: end - start], int(_health(moved))]
+        if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
+            jax.block_until_ready((state, opening, first))
+        check_health(fitness, params, codes, start, entering)
+        t1 = time.perf_counter()
+        moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
+        if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
+            state, opening = _finish_and_begin(fitness, params, moved)
+        state = eqx.tree_at(lambda s: s.tess, state, moved.tess)
+        reallocations += grew
+        seconds["steps"] += t1 - t0
+        seconds["rebuild"] += time.perf_counter() - t1
+        if gap_every and (first_step + end) % gap_every == 0:
+            gaps.append((end,) + _bulk_gap(state.tess))
+        if bar is not None:
+            bar.update(end - start)
+    close_bar(bar, owned)
+    chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
+               for name in observe} for obs, first, size in pending]
+    state, final = _observe_final(fitness, params, state, observe)
+    check_health(fitness, params, [health(state)], n_steps, entering)
+    series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
+    return state, _history(series, gaps, reallocations, seconds, state.n_separated, -1, state.positions.dtype)
+
+
+def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) -> SwarmState:
+    """One swarm's state placed with its walker axis split over `mesh` (checked)."""
+    if isinstance(mesh, Mesh) and BATCH_AXIS in mesh.axis_names and WALKER_AXIS not in mesh.axis_names:
+        raise ValueError("a mesh with a 'batch' axis splits a batch of swarms (jaxgeom.stack_swarms); this state "
+                         "is one swarm (positions (N, d)): split its walkers with mesh=jaxgeom.walker_mesh().")
+    check_mesh(mesh, state.positions.shape[0], "the number of walkers N", WALKER_AXIS)
+    if rebuild != "device":
+        raise ValueError("splitting one swarm's walkers over devices needs the device rebuild: use "
+                         f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
+                         "rebuilds the whole graph with Qhull in one place).")
+    if checkpoint or _is_traced(state, params):
+        raise TypeError("simulate(..., mesh=walker_mesh()) drives the split swarm from Python (graphs the device "
+                        "rebuild cannot certify are rebuilt by Qhull on the host), so it cannot run under jax.jit, "
+                        "jax.grad or checkpoint=True; differentiate ensembles (batch_mesh) or one device instead.")
+    return shard_walkers(state, mesh, state.positions.shape[0])
+
+
+def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh):
+    """`simulate` of one swarm with its walkers split over `mesh`: `_split_scan` from the first
+    step not yet run, and a Qhull rebuild on the host (counted in `n_fallbacks`) wherever it stopped."""
+    n, total = state.positions.shape[0], jnp.asarray(n_steps, jnp.int32)
+    done, chunks, fallbacks, reallocations = 0, [], 0, 0
+    while done < n_steps:
+        entering = state
+        state, stopped, obs = _run_split(fitness, params, state, total, jnp.asarray(done, jnp.int32), n_steps,
+                                         observe, rebuild_every, k, mesh)
+        ran = int(np.sum(np.asarray(obs["_live"])))
+        chunks.append({name: np.asarray(values)[:ran] for name, values in obs.items()})
+        check_health(fitness, params, [*chunks[-1]["_health"], int(_health(state))], done, entering)
+        done += ran
+        if bool(stopped):
+            state, grew, _ = update_host(state, k)
+            state = shard_walkers(state, mesh, n)
+            fallbacks, reallocations = fallbacks + 1, reallocations + grew
+    state, last = _observe_final(fitness, params, state, observe)
+    series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(last[name])[None]]) for name in observe}
+    nan = {"rebuild": jnp.nan, "steps": jnp.nan}
+    return state, _history(series, [], reallocations, nan, state.n_separated, -1, state.positions.dtype, fallbacks)
+
+
+def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
+    traced = _is_traced(state, params)
+    total, reallocations = jnp.asarray(n_steps, jnp.int32), 0
+    while True:
+        final, obs = _run_callback(fitness, params, state, total, n_steps, observe, rebuild_every, k, mode, checkpoint)
+        final, last = _observe_final(fitness, params, final, observe)
+        if traced or not bool(final.tess.overflow):  # traced: recorded in `diverged_step` (health)
+            break
+        state = eqx.tree_at(lambda s: s.tess, state, grown(state.tess))
+        reallocations += 1
+    codes = jnp.concatenate([obs["_health"], health(final)[None]])
+    if not traced:
+        check_health(fitness, params, codes, 0, state)
+    series = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
+    # Under a trace nothing can be raised: the first step whose state failed `health`, or -1.
+    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
+    nan = {"rebuild": jnp.nan, "steps": jnp.nan}
+    fallbacks = jnp.sum(obs["_fallback"], dtype=jnp.int32)
+    return final, _history(series, [], reallocations, nan, final.n_separated, diverged, final.positions.dtype,
+                           fallbacks)

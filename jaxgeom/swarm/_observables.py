@@ -1,0 +1,156 @@
+"""Swarm observables: one table, name -> (function of a `_View`, whether it needs cells).
+
+An observable is a scalar of the swarm state entering a step (and of the final state),
+recorded by `jaxgeom.simulate` in its history. To add one, add a function of `_View`
+and one row of `OBSERVABLE_TABLE`; "geometric" rows need Voronoi cells (they refresh the
+cell volumes and are NaN on a k-NN graph).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..geometry._cells import shape_distortion, volume_distortion
+from ..geometry._curvature import ricci_resolution, ricci_scalar
+from ..geometry._metric import riemannian_mean, riemannian_volumes
+from ..geometry._weights import weights_on_graph
+from ._dynamics import (
+    SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length,
+)
+
+
+def _finite_mean(values, mask):
+    ok = mask & jnp.isfinite(values)
+    return jnp.sum(jnp.where(ok, values, 0.0)) / jnp.sum(ok).astype(values.dtype)
+
+
+def _variance(v, weights):
+    """The weighted variance of the velocity per component: tr Cov_w(v) / d (T at equilibrium)."""
+    mean = jnp.sum(weights[:, None] * v, axis=0) / jnp.sum(weights)
+    return jnp.sum(weights * jnp.mean((v - mean) ** 2, axis=1)) / jnp.sum(weights)
+
+
+class _View(eqx.Module):
+    """What an observable reads: the state with its cell volumes refreshed (`new`; its
+    `previous_volumes` are those of the step before, for the expansion)."""
+
+    fitness: object = eqx.field(static=True)
+    params: SwarmParams
+    new: SwarmState
+    progress: Float[Array, ""]
+
+
+def _observed_metric(s: _View):
+    """The Hessian metric at the observed walkers, with the current eps_Sigma."""
+    return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
+
+
+def _tier2_riemannian_mean(kernel):
+    """The observable sum_i f_i V_i sqrt(det g_i) / sum_i V_i sqrt(det g_i) over tier-2 walkers,
+    f = kernel(tess, metric=g, volumes=V) in the Hessian metric g."""
+
+    def observable(s: _View):
+        g = _observed_metric(s)
+        values = kernel(s.new.tess, metric=g, volumes=s.new.volumes)
+        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes),
+                               s.new.interior)
+
+    return observable
+
+
+def _mean_expansion(s: _View):
+    """d ln(sum_i V_i) / dt over the walkers tier 2 at both steps: the expansion of the region
+    their cells cover, the volume-weighted mean of the cells' expansion.
+
+    Cells change by ~100% per step under the noise, and the plain mean of (V_i' - V_i) /
+    (V_i dt) is then dominated by that jitter (E[V'/V] > 1 by Jensen's inequality), while
+    the cells' exchanges of volume cancel in the sum. Clones stay in the sum: a walker that
+    jumps to its companion leaves its old cell to its old neighbours and takes part of the
+    companion's neighbours' cells, so the covered region is unchanged; leaving clones (and
+    their new neighbours) out counted the cells they vacated as growth (+3..+7 per unit time
+    on the contracting default run, now -0.3 on average). Exact under x -> s x: d ln(s^d)/dt."""
+    new = s.new
+    before, after = new.previous_volumes, new.volumes
+    valid = (new.previous_interior & new.interior
+             & jnp.isfinite(before) & jnp.isfinite(after) & (before > 0) & (after > 0))
+    total_before = jnp.sum(jnp.where(valid, before, 0.0))
+    total_after = jnp.sum(jnp.where(valid, after, 0.0))
+    ok = (total_before > 0) & (new.volumes_step == new.step)
+    ratio = jnp.where(ok, total_after, 1.0) / jnp.where(ok, total_before, 1.0)
+    return jnp.where(ok, jnp.log(ratio) / s.params.dt, jnp.nan)
+
+
+def _degree_weighted_variance(s: _View):
+    g = _observed_metric(s) if s.params.weights.startswith("metric") else None
+    w = weights_on_graph(s.new.tess, s.params.weights, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
+    return _variance(s.new.velocities, jnp.sum(w, axis=1))
+
+
+class Observable(NamedTuple):
+    fn: Callable  # _View -> scalar
+    geometric: bool = False  # needs Voronoi cells: NaN on a k-NN graph
+
+
+OBSERVABLE_TABLE: dict[str, Observable] = {
+    "mean_fitness": Observable(lambda s: _finite_mean(s.new.fitness, s.new.alive)),
+    "best_fitness": Observable(lambda s: jnp.min(jnp.where(s.new.alive, s.new.fitness, jnp.inf))),
+    "velocity_variance": Observable(lambda s: _variance(s.new.velocities, jnp.ones_like(s.new.fitness))),
+    "degree_weighted_variance": Observable(_degree_weighted_variance),
+    "mean_ricci": Observable(_tier2_riemannian_mean(ricci_scalar), True),
+    # the smallest |mean_ricci| the dtype resolves: `ricci_resolution` averaged like R
+    "ricci_resolution": Observable(_tier2_riemannian_mean(ricci_resolution), True),
+    "volume_distortion": Observable(lambda s: volume_distortion(s.new.tess, s.new.volumes), True),
+    "mean_shape_distortion": Observable(lambda s: _finite_mean(shape_distortion(s.new.tess), s.new.interior), True),
+    "mean_expansion": Observable(_mean_expansion, True),
+    "n_clones": Observable(lambda s: jnp.sum(s.new.cloned).astype(s.new.fitness.dtype)),
+    "nu": Observable(lambda s: current_nu(s.params, s.progress)),
+    "eps_sigma": Observable(lambda s: s.params.eps_sigma * s.new.eps_factor),
+}
+OBSERVABLES = tuple(OBSERVABLE_TABLE)
+
+
+def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple[str, ...]):
+    """Refresh the state's cell volumes on its current graph and measure `observe`.
+
+    Returns `(state, {name: scalar})`. Geometric observables are NaN on a k-NN graph.
+    """
+    new = refresh_cells(params, state, observe)
+    return new, measure(fitness, params, new, progress, observe)
+
+
+def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
+    """The state with its cell volumes and tiers on its current graph, where the step
+    (volume weighting) or an observable needs them; else the state unchanged.
+
+    The volumes measured before move to `previous_volumes` when they belong to the step
+    before (NaN otherwise); a state already measured at its step keeps its fields, so a
+    continued `simulate` call compares the same two steps as one uninterrupted call."""
+    if not (params.volume_weighting or any(OBSERVABLE_TABLE[name].geometric for name in observe)):
+        return state
+    volumes, interior = cell_volumes(state.tess)
+    measured = state.volumes_step == state.step
+    adjacent = state.volumes_step == state.step - 1
+    previous = jnp.where(measured, state.previous_volumes, jnp.where(adjacent, state.volumes, jnp.nan))
+    previous_interior = jnp.where(measured, state.previous_interior, adjacent & state.interior)
+    return eqx.tree_at(cell_fields, state,
+                       (volumes, interior, previous, previous_interior, state.step.astype(jnp.int32)))
+
+
+def cell_fields(state: SwarmState) -> tuple:
+    """The fields of a state that `refresh_cells` sets."""
+    return (state.volumes, state.interior, state.previous_volumes, state.previous_interior, state.volumes_step)
+
+
+def measure(fitness, params: SwarmParams, new: SwarmState, progress, observe: tuple[str, ...]):
+    """{name: scalar} of `new` (a state from `refresh_cells`)."""
+    view = _View(fitness, params, new, jnp.asarray(progress))
+    dtype = new.positions.dtype
+    nan = jnp.asarray(jnp.nan, dtype)
+    geometric = new.tess.simplices is not None
+    return {name: nan if OBSERVABLE_TABLE[name].geometric and not geometric
+            else jnp.asarray(OBSERVABLE_TABLE[name].fn(view), dtype) for name in observe}

@@ -1,0 +1,246 @@
+"""The graph lifecycle of a moving swarm: allocate a graph with headroom, update it for
+moved walkers, and grow its capacity by one rule (after jax-md's neighbour lists:
+allocation on the host, updates that keep the shapes, an overflow flag).
+
+- `allocate_graph(x, graph, k, capacity)`: host; the first graph, or a rebuild that may
+  grow the capacity to a larger bucket (`capacity_with_headroom`, the one growth rule).
+- `update_host(state, k)`: host, between jitted chunks; Qhull (or the k-d tree) on the
+  final positions, capacity grown when needed.
+- `update_in_trace(state, k)`: inside a trace, through `jax.pure_callback`; the shapes
+  cannot change, so a graph that does not fit sets `tess.overflow` and keeps the old one.
+- `update_on_device(state, k)`: inside a trace, `jaxgeom.rebuild` (no host round trip);
+  a rebuild it cannot certify falls back to `update_in_trace` for that step.
+- `grown(tess)`: the next capacity after an overflow.
+
+Walkers that coincide for Qhull (cloning puts them there) are moved apart first
+(`separate_coincident`) and counted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base._checks import mean_spacing
+from ..tessellation._cellclip import rebuild_unchecked
+from ..tessellation._delaunay import (
+    CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles,
+)
+from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
+from ..tessellation._knn import knn_graph
+from ._dynamics import REBUILD_FAILED, SwarmState
+
+GRAPHS = ("delaunay", "knn")
+NEIGHBOR_HEADROOM = 8  # cloning puts walkers next to their companions: max degree drifts up by several
+SIMPLEX_HEADROOM = 1.1  # 3D simplex counts drift by a few percent
+
+
+def capacity_with_headroom(tess: Tessellation, previous: Capacity | None = None) -> Capacity:
+    """Capacities with room for a moving swarm, for the graph `tess` (at least `previous`)."""
+    need = Capacity(int(np.asarray(tess.simplex_mask).sum()), int(np.asarray(tess.degree).max()))
+    return _with_headroom(need, tess, previous)
+
+
+def _with_headroom(need: Capacity, tess: Tessellation, previous: Capacity | None) -> Capacity:
+    """THE growth rule: max degree + NEIGHBOR_HEADROOM and SIMPLEX_HEADROOM x the simplex count,
+    rounded up to their buckets (in 2D the simplex capacity is already the exact bound 2N)."""
+    simplices = tess.capacity.simplices if tess.dim == 2 else bucket_simplices(math.ceil(SIMPLEX_HEADROOM * need.simplices))
+    cap = Capacity(simplices, bucket_neighbors(need.neighbors + NEIGHBOR_HEADROOM))
+    return cap if previous is None else Capacity(*(max(a, b) for a, b in zip(cap, previous)))
+
+
+def grown(tess: Tessellation) -> Tessellation:
+    """`tess` padded to the next capacity after an overflow: its need is unknown but above its
+    capacity, so the growth rule is applied to the capacity itself."""
+    bigger = _with_headroom(tess.capacity, tess, tess.capacity)
+    return pad_to_capacity(eqx.tree_at(lambda t: t.overflow, tess, jnp.asarray(False)), bigger)
+
+
+def pad_to_capacity(tess: Tessellation, cap: Capacity) -> Tessellation:
+    """The same graph with sentinel padding (and zero image shifts) up to `cap`."""
+    n = tess.n_points
+
+    def pad(a, axis: int, size: int, fill):
+        if a is None:
+            return None
+        widths = [(0, 0)] * a.ndim
+        widths[axis] = (0, size - a.shape[axis])
+        return jnp.asarray(np.pad(np.asarray(a), widths, constant_values=fill))
+
+    fields = (pad(tess.neighbors, 1, cap.neighbors, n), pad(tess.neighbor_shifts, 1, cap.neighbors, 0),
+              pad(tess.simplices, 0, cap.simplices, n), pad(tess.simplex_shifts, 0, cap.simplices, 0))
+    return eqx.tree_at(lambda t: (t.neighbors, t.neighbor_shifts, t.simplices, t.simplex_shifts), tess, fields,
+                       is_leaf=lambda x: x is None)
+
+
+# Walkers that coincide for Qhull are moved apart by this many mean spacings (at least 1000
+# times the dtype's resolution at the swarm's coordinates), 4x more on each further attempt.
+SEPARATION = 1e-3
+SEPARATION_ATTEMPTS = 4
+
+
+def separate_coincident(x: np.ndarray, rows: np.ndarray, partners: np.ndarray, attempt: int = 0) -> np.ndarray:
+    """`x` with walkers `rows` moved away from the walkers `partners` they coincide with (a
+    deterministic direction where they are identical)."""
+    spacing = mean_spacing(x)
+    resolution = 1e3 * np.finfo(x.dtype).eps * float(np.max(np.abs(x)))
+    step = max(SEPARATION * spacing, resolution) * 4.0**attempt
+    direction = (x[rows] - x[partners]).astype(np.float64)
+    norm = np.linalg.norm(direction, axis=1, keepdims=True)
+    fallback = np.random.default_rng(rows).normal(size=direction.shape)
+    direction = np.where(norm > 0, direction, fallback)
+    out = x.copy()
+    out[rows] = x[rows] + (step * direction / np.linalg.norm(direction, axis=1, keepdims=True)).astype(x.dtype)
+    return out
+
+
+def _separated(build, x: np.ndarray):
+    """(build(x), x, n_moved), after moving apart walkers that coincide for Qhull
+    (`separate_coincident`; the dynamics create them, so they are never fatal there)."""
+    moved = 0
+    for attempt in range(SEPARATION_ATTEMPTS + 1):
+        try:
+            return build(x), x, moved
+        except CoincidentPointsError as err:
+            if attempt == SEPARATION_ATTEMPTS:
+                raise
+            x = separate_coincident(x, err.rows, err.partners, attempt)
+            moved += len(err.rows)
+
+
+def delaunay_separating(x: np.ndarray, capacity=None) -> tuple[Tessellation, np.ndarray, int]:
+    """(graph, positions, n_moved): `delaunay(x)` of `x` with coinciding walkers moved apart."""
+    return _separated(lambda y: delaunay(y, capacity=capacity), x)
+
+
+def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tessellation, bool, np.ndarray, int]:
+    """(graph, grew, positions, n_moved): Delaunay at `capacity` (grown to a larger bucket if
+    too small; coinciding walkers moved apart), or k-NN."""
+    if graph == "knn":
+        return knn_graph(x, k), False, x, 0
+    if capacity is not None:
+        try:
+            tess, x, moved = delaunay_separating(x, capacity)
+            return tess, False, x, moved
+        except CapacityError:
+            pass
+    fresh, x, moved = delaunay_separating(x)
+    previous = None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation)
+                                              else Capacity(*capacity))
+    return pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x, moved
+
+
+def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
+    """(state, grew, n_moved): the state with a new graph at its positions (coinciding walkers
+    moved apart), whether the capacity grew, and how many walkers were moved."""
+    x = np.asarray(state.positions)
+    graph = _graph_kind(state.tess)
+    try:
+        tess, grew, x_new, moved = allocate_graph(x, graph, k, None if graph == "knn" else state.tess)
+    except ValueError as err:
+        raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
+    if moved:
+        xj = jnp.asarray(x_new, state.positions.dtype)
+        state = eqx.tree_at(lambda s: (s.positions, s.n_separated), state, (xj, state.n_separated + moved))
+        tess = eqx.tree_at(lambda t: t.points, tess, xj)
+    return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
+
+
+def _graph_kind(tess: Tessellation) -> str:
+    return "knn" if tess.simplices is None else "delaunay"
+
+
+# Outcome codes of a rebuild inside `jax.pure_callback`.
+REBUILT, OVERFLOWED, FAILED = 0, 1, 2
+
+
+def _attempt(build, x):
+    """(arrays, positions, code, n_moved) of a host rebuild that never raises: an overflow or
+    a failure (non-finite or degenerate walkers) is returned as a code, the old graph kept."""
+    try:
+        arrays, x, moved = _separated(build, x)
+        return arrays, x, REBUILT, moved
+    except CapacityError:
+        return None, x, OVERFLOWED, 0
+    except ValueError:
+        return None, x, FAILED, 0
+
+
+def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved) -> SwarmState:
+    """The state with the rebuilt graph (the old one unless `code == REBUILT`), the positions
+    the callback may have moved apart (gradients pass through unchanged), and the flags."""
+    x = state.positions + jax.lax.stop_gradient(positions.astype(state.positions.dtype) - state.positions)
+    tess = jax.tree_util.tree_map(lambda a, b: jnp.where(code == REBUILT, b, a), state.tess, new)
+    tess = eqx.tree_at(lambda t: (t.points, t.overflow), tess, (x, state.tess.overflow | (code == OVERFLOWED)))
+    status = state.status | jnp.where(code == FAILED, REBUILD_FAILED, 0)
+    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated), state,
+                       (x, tess, status.astype(jnp.int32), state.n_separated + moved))
+
+
+def update_in_trace(state: SwarmState, k: int) -> SwarmState:
+    """Rebuild inside a trace with `jax.pure_callback` (`vmap_method="sequential"`). A graph
+    that does not fit keeps the old arrays and sets `tess.overflow`; walkers Qhull cannot
+    triangulate keep the old graph and set `REBUILD_FAILED` in `state.status`. In 2D the
+    callback runs Qhull alone and the neighbour rows are derived in the trace."""
+    tess = state.tess
+    if tess.simplices is not None and tess.dim == 2 and not tess.periodic:
+        return _callback_planar_rebuild(state)
+    graph, cap = _graph_kind(tess), tess.capacity
+    old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
+
+    def build(x):
+        new = knn_graph(x, k) if graph == "knn" else delaunay(x, capacity=cap)
+        return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,))
+
+    def host(x, *arrays):
+        new, x, code, moved = _attempt(build, np.asarray(x))
+        return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (x, np.int32(code), np.int32(moved))
+
+    shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old + (state.positions,))
+    shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 2
+    *arrays, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions), *old,
+                                                vmap_method="sequential")
+    new = eqx.tree_at(lambda t: (t.neighbors, t.tier, t.hull), tess, tuple(arrays[:3]))
+    if len(arrays) == 4:
+        new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
+    return _apply_rebuild(state, new, x, code, moved)
+
+
+def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bool = True
+                     ) -> tuple[SwarmState, jax.Array]:
+    """(state, fell_back): the graph rebuilt on the device (`jaxgeom.rebuild`, 2D; the cells
+    split over `mesh`'s walker axis when given), or, where that rebuild is not certified
+    (`fell_back`), by Qhull through `update_in_trace`, or (`qhull_in_trace=False`) not at all:
+    the state keeps its graph for the caller to rebuild on the host.
+    The topology is discrete: no gradient flows into the rebuild, the positions pass through."""
+    new = rebuild_unchecked(state.tess, jax.lax.stop_gradient(state.positions), mesh)
+    new = eqx.tree_at(lambda t: t.points, new, state.positions)
+    certified = ~new.overflow
+    fallback = (lambda s: update_in_trace(s, k)) if qhull_in_trace else (lambda s: s)
+    state = jax.lax.cond(certified, lambda s: eqx.tree_at(lambda q: q.tess, s, new), fallback, state)
+    return state, ~certified
+
+
+def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
+    """2D rebuild in a trace: the callback returns Qhull's triangles, the rows are built here."""
+    tess = state.tess
+    cap = tess.capacity
+
+    def host(x):
+        triangles, x, code, moved = _attempt(lambda y: planar_triangles(y, cap)[:2], np.asarray(x))
+        if triangles is None:
+            triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
+        return triangles + (x, np.int32(code), np.int32(moved))
+
+    triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
+    shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
+              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
+    simplices, adjacency, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
+                                                             vmap_method="sequential")
+    new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
+    code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
+    return _apply_rebuild(state, new, x, code, moved)

@@ -1,0 +1,87 @@
+"""A swarm's initial state: `init_swarm` (host: the first graph, checks of the fitness and the arrays)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base._checks import check_choice, check_min_points, host_points, real_array
+from ..geometry._weights import mean_nearest_neighbor_distance
+from ..tessellation._delaunay import delaunay
+from ._dynamics import SwarmState, fitness_and_force
+from ._rebuild import GRAPHS, allocate_graph
+
+
+def check_callable_fitness(fitness) -> None:
+    if not callable(fitness):
+        raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar V(x); got {type(fitness).__name__}.")
+
+
+def check_fitness(fitness, x: np.ndarray) -> None:
+    """`fitness` must map one walker (d,) to a finite scalar at every initial walker."""
+    check_callable_fitness(fitness)
+    try:
+        values = jax.vmap(fitness)(jnp.asarray(x))
+    except Exception as err:  # noqa: BLE001 - re-raised with the fix
+        raise TypeError(f"`fitness` must map one walker x of shape (d,) = ({x.shape[1]},) to a scalar with "
+                        f"jax.numpy operations; calling it failed: {err}") from err
+    if jnp.shape(values) != (len(x),):
+        raise TypeError(f"`fitness` must return a scalar per walker (shape ()); it returned shape "
+                        f"{jnp.shape(values)[1:]} for one walker.")
+    bad = np.flatnonzero(~np.isfinite(np.asarray(values)))
+    if bad.size:
+        raise ValueError(f"`fitness` is NaN or inf at {bad.size} initial walker(s), first rows "
+                         f"{bad[:5].tolist()}; move them into the landscape's domain.")
+
+
+def _as_key(key):
+    """An int seed or a JAX PRNG key (typed, or the legacy uint32 (2,) array)."""
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        return jax.random.PRNGKey(key)
+    arr = key if isinstance(key, jax.Array) else None
+    if arr is not None and (jnp.issubdtype(arr.dtype, jax.dtypes.prng_key) or (arr.dtype == jnp.uint32 and arr.shape == (2,))):
+        return key
+    raise TypeError(f"`key` must be an int seed or a jax.random key (jax.random.PRNGKey(seed)); got {key!r}.")
+
+
+def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "delaunay", k: int = 12,
+               capacity=None) -> SwarmState:
+    """The initial [`jaxgeom.SwarmState`][] of a swarm (host: builds its first graph).
+
+    **Arguments:**
+
+    - `fitness`: JAX function x (d,) -> V(x), finite at every walker.
+    - `positions`: (N, d) float array (float32 or float64: the simulation's dtype).
+    - `velocities`: (N, d), default zeros.
+    - `key`: int seed or `jax.random` key.
+    - `graph`: "delaunay" (d = 2, 3) or "knn" (any d; `k` neighbours).
+    - `capacity`: pin Delaunay capacities (`CapacityError` if the first graph does not
+      fit; later rebuilds in `simulate` grow them); default: buckets with headroom.
+    """
+    x = host_points(positions, "positions", func="jaxgeom.init_swarm")
+    check_choice(graph, "graph", GRAPHS)
+    check_min_points(len(x), x.shape[1] + 2, "positions", "a swarm")
+    v = np.zeros_like(x) if velocities is None else real_array(velocities, "velocities")
+    if v.shape != x.shape or not np.issubdtype(v.dtype, np.floating):
+        raise ValueError(f"`velocities` must be a float array of shape (N, d) = {x.shape} like `positions`; "
+                         f"got {v.dtype} {v.shape}.")
+    if not np.isfinite(v).all():
+        raise ValueError(f"`velocities` has NaN or inf entries in {int((~np.isfinite(v).all(axis=1)).sum())} "
+                         "row(s). Repair them or start from velocities=None (zeros).")
+    key = _as_key(key)
+    check_fitness(fitness, x)
+    if capacity is not None and graph == "delaunay":
+        tess = delaunay(x, capacity=capacity)  # pinned: raises CapacityError when the graph does not fit
+    else:
+        tess, _, x, _ = allocate_graph(x, graph, k, None)
+    xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
+    dtype = xj.dtype
+    values, force = fitness_and_force(fitness, xj)
+    n = len(x)
+    zero = jnp.asarray(0, jnp.int32)
+    unmeasured = jnp.full(n, jnp.nan, dtype)
+    return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
+                      unmeasured, jnp.zeros(n, bool), unmeasured, jnp.zeros(n, bool), jnp.asarray(-1, jnp.int32),
+                      key, tess, zero,
+                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero)

@@ -1,0 +1,312 @@
+"""Tuning the swarm's physical parameters by gradient through whole simulations.
+
+`simulation_loss` builds a `SimulationLoss`: a jittable, differentiable function of an
+unconstrained vector theta that maps theta to positive (or bounded) parameters, runs
+`simulate` (rebuild="callback", or "device") once per seed under `jax.vmap`, and averages
+an objective of the histories. `tune` drives an optimistix minimiser (BFGS by default) or
+jaxopt's L-BFGS-B over it and records every accepted iteration.
+
+Semantics a user must know:
+
+- Cloning is a discrete selection. The gradient returned with cloning on is the
+  *pathwise* gradient with the selection held fixed: each walker's clone decision and
+  companion are those of the run at theta, and the derivative flows through the
+  companion's position and velocity that the clone takes. It ignores how theta moves the
+  clone probabilities, so it is the derivative of the loss between two decision flips (what
+  central differences with a small step measure), not of the expected loss. With cloning
+  off the loss is smooth in theta apart from Delaunay flips (the graph is rebuilt
+  without a gradient; a flip changes the viscous weights by a jump).
+- A swarm that diverges (non-finite, runaway, all walkers dead: `history["diverged_step"]`)
+  or an objective that is not finite gives a loss of +inf, never an exception, so a line
+  search backs off from it. Its gradient is then not meaningful (NaN where the state was).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..base._checks import check_choice
+from ..base._sharding import check_mesh, over_batch
+from ._dynamics import SwarmParams, SwarmState
+from ._observables import OBSERVABLES
+from ._simulate import REBUILD_MODES, simulate
+
+TUNABLE = ("nu", "eps_sigma", "dt", "gamma", "temperature", "alpha", "clone_rate", "clone_jitter", "nu_initial")
+OBJECTIVES = ("final_fitness", "mean_fitness", "best_fitness", "match")
+DEFAULT_OBSERVE = ("mean_fitness", "best_fitness", "velocity_variance")
+
+
+def _positive_map(theta, lower, upper):
+    """Unconstrained theta -> parameter: exp(theta) (no bounds), lower + exp(theta) (lower
+    bound only), lower + (upper - lower) sigmoid(theta) (both)."""
+    if lower is None:
+        return jnp.exp(theta)
+    if upper is None:
+        return lower + jnp.exp(theta)
+    return lower + (upper - lower) * jax.nn.sigmoid(theta)
+
+
+def _inverse_map(value: float, lower, upper) -> float:
+    if lower is None:
+        return math.log(value)
+    if upper is None:
+        return math.log(value - lower)
+    s = (value - lower) / (upper - lower)
+    return math.log(s) - math.log1p(-s)
+
+
+class SimulationLoss(eqx.Module):
+    """theta -> the objective of `simulate` averaged over seeds (from `simulation_loss`).
+
+    Call it as `loss(theta)` or `loss(theta, args)` (optimistix's signature; `args` is
+    ignored). `loss.to_params(theta)` gives the `SwarmParams` it simulates, `loss.to_theta`
+    the theta of given parameter values, `loss.per_seed(theta)` the (n_seeds,) losses
+    before averaging."""
+
+    fitness: Callable = eqx.field(static=True)
+    state: SwarmState
+    params: SwarmParams
+    keys: Array
+    tuned: tuple = eqx.field(static=True)
+    bounds: tuple = eqx.field(static=True)  # (lower, upper) per tuned name, None where open
+    objective: object = eqx.field(static=True)
+    targets: tuple = eqx.field(static=True)  # ((name, value), ...) for "match"
+    observe: tuple = eqx.field(static=True)
+    n_steps: int = eqx.field(static=True)
+    window: float = eqx.field(static=True)
+    rebuild: str = eqx.field(static=True)
+    rebuild_every: int = eqx.field(static=True)
+    checkpoint: bool = eqx.field(static=True)
+    mesh: object = eqx.field(static=True, default=None)  # a jax.sharding.Mesh splitting the seeds, or None
+
+    @property
+    def n_seeds(self) -> int:
+        return self.keys.shape[0]
+
+    def to_params(self, theta: Float[Array, " p"]) -> SwarmParams:
+        """The `SwarmParams` simulated at theta (the tuned fields replaced)."""
+        dtype = self.state.positions.dtype
+        values = tuple(_positive_map(jnp.asarray(theta[m], dtype), *self.bounds[m]) for m in range(len(self.tuned)))
+        return eqx.tree_at(lambda p: tuple(getattr(p, name) for name in self.tuned), self.params, values)
+
+    def to_theta(self, values=None) -> Float[Array, " p"]:
+        """theta of physical values: a dict {name: value} (names left out keep `params`'
+        value), a `SwarmParams`, or None (the loss's `params`)."""
+        if isinstance(values, SwarmParams):
+            values = {name: getattr(values, name) for name in self.tuned}
+        values = {} if values is None else dict(values)
+        unknown = sorted(set(values) - set(self.tuned))
+        if unknown:
+            raise ValueError(f"unknown tuned parameter(s) {unknown}; this loss tunes {list(self.tuned)}.")
+        theta = []
+        for name, (lower, upper) in zip(self.tuned, self.bounds):
+            value = float(values.get(name, getattr(self.params, name)))
+            _check_inside(name, value, lower, upper)
+            theta.append(_inverse_map(value, lower, upper))
+        return jnp.asarray(theta, self.state.positions.dtype)
+
+    def values(self, theta) -> dict:
+        """{name: physical value} at theta (host floats)."""
+        params = self.to_params(jnp.asarray(theta))
+        return {name: float(getattr(params, name)) for name in self.tuned}
+
+    def histories(self, theta):
+        """(final states, histories) of every seed, stacked on a leading (n_seeds,) axis."""
+        def run(key, params):
+            state = eqx.tree_at(lambda s: s.key, self.state, key)
+            return simulate(self.fitness, state, params, n_steps=self.n_steps, rebuild=self.rebuild,
+                            rebuild_every=self.rebuild_every, observe=self.observe, checkpoint=self.checkpoint)
+
+        return over_batch(run, self.mesh)(self.keys, self.to_params(theta))
+
+    def per_seed(self, theta) -> Float[Array, " n_seeds"]:
+        """The objective of each seed's run; +inf where the swarm diverged or the objective is
+        not finite ("match": each seed's own averages against the targets)."""
+        _, history = self.histories(theta)
+        values = jax.vmap(self._objective)(history)
+        return jnp.where((history["diverged_step"] >= 0) | ~jnp.isfinite(values), jnp.inf, values)
+
+    def __call__(self, theta, args=None) -> Float[Array, ""]:
+        if self.objective != "match":
+            return jnp.mean(self.per_seed(theta))
+        # Matching compares the seed average of each observable with its target (a method of
+        # moments), so that the target's own parameters give exactly 0 on the same seeds.
+        moments, diverged = self._moments(theta)
+        targets = jnp.asarray([target for _, target in self.targets], moments.dtype)
+        scales = jnp.asarray(self.target_scales(), moments.dtype)
+        value = jnp.sum(((jnp.mean(moments, axis=0) - targets) / scales) ** 2)
+        return jnp.where(diverged | ~jnp.isfinite(value), jnp.inf, value)
+
+    def seed_moments(self, theta) -> Float[Array, "n_seeds n_targets"]:
+        """"match": each seed's average of every matched observable over the last `window`
+        of its run (the loss compares their seed mean with `targets`)."""
+        return self._moments(theta)[0]
+
+    def target_scales(self) -> np.ndarray:
+        """The divisor of each target's error in the "match" loss: |target|, or 1 for a target 0."""
+        return np.asarray([abs(target) or 1.0 for _, target in self.targets])
+
+    def _moments(self, theta):
+        _, history = self.histories(theta)
+        moments = jnp.stack([jax.vmap(self._late_mean)(history[name]) for name, _ in self.targets], axis=1)
+        return moments, jnp.any(history["diverged_step"] >= 0)
+
+    def _objective(self, history: dict):
+        if callable(self.objective):
+            return self.objective(history)
+        if self.objective == "final_fitness":
+            return history["mean_fitness"][-1]
+        if self.objective == "best_fitness":
+            return history["best_fitness"][-1]
+        if self.objective == "mean_fitness":
+            return self._late_mean(history["mean_fitness"])
+        terms = [((self._late_mean(history[name]) - value) / scale) ** 2
+                 for (name, value), scale in zip(self.targets, self.target_scales())]
+        return sum(terms)
+
+    def _late_mean(self, series):
+        """Mean over the last `window` fraction of the recorded times (at least the final one)."""
+        first = min(len(series) - 1, int(math.floor((1.0 - self.window) * (len(series) - 1))))
+        return jnp.mean(series[first:])
+
+
+def _check_inside(name: str, value: float, lower, upper) -> None:
+    low = 0.0 if lower is None else lower
+    if not (math.isfinite(value) and value > low and (upper is None or value < upper)):
+        where = f"> {low}" + (f" and < {upper}" if upper is not None else "")
+        raise ValueError(f"`{name}` = {value} cannot be tuned from: it must be {where} (the parameter map's range).")
+
+
+def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_steps: int, params: SwarmParams,
+                    tuned=("nu", "eps_sigma"), n_seeds: int = 1, key=None, targets: dict | None = None,
+                    bounds: dict | None = None, window: float = 0.5, observe=None, rebuild: str = "callback",
+                    rebuild_every: int = 1, checkpoint: bool = True, mesh=None) -> SimulationLoss:
+    """A differentiable loss of the swarm's parameters: theta -> objective of whole simulations.
+
+    **Arguments:**
+
+    - `fitness`, `state`: the landscape and the initial [`jaxgeom.SwarmState`][] (from
+      `init_swarm`); every seed starts from `state` with its own PRNG key.
+    - `objective`: "mean_fitness" (mean fitness averaged over the last `window` of the run:
+      smoother than the final value), "final_fitness", "best_fitness" (final), "match"
+      (sum over `targets` of (A - target)^2 / target^2, or the plain square for a target 0,
+      A the observable averaged over the last `window` of the run and over the seeds), or
+      a callable `history -> scalar` (history: the dict `simulate` returns for one seed,
+      with the observables `observe`). The loss is the mean over seeds of the objective
+      (for "match": of the seed-averaged observables).
+    - `n_steps`, `params`: the run and the [`jaxgeom.SwarmParams`][] whose fields `tuned`
+      (names in `TUNABLE`) are replaced by the map of theta.
+    - `n_seeds`: runs averaged (>= 1), vmapped; their keys are `jax.random.split(key,
+      n_seeds)` with `key` (int or key) defaulting to `state.key`.
+    - `bounds`: {name: (lower, upper)} (either may be None): the parameter is `lower +
+      (upper - lower) sigmoid(theta)`, or `lower + exp(theta)`; unbounded names are
+      `exp(theta)` (log parameters).
+    - `window`: fraction of the run (at its end) that time averages cover, in (0, 1].
+    - `rebuild`: "callback" (default) or "device" (2D Delaunay swarms); `rebuild_every`.
+    - `checkpoint`: nested sqrt(n_steps) rematerialisation (memory ~ sqrt(n_steps)).
+    - `mesh`: a `jax.sharding.Mesh` with a "batch" axis (`jaxgeom.batch_mesh()`): the seeds
+      are split over its devices (`jax.shard_map`; `n_seeds` a multiple of its size), the
+      loss and its gradient equal the one-device ones. None: `vmap` on one device.
+
+    **Returns:** a [`jaxgeom.SimulationLoss`][] `loss`, with `loss(theta)` jittable and
+    differentiable and `loss.to_theta({"nu": 0.1})` the theta of given values.
+    """
+    _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets, window, rebuild)
+    tuned = tuple(tuned)
+    bounds = _bounds_of(tuned, bounds)
+    targets = tuple((str(name), float(value)) for name, value in (targets or {}).items())
+    observe = _observables_for(objective, targets, observe)
+    base = state.key if key is None else _key_like(key, state.key)
+    keys = jax.random.split(base, n_seeds)
+    check_mesh(mesh, n_seeds, "`n_seeds`")
+    loss = SimulationLoss(fitness, state, params, keys, tuned, bounds, objective, targets, observe, int(n_steps),
+                          float(window), rebuild, int(rebuild_every), bool(checkpoint), mesh)
+    for name, (lower, upper) in zip(tuned, bounds):
+        _check_inside(name, float(getattr(params, name)), lower, upper)
+    if callable(objective):
+        _check_callable_objective(loss)
+    return loss
+
+
+def _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets, window, rebuild) -> None:
+    if not isinstance(state, SwarmState):
+        raise TypeError("`state` must be a jaxgeom.SwarmState; build one with jaxgeom.init_swarm(fitness, positions).")
+    if not isinstance(params, SwarmParams):
+        raise TypeError("`params` must be a jaxgeom.SwarmParams.")
+    if not callable(objective):
+        check_choice(objective, "objective", OBJECTIVES)
+    for name, value, low in (("n_steps", n_steps, 1), ("n_seeds", n_seeds, 1)):
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
+            raise ValueError(f"`{name}` must be an integer >= {low}; got {value!r}.")
+    if isinstance(tuned, str) or not tuned or len(set(tuned)) != len(tuple(tuned)):
+        raise ValueError(f"`tuned` must be a non-empty tuple of distinct names from {TUNABLE}; got {tuned!r}.")
+    for name in tuned:
+        check_choice(name, "tuned parameter", TUNABLE)
+    if (objective == "match") != bool(targets):
+        raise ValueError("objective='match' needs `targets` ({observable: value}), and `targets` needs "
+                         f"objective='match'; got objective={objective!r}, targets={targets!r}.")
+    for name, value in (targets or {}).items():
+        check_choice(name, "target observable", OBSERVABLES)
+        if not np.isfinite(value):
+            raise ValueError(f"target {name!r} must be a finite number; got {value!r}.")
+    if not (0.0 < window <= 1.0):
+        raise ValueError(f"`window` must be in (0, 1]; got {window!r}.")
+    if rebuild not in REBUILD_MODES[1:]:
+        raise ValueError(f"`rebuild` must be 'callback' or 'device' (a loss is traced); got {rebuild!r}.")
+
+
+def _bounds_of(tuned: tuple, bounds: dict | None) -> tuple:
+    bounds = dict(bounds or {})
+    unknown = sorted(set(bounds) - set(tuned))
+    if unknown:
+        raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(tuned)}.")
+    out = []
+    for name in tuned:
+        lower, upper = bounds.get(name, (None, None))
+        lower = None if lower is None else float(lower)
+        upper = None if upper is None else float(upper)
+        if lower is None and upper is not None:
+            lower = 0.0  # the parameters are non-negative
+        if upper is not None and not upper > lower:
+            raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lower}, {upper}).")
+        out.append((lower, upper))
+    return tuple(out)
+
+
+def _observables_for(objective, targets: tuple, observe) -> tuple:
+    if objective in ("final_fitness", "mean_fitness"):
+        return ("mean_fitness",)
+    if objective == "best_fitness":
+        return ("best_fitness",)
+    if objective == "match":
+        return tuple(name for name, _ in targets)
+    observe = DEFAULT_OBSERVE if observe is None else tuple(observe)
+    for name in observe:
+        check_choice(name, "observable", OBSERVABLES)
+    return observe
+
+
+def _key_like(key, like):
+    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
+    if jnp.issubdtype(like.dtype, jax.dtypes.prng_key) and not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return jax.random.wrap_key_data(key)
+    if not jnp.issubdtype(like.dtype, jax.dtypes.prng_key) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return jax.random.key_data(key)
+    return key
+
+
+def _check_callable_objective(loss: SimulationLoss) -> None:
+    """A user objective must return one real scalar: checked on the shapes, without a run."""
+    shape = jax.eval_shape(lambda t: jax.vmap(loss.objective)(loss.histories(t)[1]), loss.to_theta())
+    if not (isinstance(shape, jax.ShapeDtypeStruct) and shape.shape == (loss.n_seeds,)
+            and jnp.issubdtype(shape.dtype, jnp.floating)):
+        got = jax.tree_util.tree_map(lambda s: (s.shape, str(s.dtype)), shape)
+        raise ValueError(f"the objective must return one float scalar per history; it returns {got} "
+                         f"for {loss.n_seeds} seed(s) (reduce it with jnp.mean or index the final step).")

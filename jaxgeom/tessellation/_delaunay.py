@@ -1,0 +1,543 @@
+"""Delaunay builder: scipy Qhull on the host, the graph derived from its simplices.
+
+In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours to
+JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
+same code serves rebuilds inside `jax.pure_callback`). In 3D/4D and on the torus
+the neighbour rows come from numpy index bookkeeping. Geometry derived from the
+simplices (tiers from circumcentres, volumes, angles) is computed in JAX; the one
+geometric test done on the host is the periodic skin check, which decides whether
+Qhull must be run again.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from ..base._checks import (
+    check_full_rank, check_min_points, check_representable_spacing, host_box, host_points,
+    mean_spacing,
+)
+from ..base._simplex import det_entries, simplex_circumcenter
+from ._contacts import (
+    circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts,
+)
+from ._graph import (
+    Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords,
+)
+from ._planar import fan_neighbors
+
+QHULL_OPTIONS = "Qbb Qc Qz Q12"
+MAX_DELAUNAY_DIM = 4
+# Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
+SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
+SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
+MAX_SLABS = 4
+MORTON_MIN_POINTS = 30_000
+SKIN_ATTEMPTS = 12
+TIE_BREAK = 1e-9  # periodic symbolic perturbation, in mean spacings
+
+
+class CapacityError(ValueError):
+    """A graph does not fit the capacities it was pinned to (grow them and rebuild)."""
+
+
+class RawGraph(NamedTuple):
+    """What Qhull gives, in original walker indices (host numpy arrays)."""
+
+    simplices: np.ndarray  # (S, d + 1)
+    simplex_shifts: np.ndarray | None  # (S, d + 1, d)
+    nbr_rows: np.ndarray  # (E,) walker of each directed edge
+    nbr_cols: np.ndarray  # (E,) its neighbour
+    nbr_shifts: np.ndarray | None  # (E, d)
+    hull: np.ndarray  # (N,) bool
+    adjacency: np.ndarray | None = None  # (S, d + 1) simplex across the face opposite each vertex, -1 on the hull
+
+
+def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tessellation:
+    """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
+
+    Host-only (scipy Qhull); not jittable. Points are handed to Qhull in Morton
+    order, which makes it faster; all indices refer to the original order. In 2D
+    (not periodic) the neighbour rows, hull flags and tiers are derived from Qhull's
+    triangles by the jitted [`planar_tessellation`][jaxgeom.tessellation._delaunay.planar_tessellation].
+
+    **Arguments:**
+
+    - `points`: (N, d) float array, d = 2 or 3 (4 allowed), N >= d + 2, no
+      duplicates, not all on a hyperplane.
+    - `box`: `(lower, upper)` scalars or (d,) vectors. Every walker must lie
+      inside; cells reaching outside the box are tier 0.
+    - `periodic`: wrap the box (needs `box`). Periodic images in a skin around
+      the box are triangulated and mapped back to original indices with the
+      integer image shift of each neighbour and simplex vertex. The skin starts
+      at `SKIN_SPACINGS[d]` mean spacings and grows until every circumsphere of
+      a simplex with an original vertex lies inside it, so the result is exact.
+      Ties (co-circular walkers, lattices) are broken by a fixed perturbation of
+      1e-9 mean spacings, the same for every image of a walker, so all translates
+      of a periodic simplex are split alike.
+    - `capacity`: `Capacity(simplices, neighbors)`, a `(simplices, neighbors)`
+      tuple or another `Tessellation` to reuse its capacities. `None` buckets
+      them (neighbours to a multiple of 8, simplices on an 8-steps-per-octave
+      ladder; in 2D the exact bound 2N), so rebuilt graphs of a moving swarm
+      reuse compiled kernels. A graph that does not fit raises `ValueError`.
+
+    **Returns:**
+
+    A `Tessellation` with simplices, neighbours (ascending index; cells sharing a
+    face of positive measure, see `Tessellation.neighbors`), tiers and hull flags.
+    """
+    x = host_points(points, "points", func="jaxgeom.delaunay")
+    n, d = x.shape
+    _check_delaunay_dim(d)
+    check_min_points(n, d + 2, "points", f"a {d}D Delaunay tessellation")
+    box_arr = host_box(box, x, periodic=periodic)
+    check_full_rank(x)
+    check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
+    if d == 2 and not periodic:
+        simplices, adjacency, cap = planar_triangles(x, capacity)
+        points = jnp.asarray(x)
+        return planar_tessellation(points, jnp.asarray(simplices), jnp.asarray(adjacency),
+                                   None if box_arr is None else jnp.asarray(box_arr, points.dtype), k_cap=cap.neighbors)
+    raw = _periodic_graph(x, box_arr) if periodic else _plain_graph(x)
+    need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
+    return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic)
+
+
+def _check_delaunay_dim(d: int) -> None:
+    if d < 2 or d > MAX_DELAUNAY_DIM:
+        raise ValueError(
+            f"`points` has dimension d={d}; jaxgeom.delaunay supports d = 2, 3 and 4 "
+            "(Qhull's cost explodes beyond: at d=5, N=1e4 takes 13 s and 155 simplices per point). "
+            "Use jaxgeom.knn_graph(points, k) instead, which works in any dimension."
+        )
+
+
+def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """Z-order (Morton) codes of points quantised on their bounding box, and the
+    number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
+    n, d = x.shape
+    bits = max(1, min(16, 60 // d))
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
+    code = np.zeros(n, np.uint64)
+    for b in range(bits):
+        for k in range(d):
+            code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d + k)
+    return code, bits * d
+
+
+def morton_order(x: np.ndarray) -> np.ndarray:
+    """Permutation sorting points along a Z-order (Morton) curve."""
+    return np.argsort(morton_codes(x)[0], kind="stable")
+
+
+class CoincidentPointsError(ValueError):
+    """Walkers that coincide (or nearly) for Qhull. `rows` are the walkers it left out of the
+    triangulation and `partners` the vertex each coincides with (original indices)."""
+
+    def __init__(self, message: str, rows: np.ndarray, partners: np.ndarray):
+        super().__init__(message)
+        self.rows, self.partners = rows, partners
+
+
+def qhull_input(x: np.ndarray) -> np.ndarray:
+    """Points as handed to Qhull: centred on their bounding box and scaled to unit size (a
+    similarity, so the Delaunay triangulation is unchanged). Qhull's in-sphere tests lose
+    digits with |x|^2; a grid of spacing 1e-6 centred at 1e6 is otherwise refused."""
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    extent = float(np.max(hi - lo))
+    return np.ascontiguousarray((x - 0.5 * (lo + hi)) / (extent if extent > 0 else 1.0), dtype=np.float64)
+
+
+def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
+    """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
+    (None where the points were not sorted: sorting pays off only for large inputs,
+    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`."""
+    perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
+    try:
+        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=QHULL_OPTIONS)
+    except QhullError as err:
+        first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
+        raise ValueError(
+            "`points` is degenerate for Delaunay: Qhull could not build a full-dimensional "
+            "triangulation (walkers nearly collinear/coplanar or too few distinct). "
+            f"Spread the walkers out or add jitter. Qhull said: {first_line}"
+        ) from None
+    if len(tri.coplanar):
+        _raise_duplicates(x, perm, tri)
+    return tri, perm
+
+
+def _raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri: Delaunay) -> None:
+    rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
+    if perm is not None:
+        rows, partners = perm[rows], perm[partners]
+    i, j = rows[0], partners[0]
+    kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
+    raise CoincidentPointsError(
+        f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
+        f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them.",
+        rows, partners)
+
+
+def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarray, Capacity]:
+    """Host, 2D: Qhull's counter-clockwise triangles (S, 3) and the triangle across the edge
+    opposite each vertex (-1 on the hull), padded to the capacities (padding rows N and -1).
+    Raises `CapacityError` when the graph does not fit a pinned `capacity`."""
+    tri, perm = _qhull(x)
+    simplices = tri.simplices if perm is None else perm[tri.simplices]  # triangle ids are unchanged
+    n = len(x)
+    triangles_at = np.bincount(simplices.ravel(), minlength=n)
+    bound = int(triangles_at.max()) + 1  # a vertex has one neighbour more than triangles on the hull, else as many
+    if capacity is None or _as_capacity(capacity).neighbors < bound:
+        bound = _planar_max_degree(triangles_at, simplices, tri.neighbors)
+    cap = _fit_capacity(Capacity(len(simplices), bound), n, 2, capacity)
+    padded = np.full((cap.simplices, 3), n, np.int32)
+    padded[: len(simplices)] = simplices
+    return padded, _pad_adjacency(tri.neighbors, cap.simplices), cap
+
+
+def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacency: np.ndarray) -> int:
+    """Largest vertex degree: the triangles at a vertex, plus one on the hull (an open fan).
+    A hull edge (t[a + 1], t[a + 2]) lies opposite a corner without a neighbour; every hull
+    vertex starts exactly one of them."""
+    triangle, corner = np.nonzero(adjacency < 0)
+    hull = np.zeros(len(triangles_at), np.int64)
+    hull[simplices[triangle, (corner + 1) % 3]] = 1
+    return int((triangles_at + hull).max())
+
+
+@functools.partial(jax.jit, static_argnames="k_cap")
+def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tessellation:
+    """Jittable: the 2D `Tessellation` from `planar_triangles`' arrays (neighbour rows by
+    walking each vertex's fan, hull flags, tiers); `overflow` if a row needs more than `k_cap`."""
+    n = points.shape[0]
+    degenerate = planar_degenerate_corners(points, simplices, adjacency)
+    neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap, degenerate)
+    tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
+                        simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
+                        overflow=~jnp.all(complete), periodic=False)
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+
+
+def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Directed Delaunay edges (src, dst) leaving the sorted points `rows`, grouped by src."""
+    indptr, indices = tri.vertex_neighbor_vertices
+    if len(rows) == len(indptr) - 1:
+        return np.repeat(rows, np.diff(indptr)), indices
+    counts = indptr[rows + 1] - indptr[rows]
+    src = np.repeat(rows, counts)
+    group_start = np.repeat(np.cumsum(counts) - counts, counts)
+    dst = indices[np.repeat(indptr[rows], counts) + np.arange(counts.sum()) - group_start]
+    return src, dst
+
+
+def _plain_graph(x: np.ndarray) -> RawGraph:
+    tri, perm = _qhull(x)
+    src, dst = _csr_rows(tri, np.arange(len(x)))
+    simplices, hull_ids = tri.simplices, tri.convex_hull.ravel()
+    if perm is not None:  # map sorted indices back
+        simplices, src, dst, hull_ids = perm[simplices], perm[src], perm[dst], perm[hull_ids]
+    hull = np.zeros(len(x), bool)
+    hull[hull_ids] = True
+    return RawGraph(simplices, None, src, dst, None, hull, tri.neighbors)
+
+
+def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
+    """Periodic Delaunay graph from slabs of the box triangulated in parallel threads.
+
+    The box is cut along its longest side into slabs; each slab triangulates its own
+    walkers plus every periodic image within a skin around it (Qhull releases the GIL,
+    so slabs run concurrently). A slab keeps the simplices whose canonical vertex it
+    owns, so every periodic simplex is kept exactly once.
+    """
+    n, d = x.shape
+    lengths = box[1] - box[0]
+    spacing = (np.prod(lengths) / n) ** (1.0 / d)
+    # Symbolic perturbation: a tiny fixed displacement per walker, the same for all its images,
+    # makes co-circular input (lattices) generic, so every translate of a periodic simplex is
+    # triangulated alike and the canonical-vertex rule keeps each exactly once.
+    y0 = x - box[0]
+    y = y0 + TIE_BREAK * spacing * np.random.default_rng(0).uniform(-1.0, 1.0, (n, d))
+    skin = SKIN_SPACINGS[d] * spacing
+    axis = int(np.argmax(lengths))
+    # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.
+    n_slabs = max(1, min(2 * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (4 * skin))))
+    cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
+    jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
+    if n_slabs == 1:
+        parts = [_periodic_slab(*jobs[0])]
+    else:
+        with ThreadPoolExecutor(n_slabs) as pool:
+            parts = list(pool.map(lambda job: _periodic_slab(*job), jobs))
+    cat = lambda k: np.concatenate([p[k] for p in parts])  # noqa: E731
+    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool))
+
+
+def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float):
+    """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop."""
+    for _ in range(SKIN_ATTEMPTS):
+        lo, hi = np.full(len(lengths), -skin), lengths + skin
+        lo[axis], hi[axis] = start - skin, stop + skin
+        ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
+        tri, perm = _qhull(ext)
+        if perm is not None:
+            ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
+        home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
+        owned = ~shifts.any(axis=1) & (home >= start) & (home < stop)
+        simp = tri.simplices[owned[tri.simplices].any(axis=1)]
+        if not owned[tri.convex_hull].any() and _circumballs_empty(ext[simp], y, lengths, lo, hi):
+            break
+        skin *= SKIN_GROWTH
+    else:
+        raise RuntimeError("periodic Delaunay: the skin check failed after widening the skin; please report this input.")
+    canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
+    simp = simp[owned[canonical]]
+    src, dst = _csr_rows(tri, np.flatnonzero(owned))
+    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst]
+
+
+def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
+    """Every periodic image of `y` (box-relative) with all coordinates in (lo, hi)."""
+    n, d = y.shape
+    reach = int(np.ceil(max(np.max(-lo / lengths), np.max((hi - lengths) / lengths), 0)))
+    pts, ids, shifts = [], [], []
+    for s in itertools.product(range(-reach, reach + 1), repeat=d):
+        img = y + np.asarray(s) * lengths
+        keep = np.flatnonzero(np.all((img > lo) & (img < hi), axis=1))
+        pts.append(img[keep])
+        ids.append(keep)
+        shifts.append(np.broadcast_to(np.asarray(s, np.int8), (keep.size, d)))
+    return np.concatenate(pts), np.concatenate(ids), np.concatenate(shifts)
+
+
+def _circumballs_empty(p: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi) -> bool:
+    """Whether no periodic image outside the region (lo, hi) lies strictly inside a circumball.
+
+    Balls inside the region are empty by construction (Qhull saw every point
+    there); the few that poke out are checked against the images just outside.
+    """
+    center, radius = _circumballs(p)
+    if not np.isfinite(radius).all():
+        return False
+    poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
+    if not poke.any():
+        return True
+    center, radius = center[poke], radius[poke]
+    reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
+    reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
+    outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
+    outer = outer[~np.all((outer > lo) & (outer < hi), axis=1)]
+    if len(outer) == 0:
+        return True
+    dist, _ = cKDTree(outer).query(center, k=1)
+    return bool(np.all(dist >= radius * (1.0 - 1e-10)))
+
+
+def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2."""
+    e = p[:, 1:] - p[:, :1]
+    flat = np.abs(np.linalg.det(e)) <= 1e-12 * np.einsum("sij,sij->s", e, e) ** (e.shape[1] / 2)
+    e[flat] = np.eye(e.shape[1])
+    offset = np.linalg.solve(e, 0.5 * np.einsum("sij,sij->si", e, e)[..., None])[..., 0]
+    radius = np.where(flat, np.inf, np.linalg.norm(offset, axis=1))
+    return p[:, 0] + offset, radius
+
+
+def _canonical_vertex(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Per simplex, the vertex with the smallest key (original index, then image shift).
+
+    Translating a simplex does not change which vertex that is, so keeping the one
+    translate in which that vertex is an owned original (shift zero) keeps every
+    periodic simplex exactly once. Returns that vertex's position (0..d) in each simplex.
+    """
+    span = int(np.abs(shifts).max()) if shifts.size else 0
+    key = ids.astype(np.int64)
+    for k in range(shifts.shape[-1]):
+        key = key * (2 * span + 1) + (shifts[..., k].astype(np.int64) + span)
+    return np.argmin(key, axis=1)
+
+
+def _as_capacity(capacity) -> Capacity:
+    if isinstance(capacity, Tessellation):
+        return capacity.capacity
+    try:
+        simplices, neighbors = (int(v) for v in capacity)
+    except (TypeError, ValueError):
+        raise TypeError(
+            "`capacity` must be a jaxgeom.Capacity, a (simplices, neighbors) tuple of ints, "
+            f"a Tessellation or None; got {capacity!r}."
+        ) from None
+    return Capacity(simplices, neighbors)
+
+
+def _fit_capacity(need: Capacity, n: int, d: int, capacity) -> Capacity:
+    """`capacity` if the graph needs no more (else `CapacityError`); buckets for None."""
+    if capacity is None:
+        # In 2D a triangulation has at most 2N triangles (exactly 2N on the torus).
+        simplices = 2 * n if d == 2 else bucket_simplices(need.simplices)
+        return Capacity(simplices, bucket_neighbors(need.neighbors))
+    pinned = _as_capacity(capacity)
+    if pinned.simplices < need.simplices or pinned.neighbors < need.neighbors:
+        raise CapacityError(
+            f"`capacity` {tuple(pinned)} is too small for this graph: it needs simplices >= "
+            f"{need.simplices} and neighbors >= {need.neighbors}. Pass capacity=None to size it "
+            "automatically, or a larger Capacity."
+        )
+    return pinned
+
+
+def _pad_neighbors(raw: RawGraph, n: int, k_cap: int):
+    """Scatter grouped directed edges into (N, K) rows, sorted by neighbour index."""
+    rows, cols = raw.nbr_rows, raw.nbr_cols
+    starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    slot = np.arange(rows.size) - np.repeat(starts, np.diff(np.r_[starts, rows.size]))
+    nbrs = np.full((n, k_cap), n, np.int32)
+    nbrs[rows, slot] = cols
+    if raw.nbr_shifts is None:
+        return np.sort(nbrs, axis=1), None
+    order = np.argsort(nbrs, axis=1, kind="stable")
+    nbrs = np.take_along_axis(nbrs, order, axis=1)
+    shifts = np.zeros((n, k_cap, raw.nbr_shifts.shape[1]), np.int8)
+    shifts[rows, slot] = raw.nbr_shifts
+    return nbrs, np.take_along_axis(shifts, order[..., None], axis=1)
+
+
+def _pad_simplices(raw: RawGraph, n: int, s_cap: int):
+    s, d1 = raw.simplices.shape
+    simplices = np.full((s_cap, d1), n, np.int32)
+    simplices[:s] = raw.simplices
+    if raw.simplex_shifts is None:
+        return simplices, None
+    shifts = np.zeros((s_cap, d1, d1 - 1), np.int8)
+    shifts[:s] = raw.simplex_shifts
+    return simplices, shifts
+
+
+def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) -> Tessellation:
+    n = len(x)
+    nbrs, nbr_shifts = _pad_neighbors(raw, n, cap.neighbors)
+    simplices, simplex_shifts = _pad_simplices(raw, n, cap.simplices)
+    as_jnp = lambda a: None if a is None else jnp.asarray(a)  # noqa: E731
+    tess = Tessellation(
+        points=jnp.asarray(x),
+        neighbors=jnp.asarray(nbrs),
+        tier=jnp.full((n,), 2, jnp.int8),
+        hull=jnp.asarray(raw.hull),
+        simplices=jnp.asarray(simplices),
+        neighbor_shifts=as_jnp(nbr_shifts),
+        simplex_shifts=as_jnp(simplex_shifts),
+        box=None if box is None else jnp.asarray(box, dtype=jnp.asarray(x).dtype),
+        overflow=jnp.asarray(False),
+        periodic=periodic,
+    )
+    if _has_cospherical_simplices(tess, len(raw.simplices)):
+        tess = drop_contacts(tess, positive_measure_contacts(tess))
+    if periodic:
+        return tess
+    adjacency = None if raw.adjacency is None else jnp.asarray(_pad_adjacency(raw.adjacency, cap.simplices))
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+
+
+def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
+    """Host pre-check for `positive_measure_contacts` (a compilation of seconds per shape):
+    zero-measure contacts exist only inside a Delaunay cell split into several simplices,
+    which then share a circumcentre (or are flat). Centres are compared on a grid of 1e-9
+    mean spacings, modulo the box when periodic."""
+    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(tess))
+    if flat.any():
+        return True
+    x = np.asarray(tess.points, np.float64)
+    if tess.periodic:
+        box = np.asarray(tess.box, np.float64)
+        center = np.mod(center - box[0], box[1] - box[0])
+    keys = np.round(center / (1e-9 * mean_spacing(x))).astype(np.int64)
+    hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][: x.shape[1]], np.int64)  # a collision only costs time
+    return len(np.unique(hashed)) < len(hashed)
+
+
+def _pad_adjacency(adjacency: np.ndarray, s_cap: int) -> np.ndarray:
+    """Simplex adjacency padded to `s_cap` rows of -1 (host)."""
+    out = np.full((s_cap, adjacency.shape[1]), -1, np.int32)
+    out[: len(adjacency)] = adjacency
+    return out
+
+
+@jax.jit
+def boundary_tiers(tess: Tessellation, adjacency=None):
+    """Tier 0: an unbounded cell, or a cell reaching outside the domain: a Voronoi vertex
+    (circumcentre) outside the box, or without a box outside the convex hull of the walkers
+    (found by `circumcenters_outside_hull` when the simplex `adjacency` is given: such a
+    cell's extent is set by the missing walkers beyond the sample, 400x the mean volume
+    next to the edge of a Boltzmann sample); tier 1: a neighbour of tier 0; tier 2: the rest."""
+    tier0 = tess.hull
+    outside = None
+    centers = jax.vmap(simplex_circumcenter)(simplex_coords(tess))
+    if tess.box is not None:
+        outside = jnp.any((centers < tess.box[0]) | (centers > tess.box[1]), axis=-1)
+    elif adjacency is not None:
+        outside = circumcenters_outside_hull(tess, adjacency, centers)
+    if outside is not None:
+        votes = jnp.broadcast_to((outside & tess.simplex_mask)[:, None], tess.simplices.shape).astype(jnp.int32)
+        tier0 = tier0 | (jax.ops.segment_sum(votes.ravel(), tess.simplices.ravel(), num_segments=tess.n_points) > 0)
+    tier1 = neighbor_any(tess, tier0) & ~tier0
+    return jnp.where(tier0, 0, jnp.where(tier1, 1, 2)).astype(jnp.int8)
+
+
+HULL_WALK_STEPS = 64  # a walk still going after this many simplices counts as outside
+
+
+def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
+    """(S,) bool: whether each simplex's circumcentre lies outside the convex hull, by a
+    visibility walk: from the simplex, step across the face with the most negative
+    barycentric coordinate of the centre until a simplex contains it (inside) or the face
+    is on the hull (outside). Flat simplices stop at once (inside: they have no centre)."""
+    n = tess.n_points
+    table = jnp.concatenate([tess.points, jnp.zeros((1, tess.dim), tess.points.dtype)])
+    s_count = tess.simplices.shape[0]
+    walking, inside, outside = 0, 1, 2
+
+    def step(carry):
+        k, current, state = carry
+        verts = [table[tess.simplices[current, a]] for a in range(tess.dim + 1)]
+        coords = _barycentric(verts, centers)
+        worst = jnp.argmin(coords, axis=0)
+        done = jnp.min(coords, axis=0) >= -1e-9
+        across = adjacency[current, worst]
+        new_state = jnp.where(done, inside, jnp.where(across < 0, outside, walking))
+        state = jnp.where(state == walking, new_state, state)
+        current = jnp.where(state == walking, across, current)
+        return k + 1, current, state
+
+    start = jnp.arange(s_count, dtype=jnp.int32)
+    state0 = jnp.where(tess.simplices[:, 0] < n, walking, inside)
+    _, _, state = jax.lax.while_loop(lambda c: (c[0] < HULL_WALK_STEPS) & jnp.any(c[2] == walking), step,
+                                     (0, start, state0))
+    return state != inside
+
+
+def _barycentric(verts, point):
+    """(d + 1, S) barycentric coordinates of `point` in simplices with vertices `verts`
+    (d + 1 arrays (S, d)); all 1 / (d + 1) for a flat simplex (treated as containing it)."""
+    d = point.shape[-1]
+    rel = [[verts[a][:, c] - verts[0][:, c] for c in range(d)] for a in range(1, d + 1)]
+    total = det_entries(rel)
+    scale = functools.reduce(jnp.maximum, [sum(r[c] ** 2 for c in range(d)) for r in rel]) ** (0.5 * d)
+    flat = jnp.abs(total) <= 1e-12 * scale
+    safe = jnp.where(flat, 1.0, total)
+    parts = []
+    for a in range(d + 1):
+        replaced = [point if b == a else verts[b] for b in range(d + 1)]
+        rows = [[replaced[b][:, c] - replaced[0][:, c] for c in range(d)] for b in range(1, d + 1)]
+        parts.append(jnp.where(flat, 1.0 / (d + 1), det_entries(rows) / safe))
+    return jnp.stack(parts)

@@ -1,0 +1,267 @@
+"""The neighbour-graph pytree shared by every kernel, and its gather helpers."""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse
+from jaxtyping import Array, Bool, Float, Int
+
+from ..base._checks import check_metric_array, check_walker_array
+
+
+class Capacity(NamedTuple):
+    """Static array capacities of a [`jaxgeom.Tessellation`][].
+
+    **Fields:**
+
+    - `simplices`: rows of `Tessellation.simplices` (0 for a k-NN graph).
+    - `neighbors`: columns of `Tessellation.neighbors`.
+    """
+
+    simplices: int
+    neighbors: int
+
+
+class Tessellation(eqx.Module):
+    """A swarm's neighbour graph as fixed-shape padded arrays.
+
+    Padding uses the sentinel index `N` (the number of walkers); every mask is
+    derived from it. Capacities are the array shapes, so they are static under
+    `jax.jit`, and graphs built with the same capacities share compiled kernels.
+
+    **Fields:**
+
+    - `points`: (N, d) walker positions, as given.
+    - `neighbors`: (N, K) int32 neighbour indices, padding = N. Delaunay graphs
+      list, in ascending index order, the cells that share a Voronoi face of positive
+      measure: on degenerate input (lattices) the diagonals Qhull adds to split
+      co-circular cells stay in `simplices` but are not neighbours (contacts between
+      two hull walkers are all kept). k-NN graphs list neighbours nearest first.
+    - `tier`: (N,) int8 boundary tier: 0 = unbounded cell or cell touching the
+      box, 1 = neighbour of tier 0, 2 = interior. Periodic graphs are all tier 2.
+    - `hull`: (N,) bool, the walker's Voronoi cell is unbounded (convex-hull
+      vertex of a non-periodic Delaunay graph).
+    - `simplices`: (S, d + 1) int32 Delaunay simplices, padding rows = N;
+      `None` for a k-NN graph.
+    - `neighbor_shifts`: (N, K, d) int8 periodic image of each neighbour:
+      the displacement to neighbour `j` is `x[j] + shift * L - x[i]`;
+      `None` unless periodic.
+    - `simplex_shifts`: (S, d + 1, d) int8 image of each simplex vertex, same
+      convention; `None` unless periodic or without simplices.
+    - `box`: (2, d) rows `lower`, `upper`, or `None`.
+    - `overflow`: () bool, True when the graph did not fit its capacities (it
+      is then incomplete) or a periodic k-NN neighbour lies farther than half
+      the box. Host builders raise instead; jitted rebuilds set this flag.
+    - `periodic`: static bool.
+    """
+
+    points: Float[Array, "N d"]
+    neighbors: Int[Array, "N K"]
+    tier: Int[Array, " N"]
+    hull: Bool[Array, " N"]
+    simplices: Int[Array, "S d1"] | None
+    neighbor_shifts: Int[Array, "N K d"] | None
+    simplex_shifts: Int[Array, "S d1 d"] | None
+    box: Float[Array, "2 d"] | None
+    overflow: Bool[Array, ""]
+    periodic: bool = eqx.field(static=True, default=False)
+
+    @property
+    def n_points(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return self.points.shape[1]
+
+    @property
+    def capacity(self) -> Capacity:
+        n_simplices = 0 if self.simplices is None else self.simplices.shape[0]
+        return Capacity(simplices=n_simplices, neighbors=self.neighbors.shape[1])
+
+    @property
+    def neighbor_mask(self) -> Bool[Array, "N K"]:
+        return self.neighbors < self.n_points
+
+    @property
+    def simplex_mask(self) -> Bool[Array, " S"]:
+        if self.simplices is None:
+            raise ValueError("this Tessellation has no simplices (a k-NN graph); use jaxgeom.delaunay")
+        return self.simplices[:, 0] < self.n_points
+
+    @property
+    def degree(self) -> Int[Array, " N"]:
+        return jnp.sum(self.neighbor_mask, axis=1)
+
+    @property
+    def interior(self) -> Bool[Array, " N"]:
+        """Tier-2 walkers, on which observables are reported."""
+        return self.tier == 2
+
+    @property
+    def box_lengths(self) -> Float[Array, " d"] | None:
+        return None if self.box is None else self.box[1] - self.box[0]
+
+
+def padded_points(points: Float[Array, "N d"]) -> Float[Array, "N1 d"]:
+    """Points with one zero row appended, so that the sentinel index N gathers zeros."""
+    return jnp.concatenate([points, jnp.zeros((1, points.shape[1]), points.dtype)], axis=0)
+
+
+def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
+    """x_j - x_i for every neighbour slot (periodic images applied); zero on padding."""
+    return jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+
+
+def neighbor_coord_displacements(tess: Tessellation) -> list:
+    """`neighbor_displacements` coordinate-major: d arrays (N, K), the fast layout on CPU."""
+    table = padded_points(tess.points).T
+    mask = tess.neighbor_mask
+    out = []
+    for k in range(tess.dim):
+        dx = table[k][tess.neighbors] - tess.points[:, k, None]
+        if tess.neighbor_shifts is not None:
+            dx = dx + tess.neighbor_shifts[..., k].astype(dx.dtype) * tess.box_lengths[k]
+        out.append(jnp.where(mask, dx, 0.0))
+    return out
+
+
+def neighbor_distances(tess: Tessellation) -> Float[Array, "N K"]:
+    """Euclidean |x_j - x_i| for every neighbour slot; zero on padding."""
+    return jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
+
+
+def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
+    """Distance from each walker to its nearest neighbour (inf without neighbours)."""
+    return row_minimum(neighbor_distances(tess), tess.neighbor_mask)
+
+
+def row_minimum(lengths, mask) -> Float[Array, " N"]:
+    """Smallest edge length of each row over its real slots (inf for a row without any)."""
+    return jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
+
+
+def mean_row_minimum(lengths, mask) -> Float[Array, ""]:
+    """Mean over walkers with a neighbour of their smallest edge length (0 if none has one)."""
+    nearest = row_minimum(lengths, mask)
+    ok = jnp.isfinite(nearest)
+    return jnp.sum(jnp.where(ok, nearest, 0.0)) / jnp.maximum(jnp.sum(ok), 1).astype(lengths.dtype)
+
+
+def padded_to_csr(neighbors, values, n: int):
+    """Host: a scipy CSR matrix with entry (i, neighbors[i, k]) = values[i, k] on real slots."""
+    nbrs, vals = np.asarray(neighbors), np.asarray(values, dtype=np.float64)
+    rows, slots = np.nonzero(nbrs < n)
+    return scipy.sparse.csr_matrix((vals[rows, slots], (rows, nbrs[rows, slots])), shape=(n, n))
+
+
+def simplex_coords(tess: Tessellation) -> tuple:
+    """Simplex vertex coordinates, coordinate-major: d arrays (S, d + 1), periodic images applied.
+
+    The layout the simplex kernels are vmapped over (one 1-D gather per coordinate).
+    """
+    if tess.simplices is None:
+        raise ValueError("this Tessellation has no simplices (a k-NN graph); use jaxgeom.delaunay")
+    table = padded_points(tess.points).T
+    coords = [table[k][tess.simplices] for k in range(tess.dim)]
+    if tess.simplex_shifts is not None:
+        lengths = tess.box_lengths
+        coords = [c + tess.simplex_shifts[..., k].astype(c.dtype) * lengths[k] for k, c in enumerate(coords)]
+    return tuple(coords)
+
+
+def simplex_vertices(tess: Tessellation) -> Float[Array, "S d1 d"]:
+    """Vertex coordinates of every simplex (periodic images applied); `simplex_coords` stacked."""
+    return jnp.stack(simplex_coords(tess), axis=-1)
+
+
+def neighbor_any(tess: Tessellation, flags: Bool[Array, " N"]) -> Bool[Array, " N"]:
+    """For each walker, whether any of its neighbours has `flags` set."""
+    padded = jnp.concatenate([flags, jnp.zeros((1,), bool)])
+    return jnp.any(padded[tess.neighbors], axis=1)
+
+
+def bucket_neighbors(k_max: int) -> int:
+    """Neighbour capacity: the next multiple of 8 (at least 8)."""
+    return max(8, 8 * math.ceil(k_max / 8))
+
+
+def bucket_simplices(n: int) -> int:
+    """Simplex capacity: the next step of a ladder with 8 steps per octave (at most 12.5% waste)."""
+    if n <= 16:
+        return 16
+    octave = 2 ** (math.ceil(math.log2(n)) - 4)  # ladder values are multiples of this
+    return octave * math.ceil(n / octave)
+
+
+
+# A periodic walker may neighbour several images of the same walker (tiny boxes);
+# slot lookup scans this many consecutive columns for the matching image shift.
+MAX_IMAGES_PER_NEIGHBOR = 8
+
+
+def lower_bound_in_rows(table, rows, values):
+    """Binary search in rows sorted ascending: the first column k with
+    `table[rows, k] >= values` (K, the width, where there is none). One flat gather per step."""
+    k_cap = table.shape[1]
+    flat = table.ravel()
+    lo, hi = jnp.zeros_like(values), jnp.full_like(values, k_cap)
+    for _ in range(max(1, math.ceil(math.log2(k_cap))) + 1):
+        mid = (lo + hi) // 2
+        right = (mid < k_cap) & (flat[rows * k_cap + jnp.minimum(mid, k_cap - 1)] < values)
+        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+    return lo
+
+
+def edge_slots(tess: Tessellation, src, dst, shift=None):
+    """Column k with `neighbors[src, k] == dst` (and `neighbor_shifts[src, k] == shift`).
+
+    Binary search over Delaunay rows, which the builder keeps sorted by neighbour
+    index. Returns K (the capacity, an out-of-range id) where the edge is absent.
+    """
+    k_cap = tess.neighbors.shape[1]
+    flat = tess.neighbors.ravel()
+    lo = lower_bound_in_rows(tess.neighbors, src, dst)
+    if tess.neighbor_shifts is None:
+        found = (lo < k_cap) & (flat[src * k_cap + jnp.minimum(lo, k_cap - 1)] == dst)
+        return jnp.where(found, lo, k_cap)
+    flat_shifts = tess.neighbor_shifts.reshape(-1, tess.dim)
+    slot = jnp.full_like(src, k_cap)
+    for t in reversed(range(MAX_IMAGES_PER_NEIGHBOR)):
+        k = lo + t
+        at = src * k_cap + jnp.minimum(k, k_cap - 1)
+        match = (k < k_cap) & (flat[at] == dst) & jnp.all(flat_shifts[at] == shift, axis=-1)
+        slot = jnp.where(match, k, slot)
+    return slot
+
+
+def takes_tessellation(fn):
+    """Decorator for public kernels: checked outside any jit, on concrete values only, that the
+    first argument is a `jaxgeom.Tessellation` and that `metric`, `values` and `velocities`
+    (where the kernel has them) are real arrays of the right shape; a metric array must
+    also be symmetric positive definite."""
+    signature = inspect.signature(fn)
+
+    @functools.wraps(fn)
+    def call(tess, *args, **kwargs):
+        if not isinstance(tess, Tessellation):
+            raise TypeError(
+                f"jaxgeom.{fn.__name__} takes a jaxgeom.Tessellation as `tess`; got {type(tess).__name__}. "
+                "Build one first: tess = jaxgeom.delaunay(points) or jaxgeom.knn_graph(points, k)."
+            )
+        bound = signature.bind_partial(tess, *args, **kwargs).arguments
+        n, d = tess.points.shape
+        if bound.get("mode", "full") != "none":
+            check_metric_array(bound.get("metric"), n, d)
+        for name, shape in (("values", (n,)), ("velocities", (n, d))):
+            check_walker_array(bound.get(name), name, shape)
+        return fn(tess, *args, **kwargs)
+
+    return call

@@ -1,0 +1,147 @@
+import jax
+import numpy as np
+import pytest
+from helpers import random_rotation, scipy_voronoi_volumes, tile
+
+import jaxgeom
+
+
+@pytest.mark.parametrize("d, n", [(2, 600), (3, 400)])
+def test_volumes_equal_scipy_voronoi(rng, d, n):
+    x = rng.random((n, d))
+    vol = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x)))
+    ref = scipy_voronoi_volumes(x)
+    np.testing.assert_array_equal(np.isnan(vol), np.isnan(ref))
+    bounded = ~np.isnan(ref)
+    assert bounded.sum() > 0.7 * n
+    np.testing.assert_allclose(vol[bounded], ref[bounded], rtol=1e-10, atol=0)
+
+
+def test_obtuse_simplices_give_negative_pieces_and_exact_cells():
+    """A jittered hexagonal patch has many obtuse triangles; cells must still be exact."""
+    rng = np.random.default_rng(3)
+    i, j = np.meshgrid(np.arange(12), np.arange(12))
+    x = np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], -1).reshape(-1, 2).astype(float)
+    x += 0.3 * rng.normal(size=x.shape)
+    tess = jaxgeom.delaunay(x)
+    from jaxgeom.tessellation._graph import simplex_coords
+    from jaxgeom.base._simplex import dual_pieces
+
+    pieces = np.asarray(jax.vmap(dual_pieces)(simplex_coords(tess)))[np.asarray(tess.simplex_mask)]
+    assert (pieces < 0).any(), "the test set contains obtuse triangles"
+    ref = scipy_voronoi_volumes(x)
+    vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+    bounded = ~np.isnan(ref)
+    np.testing.assert_allclose(vol[bounded], ref[bounded], rtol=1e-10)
+
+
+@pytest.mark.parametrize("d, n", [(2, 300), (3, 200)])
+def test_periodic_volumes_sum_to_box_and_match_tiled_copy(rng, d, n):
+    lower, upper = np.full(d, -0.5), np.linspace(1.0, 1.5, d)
+    x = lower + rng.random((n, d)) * (upper - lower)
+    vol = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x, box=(lower, upper), periodic=True)))
+    assert abs(vol.sum() - np.prod(upper - lower)) < 1e-9
+    tiled, _, _ = tile(x, lower, upper, layers=1)
+    tiled_vol = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(tiled)))
+    np.testing.assert_allclose(vol, tiled_vol[:n], rtol=1e-10)
+
+
+@pytest.mark.slow
+def test_periodic_4d_volumes_sum_to_box(rng):
+    x = rng.random((150, 4))
+    vol = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)))
+    assert np.all(vol > 0)
+    assert abs(vol.sum() - 1.0) < 1e-9
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_translation_rotation_permutation_invariance(rng, d):
+    x = rng.random((250, d))
+    base = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x)))
+    moved = (x - 0.5) @ random_rotation(d, rng).T + rng.normal(size=d) * 10
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(moved))), base, rtol=1e-9)
+    perm = rng.permutation(250)
+    permuted = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x[perm])))
+    np.testing.assert_allclose(permuted, base[perm], rtol=1e-12)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_uniform_scaling_scales_volumes_by_s_to_the_d(rng, d):
+    x = rng.random((200, d))
+    base = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x)))
+    scaled = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(2.5 * x)))
+    np.testing.assert_allclose(scaled, 2.5**d * base, rtol=1e-11)
+
+
+def test_rebuilt_jittered_swarm_does_not_recompile(rng):
+    x = rng.random((800, 2))
+    spacing = 1 / np.sqrt(800)
+    tess = jaxgeom.delaunay(x, box=(-1.0, 2.0))
+    jaxgeom.voronoi_volumes(tess).block_until_ready()
+    compiled = jaxgeom.voronoi_volumes.__wrapped__._cache_size()
+    capacities = set()
+    for _ in range(20):
+        x = x + 0.2 * spacing * rng.normal(size=x.shape)
+        tess = jaxgeom.delaunay(x, box=(-1.0, 2.0))
+        capacities.add(tess.capacity)
+        assert np.isfinite(np.asarray(jaxgeom.voronoi_volumes(tess))[np.asarray(tess.tier) == 2]).all()
+    assert jaxgeom.voronoi_volumes.__wrapped__._cache_size() == compiled
+    assert len(capacities) == 1
+
+
+def test_rebuilt_3d_swarm_reuses_buckets(rng):
+    x = rng.random((600, 3))
+    caps = set()
+    for _ in range(20):
+        x = x + 0.02 * rng.normal(size=x.shape)
+        caps.add(jaxgeom.delaunay(x).capacity)
+    assert len(caps) <= 2, caps
+
+
+def test_volumes_differentiable_and_finite(rng):
+    x = rng.random((120, 2))
+    tess = jaxgeom.delaunay(x)
+    interior = np.asarray(tess.tier) == 2
+
+    def total_interior(points):
+        vol = jaxgeom.voronoi_volumes(jaxgeom.Tessellation(**{**tess.__dict__, "points": points}))
+        return np.float64(0.0) + jax.numpy.sum(jax.numpy.where(interior, vol, 0.0))
+
+    grad = np.asarray(jax.grad(total_interior)(tess.points))
+    assert np.isfinite(grad).all()
+    eps = 1e-6
+    bump = np.zeros_like(x)
+    k = int(np.flatnonzero(interior)[0])
+    bump[k, 0] = eps
+    fd = (total_interior(tess.points + bump) - total_interior(tess.points - bump)) / (2 * eps)
+    np.testing.assert_allclose(grad[k, 0], fd, rtol=1e-5, atol=1e-9)
+
+
+def test_k_nn_graph_has_no_volumes(rng):
+    with pytest.raises(ValueError, match="no simplices"):
+        jaxgeom.voronoi_volumes(jaxgeom.knn_graph(rng.random((50, 2)), 5))
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_float32_volumes_are_accurate(rng, d):
+    x = 5.0 + rng.random((400, d))  # offset from the origin: relative coordinates matter in float32
+    ref = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(x)))
+    with jax.enable_x64(False):
+        tess = jaxgeom.delaunay(x.astype(np.float32))
+        vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+    interior = np.asarray(tess.tier) == 2
+    assert vol.dtype == np.float32
+    np.testing.assert_allclose(vol[interior], ref[interior], rtol=2e-3)
+    assert abs(vol[interior].sum() / ref[interior].sum() - 1) < 1e-4
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_closed_form_pieces_equal_flag_decomposition(rng, d):
+    from jaxgeom.tessellation._graph import simplex_coords
+    from jaxgeom.base._simplex import dual_pieces, dual_pieces_flags
+
+    tess = jaxgeom.delaunay(rng.random((150, d)) * 3 - 1)
+    coords = simplex_coords(tess)
+    closed, flags = np.asarray(jax.vmap(dual_pieces)(coords)), np.asarray(jax.vmap(dual_pieces_flags)(coords))
+    mask = np.asarray(tess.simplex_mask)
+    np.testing.assert_allclose(closed[mask], flags[mask], rtol=1e-9, atol=1e-12 * np.abs(flags[mask]).max())

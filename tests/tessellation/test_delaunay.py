@@ -1,0 +1,169 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import brute_force_tiers, padded_sets, periodic_neighbor_sets, scipy_neighbor_sets
+
+import jaxgeom
+from jaxgeom.tessellation._graph import bucket_neighbors, bucket_simplices
+
+
+@pytest.mark.parametrize("d, n", [(2, 400), (3, 300), (4, 120)])
+def test_neighbors_equal_scipy(rng, d, n):
+    x = rng.random((n, d))
+    tess = jaxgeom.delaunay(x)
+    assert padded_sets(tess.neighbors, n) == scipy_neighbor_sets(x)
+    nbrs = np.asarray(tess.neighbors)
+    assert np.all(np.diff(nbrs, axis=1) >= 0), "rows are sorted, padding last"
+    assert tess.neighbors.dtype == jnp.int32 and tess.simplices.dtype == jnp.int32
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_simplices_are_scipy_simplices(rng, d):
+    from scipy.spatial import Delaunay
+
+    x = rng.random((200, d))
+    tess = jaxgeom.delaunay(x)
+    simp = np.asarray(tess.simplices)
+    real = simp[simp[:, 0] < 200]
+    assert np.all(simp[len(real) :] == 200), "padding rows hold the sentinel"
+    ours = {tuple(sorted(s)) for s in real.tolist()}
+    theirs = {tuple(sorted(s)) for s in Delaunay(x).simplices.tolist()}
+    assert ours == theirs
+    assert int(tess.simplex_mask.sum()) == len(real)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("with_box", [False, True])
+def test_tiers_match_brute_force(rng, d, with_box):
+    x = rng.random((300, d))
+    box = (np.zeros(d), np.ones(d)) if with_box else None
+    tess = jaxgeom.delaunay(x, box=box)
+    np.testing.assert_array_equal(np.asarray(tess.tier), brute_force_tiers(x, box))
+    assert tess.tier.dtype == jnp.int8
+    counts = np.bincount(np.asarray(tess.tier), minlength=3)
+    assert counts.min() > 0, "the test set has walkers in every tier"
+
+
+def test_hull_flags_are_unbounded_cells(rng):
+    from scipy.spatial import ConvexHull
+
+    x = rng.random((150, 2))
+    tess = jaxgeom.delaunay(x)
+    expected = np.zeros(150, bool)
+    expected[ConvexHull(x).vertices] = True
+    np.testing.assert_array_equal(np.asarray(tess.hull), expected)
+
+
+@pytest.mark.parametrize("d, n", [(2, 150), (3, 120)])
+def test_periodic_neighbors_match_tiled_scipy(rng, d, n):
+    lower, upper = -np.ones(d), np.linspace(1.0, 2.0, d)
+    x = lower + rng.random((n, d)) * (upper - lower)
+    tess = jaxgeom.delaunay(x, box=(lower, upper), periodic=True)
+    nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < n} for i in range(n)]
+    assert ours == periodic_neighbor_sets(x, lower, upper)
+    assert np.all(np.asarray(tess.tier) == 2) and not np.asarray(tess.hull).any()
+
+
+def test_periodic_small_elongated_box_uses_stored_shifts(rng):
+    """Few walkers in a thin box: edges span more than half the box, where minimum image fails."""
+    lower, upper = np.zeros(2), np.array([3.0, 0.4])
+    x = lower + rng.random((9, 2)) * (upper - lower)
+    tess = jaxgeom.delaunay(x, box=(lower, upper), periodic=True)
+    nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < 9} for i in range(9)]
+    assert ours == periodic_neighbor_sets(x, lower, upper, layers=3)
+    dx = np.asarray(jaxgeom.neighbor_displacements(tess))[np.asarray(tess.neighbor_mask)]
+    assert np.any(np.abs(dx[:, 1]) > 0.2), "some edge is longer than half the box"
+
+
+def test_periodic_simplices_tile_the_torus(rng):
+    x = rng.random((300, 2))
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
+    assert int(tess.simplex_mask.sum()) == 600, "a triangulated torus has exactly 2N triangles"
+    assert int(tess.degree.sum()) == 1800, "and 3N edges"
+
+
+def test_capacity_buckets_and_pinning(rng):
+    x = rng.random((500, 3))
+    tess = jaxgeom.delaunay(x)
+    cap = tess.capacity
+    assert cap.neighbors % 8 == 0 and cap.neighbors >= int(tess.degree.max())
+    assert cap.simplices == bucket_simplices(int(tess.simplex_mask.sum()))
+    same = jaxgeom.delaunay(x, capacity=tess)
+    assert same.capacity == cap
+    bigger = jaxgeom.delaunay(x, capacity=(cap.simplices + 5, cap.neighbors + 8))
+    assert bigger.capacity == (cap.simplices + 5, cap.neighbors + 8)
+    np.testing.assert_array_equal(padded_sets(bigger.neighbors, 500), padded_sets(tess.neighbors, 500))
+    assert not bool(tess.overflow)
+
+
+def test_bucket_ladders():
+    assert [bucket_neighbors(k) for k in (1, 8, 9, 17, 66)] == [8, 8, 16, 24, 72]
+    for n in [17, 100, 1000, 65537, 1_000_000]:
+        cap = bucket_simplices(n)
+        assert n <= cap <= 1.125 * n + 16
+    assert len({bucket_simplices(n) for n in range(6000, 6400)}) <= 2
+
+
+def test_2d_capacity_depends_on_n_only(rng):
+    caps = {jaxgeom.delaunay(rng.random((400, 2))).capacity.simplices for _ in range(3)}
+    assert caps == {800}
+
+
+def test_float32_points_stay_float32(rng):
+    x = rng.random((200, 2)).astype(np.float32)
+    with jax.enable_x64(False):
+        tess = jaxgeom.delaunay(x, box=(0, 1))
+        assert tess.points.dtype == jnp.float32
+        vol = jaxgeom.voronoi_volumes(tess)
+        assert vol.dtype == jnp.float32
+    assert padded_sets(tess.neighbors, 200) == scipy_neighbor_sets(x.astype(np.float64))
+
+
+def test_tessellation_is_a_pytree_usable_under_jit(rng):
+    tess = jaxgeom.delaunay(rng.random((100, 2)))
+    leaves = jax.tree_util.tree_leaves(tess)
+    assert all(isinstance(leaf, jax.Array) for leaf in leaves)
+    degree_sum = jax.jit(lambda t: t.degree.sum())(tess)
+    assert int(degree_sum) == int(np.sum(np.asarray(tess.neighbors) < 100))
+
+
+@pytest.mark.parametrize("d, n", [(2, 900), (3, 1000)])
+def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
+    """Several slabs and a too-thin first skin (forcing retries) still give the exact graph."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 2)
+    monkeypatch.setitem(dl.SKIN_SPACINGS, d, 1.0)
+    calls = []
+    real_qhull = dl._qhull
+    monkeypatch.setattr(dl, "_qhull", lambda pts: calls.append(len(pts)) or real_qhull(pts))
+    x = rng.random((n, d))
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
+    nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < n} for i in range(n)]
+    assert ours == periodic_neighbor_sets(x, np.zeros(d), np.ones(d), layers=1)
+    assert len(calls) > 2, "more than one slab, and at least one retry"
+    assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
+
+
+def test_morton_sorted_path_maps_indices_back():
+    """Above MORTON_MIN_POINTS Qhull sees sorted points; results must be in the caller's order."""
+    from scipy.spatial import ConvexHull, Delaunay
+
+    import jaxgeom.tessellation._delaunay as dl
+
+    n = dl.MORTON_MIN_POINTS + 5000
+    x = np.random.default_rng(3).random((n, 2))
+    tess = jaxgeom.delaunay(x)
+    indptr, indices = Delaunay(x).vertex_neighbor_vertices
+    ref = np.full(np.asarray(tess.neighbors).shape, n, np.int64)
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    ref[rows, np.arange(len(indices)) - indptr[rows]] = indices
+    np.testing.assert_array_equal(np.asarray(tess.neighbors), np.sort(ref, axis=1))
+    hull = np.zeros(n, bool)
+    hull[ConvexHull(x).vertices] = True
+    np.testing.assert_array_equal(np.asarray(tess.hull), hull)
+    assert int(tess.simplex_mask.sum()) == len(Delaunay(x).simplices)
