@@ -33,7 +33,7 @@ import numpy as np
 import scipy.spatial
 
 import jaxgeom
-from jaxgeom.tessellation._delaunay import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
+from jaxgeom.tessellation._triangulators import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
 from jaxgeom.apps._landscapes import rastrigin
 
 OBS_FITNESS = ("mean_fitness", "best_fitness", "n_clones")

@@ -35,6 +35,7 @@ if PRECISION:
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from tqdm.auto import tqdm  # noqa: E402
 
 import jaxgeom  # noqa: E402
 

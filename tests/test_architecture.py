@@ -16,7 +16,7 @@ LAYERS = {
         ("_checks", "_simplex", "_progress", "_sharding"),  # validation; dense algebra; bars; meshes
     ],
     "tessellation": [
-        ("_planar", "_graph"),  # 2D triangle-fan rows; the Tessellation pytree and its gathers
+        ("_planar", "_graph", "_triangulators"),  # 2D fan rows; the Tessellation pytree; host backends
         ("_contacts",),
         ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
         ("_cellgrid",),  # the device cell list

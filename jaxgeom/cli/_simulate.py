@@ -20,6 +20,7 @@ from ..base._progress import close_bar, open_bar
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..swarm._dynamics import metric_field
 from ..swarm._observables import OBSERVABLE_TABLE
+from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 
@@ -70,6 +71,8 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
     sim.add_argument("--anisotropic", action="store_true", help="diffusion D = g^-1 (adaptive gas)")
     sim.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
     sim.add_argument("--k", type=int, default=12, help="neighbours with --graph knn")
+    sim.add_argument("--triangulator", choices=TRIANGULATORS, default="auto",
+                     help="host Delaunay backend (auto: the fastest installed; jaxgeom.delaunay)")
     sim.add_argument("--rebuild-every", type=int, default=1, help="steps between graph rebuilds")
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
@@ -119,6 +122,8 @@ def _validate(args) -> None:
         raise ValueError(f"--gap-every must be >= 0 (0: no spectral gap); got {args.gap_every}.")
     if args.gap_every % args.rebuild_every:
         raise ValueError("--gap-every must be a multiple of --rebuild-every.")
+    if args.graph == "delaunay":
+        resolve_triangulator(args.triangulator, args.dim)  # installed, and built for this dimension
 
 
 def run_simulation(args) -> dict:
@@ -130,7 +135,7 @@ def run_simulation(args) -> dict:
                                  eps_sigma=args.eps_sigma, weights=args.weights, clone_rate=args.clone_rate,
                                  cloning=args.cloning, anisotropic=args.anisotropic)
     start = time.perf_counter()
-    state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k)
+    state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k, triangulator=args.triangulator)
     seconds_init = time.perf_counter() - start
     segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
     snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0

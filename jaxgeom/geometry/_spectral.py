@@ -14,7 +14,7 @@ import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
 from ..base._checks import check_choice
-from ..tessellation._delaunay import morton_codes
+from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._weights import (
     DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph,

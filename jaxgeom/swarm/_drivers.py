@@ -53,7 +53,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
         if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
             state, opening = _finish_and_begin(fitness, params, moved)
-        state = eqx.tree_at(lambda s: s.tess, state, moved.tess)
+        state = eqx.tree_at(lambda s: (s.tess, s.n_triangulator_fallbacks), state,
+                            (moved.tess, moved.n_triangulator_fallbacks))
         reallocations += grew
         seconds["steps"] += t1 - t0
         seconds["rebuild"] += time.perf_counter() - t1
@@ -67,7 +68,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     state, final = _observe_final(fitness, params, state, observe)
     check_health(fitness, params, [health(state)], n_steps, entering)
     series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
-    return state, _history(series, gaps, reallocations, seconds, state.n_separated, -1, state.positions.dtype)
+    return state, _history(series, gaps, reallocations, seconds, state, -1)
 
 
 def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) -> SwarmState:
@@ -107,7 +108,7 @@ def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, 
     state, last = _observe_final(fitness, params, state, observe)
     series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(last[name])[None]]) for name in observe}
     nan = {"rebuild": jnp.nan, "steps": jnp.nan}
-    return state, _history(series, [], reallocations, nan, state.n_separated, -1, state.positions.dtype, fallbacks)
+    return state, _history(series, [], reallocations, nan, state, -1, fallbacks)
 
 
 def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, k, mode, checkpoint=False):
@@ -128,5 +129,4 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
     diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
     nan = {"rebuild": jnp.nan, "steps": jnp.nan}
     fallbacks = jnp.sum(obs["_fallback"], dtype=jnp.int32)
-    return final, _history(series, [], reallocations, nan, final.n_separated, diverged, final.positions.dtype,
-                           fallbacks)
+    return final, _history(series, [], reallocations, nan, final, diverged, fallbacks)

@@ -141,6 +141,10 @@ class SwarmState(eqx.Module):
       rebuild could not triangulate the walkers and kept the previous graph).
     - `n_separated`: walkers moved apart because they coincided for Qhull (cloning with
       a tiny jitter); each is moved by `SEPARATION` mean spacings or the dtype's resolution.
+    - `n_triangulator_fallbacks`: host triangulations in which `triangulator` failed (raised,
+      or its result failed the check) and Qhull built the graph instead.
+    - `triangulator`: static, the host triangulator of the Delaunay rebuilds ("qhull",
+      "cdt", "shull"; `init_swarm` resolves "auto").
     """
 
     positions: Float[Array, "N d"]
@@ -161,6 +165,8 @@ class SwarmState(eqx.Module):
     eps_factor: Float[Array, ""]
     status: Int[Array, ""]
     n_separated: Int[Array, ""]
+    n_triangulator_fallbacks: Int[Array, ""]
+    triangulator: str = eqx.field(static=True, default="qhull")
 
 
 # Health bits: the state entering a step is checked before it moves (`health`).

@@ -11,11 +11,11 @@ from ..geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from ..tessellation._graph import Tessellation
 
 
-def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated, diverged_step, dtype,
-             n_fallbacks=0) -> dict:
+def _history(series: dict, gaps: list, reallocations, seconds: dict, state, diverged_step, n_fallbacks=0) -> dict:
     """The history `simulate` returns, with the same keys and JAX array types in both rebuild
     modes (the callback mode computes no spectral gaps and measures no wall-clock times: empty
     arrays and NaN)."""
+    dtype = state.positions.dtype
     history = {name: jnp.asarray(values, dtype) for name, values in series.items()}
     history.update(
         spectral_gap_step=jnp.asarray([g[0] for g in gaps], jnp.int32).reshape(-1),
@@ -24,7 +24,8 @@ def _history(series: dict, gaps: list, reallocations, seconds: dict, n_separated
         spectral_gap_rounding=jnp.asarray([g[3] for g in gaps], bool).reshape(-1),
         n_reallocations=jnp.asarray(reallocations, jnp.int32), n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
         seconds_rebuild=jnp.asarray(seconds["rebuild"], dtype), seconds_steps=jnp.asarray(seconds["steps"], dtype),
-        n_separated=jnp.asarray(n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32))
+        n_separated=jnp.asarray(state.n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32),
+        n_triangulator_fallbacks=jnp.asarray(state.n_triangulator_fallbacks, jnp.int32))
     return history
 
 

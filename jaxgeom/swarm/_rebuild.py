@@ -19,6 +19,7 @@ Walkers that coincide for Qhull (cloning puts them there) are moved apart first
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -27,11 +28,10 @@ import numpy as np
 
 from ..base._checks import mean_spacing
 from ..tessellation._cellclip import rebuild_unchecked
-from ..tessellation._delaunay import (
-    CapacityError, CoincidentPointsError, delaunay, planar_tessellation, planar_triangles,
-)
+from ..tessellation._delaunay import CapacityError, build_delaunay, planar_tessellation, planar_triangles
 from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ..tessellation._knn import knn_graph
+from ..tessellation._triangulators import CoincidentPointsError
 from ._dynamics import REBUILD_FAILED, SwarmState
 
 GRAPHS = ("delaunay", "knn")
@@ -112,41 +112,61 @@ def _separated(build, x: np.ndarray):
             moved += len(err.rows)
 
 
-def delaunay_separating(x: np.ndarray, capacity=None) -> tuple[Tessellation, np.ndarray, int]:
-    """(graph, positions, n_moved): `delaunay(x)` of `x` with coinciding walkers moved apart."""
-    return _separated(lambda y: delaunay(y, capacity=capacity), x)
+class Allocated(NamedTuple):
+    """A host graph build: the graph, whether its capacity grew, the positions (coinciding
+    walkers moved apart), how many were moved, and how many triangulations fell back to Qhull."""
+
+    tess: Tessellation
+    grew: bool
+    positions: np.ndarray
+    moved: int
+    fallbacks: int
 
 
-def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None) -> tuple[Tessellation, bool, np.ndarray, int]:
-    """(graph, grew, positions, n_moved): Delaunay at `capacity` (grown to a larger bucket if
-    too small; coinciding walkers moved apart), or k-NN."""
+def delaunay_separating(x: np.ndarray, capacity=None, triangulator: str = "qhull"
+                        ) -> tuple[Tessellation, np.ndarray, int, int]:
+    """(graph, positions, n_moved, n_fallbacks): `delaunay(x)` of `x` with coinciding walkers
+    moved apart, and the triangulator's fallbacks to Qhull in the build that succeeded."""
+    (tess, fallbacks), x, moved = _separated(
+        lambda y: build_delaunay(y, capacity=capacity, triangulator=triangulator), x)
+    return tess, x, moved, len(fallbacks)
+
+
+def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None, triangulator: str = "qhull") -> Allocated:
+    """Delaunay at `capacity` (grown to a larger bucket if too small; coinciding walkers moved
+    apart) by the resolved host `triangulator`, or k-NN."""
     if graph == "knn":
-        return knn_graph(x, k), False, x, 0
+        return Allocated(knn_graph(x, k), False, x, 0, 0)
     if capacity is not None:
         try:
-            tess, x, moved = delaunay_separating(x, capacity)
-            return tess, False, x, moved
+            tess, x_new, moved, fallbacks = delaunay_separating(x, capacity, triangulator)
+            return Allocated(tess, False, x_new, moved, fallbacks)
         except CapacityError:
             pass
-    fresh, x, moved = delaunay_separating(x)
+    fresh, x, moved, fallbacks = delaunay_separating(x, None, triangulator)
     previous = None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation)
                                               else Capacity(*capacity))
-    return pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x, moved
+    return Allocated(pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x,
+                     moved, fallbacks)
 
 
 def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
     """(state, grew, n_moved): the state with a new graph at its positions (coinciding walkers
-    moved apart), whether the capacity grew, and how many walkers were moved."""
+    moved apart; triangulator fallbacks to Qhull counted), whether the capacity grew, and how
+    many walkers were moved."""
     x = np.asarray(state.positions)
     graph = _graph_kind(state.tess)
     try:
-        tess, grew, x_new, moved = allocate_graph(x, graph, k, None if graph == "knn" else state.tess)
+        tess, grew, x_new, moved, fallbacks = allocate_graph(x, graph, k, None if graph == "knn" else state.tess,
+                                                             state.triangulator)
     except ValueError as err:
         raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
     if moved:
         xj = jnp.asarray(x_new, state.positions.dtype)
         state = eqx.tree_at(lambda s: (s.positions, s.n_separated), state, (xj, state.n_separated + moved))
         tess = eqx.tree_at(lambda t: t.points, tess, xj)
+    if fallbacks:
+        state = eqx.tree_at(lambda s: s.n_triangulator_fallbacks, state, state.n_triangulator_fallbacks + fallbacks)
     return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
 
 
@@ -159,26 +179,28 @@ REBUILT, OVERFLOWED, FAILED = 0, 1, 2
 
 
 def _attempt(build, x):
-    """(arrays, positions, code, n_moved) of a host rebuild that never raises: an overflow or
-    a failure (non-finite or degenerate walkers) is returned as a code, the old graph kept."""
+    """(arrays, positions, code, n_moved, n_fallbacks) of a host rebuild that never raises: an
+    overflow or a failure (non-finite or degenerate walkers) is returned as a code, the old
+    graph kept. `build(x)` returns (arrays, fallback reasons)."""
     try:
-        arrays, x, moved = _separated(build, x)
-        return arrays, x, REBUILT, moved
+        (arrays, fallbacks), x, moved = _separated(build, x)
+        return arrays, x, REBUILT, moved, len(fallbacks)
     except CapacityError:
-        return None, x, OVERFLOWED, 0
+        return None, x, OVERFLOWED, 0, 0
     except ValueError:
-        return None, x, FAILED, 0
+        return None, x, FAILED, 0, 0
 
 
-def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved) -> SwarmState:
+def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved, fallbacks) -> SwarmState:
     """The state with the rebuilt graph (the old one unless `code == REBUILT`), the positions
     the callback may have moved apart (gradients pass through unchanged), and the flags."""
     x = state.positions + jax.lax.stop_gradient(positions.astype(state.positions.dtype) - state.positions)
     tess = jax.tree_util.tree_map(lambda a, b: jnp.where(code == REBUILT, b, a), state.tess, new)
     tess = eqx.tree_at(lambda t: (t.points, t.overflow), tess, (x, state.tess.overflow | (code == OVERFLOWED)))
     status = state.status | jnp.where(code == FAILED, REBUILD_FAILED, 0)
-    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated), state,
-                       (x, tess, status.astype(jnp.int32), state.n_separated + moved))
+    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated, s.n_triangulator_fallbacks), state,
+                       (x, tess, status.astype(jnp.int32), state.n_separated + moved,
+                        state.n_triangulator_fallbacks + fallbacks))
 
 
 def update_in_trace(state: SwarmState, k: int) -> SwarmState:
@@ -193,21 +215,23 @@ def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
 
     def build(x):
-        new = knn_graph(x, k) if graph == "knn" else delaunay(x, capacity=cap)
-        return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,))
+        new, fallbacks = ((knn_graph(x, k), ()) if graph == "knn"
+                          else build_delaunay(x, capacity=cap, triangulator=state.triangulator))
+        return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,)), fallbacks
 
     def host(x, *arrays):
-        new, x, code, moved = _attempt(build, np.asarray(x))
-        return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (x, np.int32(code), np.int32(moved))
+        new, x, code, moved, fallbacks = _attempt(build, np.asarray(x))
+        return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (
+            x, np.int32(code), np.int32(moved), np.int32(fallbacks))
 
     shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old + (state.positions,))
-    shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 2
-    *arrays, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions), *old,
-                                                vmap_method="sequential")
+    shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 3
+    *arrays, x, code, moved, fallbacks = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
+                                                           *old, vmap_method="sequential")
     new = eqx.tree_at(lambda t: (t.neighbors, t.tier, t.hull), tess, tuple(arrays[:3]))
     if len(arrays) == 4:
         new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
-    return _apply_rebuild(state, new, x, code, moved)
+    return _apply_rebuild(state, new, x, code, moved, fallbacks)
 
 
 def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bool = True
@@ -230,17 +254,21 @@ def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
     tess = state.tess
     cap = tess.capacity
 
+    def triangles_and_fallbacks(y):
+        simplices, adjacency, _, fallbacks = planar_triangles(y, cap, state.triangulator)
+        return (simplices, adjacency), fallbacks
+
     def host(x):
-        triangles, x, code, moved = _attempt(lambda y: planar_triangles(y, cap)[:2], np.asarray(x))
+        triangles, x, code, moved, fallbacks = _attempt(triangles_and_fallbacks, np.asarray(x))
         if triangles is None:
             triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
-        return triangles + (x, np.int32(code), np.int32(moved))
+        return triangles + (x, np.int32(code), np.int32(moved), np.int32(fallbacks))
 
     triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
     shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
-              jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.int32))
-    simplices, adjacency, x, code, moved = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
-                                                             vmap_method="sequential")
+              *(jax.ShapeDtypeStruct((), jnp.int32),) * 3)
+    simplices, adjacency, x, code, moved, fallbacks = jax.pure_callback(
+        host, shapes, jax.lax.stop_gradient(state.positions), vmap_method="sequential")
     new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
     code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
-    return _apply_rebuild(state, new, x, code, moved)
+    return _apply_rebuild(state, new, x, code, moved, fallbacks)

@@ -128,6 +128,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
     by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
+    `n_triangulator_fallbacks` (host triangulations in which `state.triangulator` failed and
+    Qhull built the graph; `n_separated` and this count the state's whole life);
     `diverged_step` (-1, or under a trace the first step whose state failed: non-finite,
     runaway, all dead, a failed rebuild, or a graph that outgrew its capacity).
     For a batch: the same with a leading (B,) axis on every array of both.

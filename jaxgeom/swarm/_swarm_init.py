@@ -8,7 +8,8 @@ import numpy as np
 
 from ..base._checks import check_choice, check_min_points, host_points, real_array
 from ..geometry._weights import mean_nearest_neighbor_distance
-from ..tessellation._delaunay import delaunay
+from ..tessellation._delaunay import build_delaunay
+from ..tessellation._triangulators import resolve_triangulator
 from ._dynamics import SwarmState, fitness_and_force
 from ._rebuild import GRAPHS, allocate_graph
 
@@ -46,7 +47,7 @@ def _as_key(key):
 
 
 def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "delaunay", k: int = 12,
-               capacity=None) -> SwarmState:
+               capacity=None, triangulator: str = "auto") -> SwarmState:
     """The initial [`jaxgeom.SwarmState`][] of a swarm (host: builds its first graph).
 
     **Arguments:**
@@ -58,6 +59,9 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     - `graph`: "delaunay" (d = 2, 3) or "knn" (any d; `k` neighbours).
     - `capacity`: pin Delaunay capacities (`CapacityError` if the first graph does not
       fit; later rebuilds in `simulate` grow them); default: buckets with headroom.
+    - `triangulator`: the host triangulator of this graph and of every rebuild in
+      `simulate` (`jaxgeom.delaunay`'s option; "auto" is resolved here and stored in
+      `SwarmState.triangulator`). Its fallbacks to Qhull are counted, not warned.
     """
     x = host_points(positions, "positions", func="jaxgeom.init_swarm")
     check_choice(graph, "graph", GRAPHS)
@@ -70,11 +74,14 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
         raise ValueError(f"`velocities` has NaN or inf entries in {int((~np.isfinite(v).all(axis=1)).sum())} "
                          "row(s). Repair them or start from velocities=None (zeros).")
     key = _as_key(key)
+    backend = resolve_triangulator(triangulator, x.shape[1])
     check_fitness(fitness, x)
-    if capacity is not None and graph == "delaunay":
-        tess = delaunay(x, capacity=capacity)  # pinned: raises CapacityError when the graph does not fit
+    fallbacks = 0
+    if capacity is not None and graph == "delaunay":  # pinned: raises CapacityError when the graph does not fit
+        tess, fallbacks = build_delaunay(x, capacity=capacity, triangulator=backend)
+        fallbacks = len(fallbacks)
     else:
-        tess, _, x, _ = allocate_graph(x, graph, k, None)
+        tess, _, x, _, fallbacks = allocate_graph(x, graph, k, None, backend)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
     values, force = fitness_and_force(fitness, xj)
@@ -84,4 +91,5 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
                       unmeasured, jnp.zeros(n, bool), unmeasured, jnp.zeros(n, bool), jnp.asarray(-1, jnp.int32),
                       key, tess, zero,
-                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero)
+                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,
+                      jnp.asarray(fallbacks, jnp.int32), triangulator=backend)

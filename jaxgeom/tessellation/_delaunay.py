@@ -1,4 +1,5 @@
-"""Delaunay builder: scipy Qhull on the host, the graph derived from its simplices.
+"""Delaunay builder: a host triangulator (`_triangulators`: Qhull, CDT, shull), the graph
+derived from its simplices.
 
 In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours to
 JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
@@ -14,6 +15,7 @@ from __future__ import annotations
 import functools
 import itertools
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -21,7 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
+from scipy.spatial import cKDTree
 
 from ..base._checks import (
     check_full_rank, check_min_points, check_representable_spacing, host_box, host_points,
@@ -35,14 +37,13 @@ from ._graph import (
     Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords,
 )
 from ._planar import fan_neighbors
+from ._triangulators import resolve_triangulator, triangulate
 
-QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
-MORTON_MIN_POINTS = 30_000
 SKIN_ATTEMPTS = 12
 TIE_BREAK = 1e-9  # periodic symbolic perturbation, in mean spacings
 
@@ -61,12 +62,13 @@ class RawGraph(NamedTuple):
     nbr_shifts: np.ndarray | None  # (E, d)
     hull: np.ndarray  # (N,) bool
     adjacency: np.ndarray | None = None  # (S, d + 1) simplex across the face opposite each vertex, -1 on the hull
+    fallbacks: tuple[str, ...] = ()  # why the asked-for triangulator was replaced by Qhull, per call
 
 
-def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tessellation:
+def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto") -> Tessellation:
     """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
 
-    Host-only (scipy Qhull); not jittable. Points are handed to Qhull in Morton
+    Host-only (a host triangulator); not jittable. Qhull gets the points in Morton
     order, which makes it faster; all indices refer to the original order. In 2D
     (not periodic) the neighbour rows, hull flags and tiers are derived from Qhull's
     triangles by the jitted [`planar_tessellation`][jaxgeom.tessellation._delaunay.planar_tessellation].
@@ -90,27 +92,45 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None) -> Tess
       them (neighbours to a multiple of 8, simplices on an 8-steps-per-octave
       ladder; in 2D the exact bound 2N), so rebuilt graphs of a moving swarm
       reuse compiled kernels. A graph that does not fit raises `ValueError`.
+    - `triangulator`: the host backend. "auto" (default) takes the fastest installed for
+      d: "shull" (2D, 3D; the GPL extra `jaxgeom[gpl]`), else "cdt" (2D, pythoncdt),
+      else "qhull" (scipy, the reference, 2D-4D). Every backend gives the same graph on
+      points in general position; a backend that fails (or returns a triangulation that
+      fails a cheap check) is replaced by Qhull for this call with a `RuntimeWarning`.
 
     **Returns:**
 
     A `Tessellation` with simplices, neighbours (ascending index; cells sharing a
     face of positive measure, see `Tessellation.neighbors`), tiers and hull flags.
     """
+    tess, fallbacks = build_delaunay(points, box=box, periodic=periodic, capacity=capacity,
+                                     triangulator=triangulator)
+    for reason in fallbacks:
+        warnings.warn(f"jaxgeom.delaunay: {reason}; Qhull built this graph instead.", RuntimeWarning, stacklevel=2)
+    return tess
+
+
+def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto"
+                   ) -> tuple[Tessellation, tuple[str, ...]]:
+    """`delaunay`, and why its triangulator was replaced by Qhull in each call where it was
+    (empty: never); `simulate` counts these instead of warning."""
     x = host_points(points, "points", func="jaxgeom.delaunay")
     n, d = x.shape
     _check_delaunay_dim(d)
+    backend = resolve_triangulator(triangulator, d)
     check_min_points(n, d + 2, "points", f"a {d}D Delaunay tessellation")
     box_arr = host_box(box, x, periodic=periodic)
     check_full_rank(x)
     check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
     if d == 2 and not periodic:
-        simplices, adjacency, cap = planar_triangles(x, capacity)
+        simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
         points = jnp.asarray(x)
         return planar_tessellation(points, jnp.asarray(simplices), jnp.asarray(adjacency),
-                                   None if box_arr is None else jnp.asarray(box_arr, points.dtype), k_cap=cap.neighbors)
-    raw = _periodic_graph(x, box_arr) if periodic else _plain_graph(x)
+                                   None if box_arr is None else jnp.asarray(box_arr, points.dtype),
+                                   k_cap=cap.neighbors), fallbacks
+    raw = _periodic_graph(x, box_arr, backend) if periodic else _plain_graph(x, backend)
     need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
-    return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic)
+    return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic), raw.fallbacks
 
 
 def _check_delaunay_dim(d: int) -> None:
@@ -122,79 +142,13 @@ def _check_delaunay_dim(d: int) -> None:
         )
 
 
-def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
-    """Z-order (Morton) codes of points quantised on their bounding box, and the
-    number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
-    n, d = x.shape
-    bits = max(1, min(16, 60 // d))
-    lo, hi = x.min(axis=0), x.max(axis=0)
-    q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
-    code = np.zeros(n, np.uint64)
-    for b in range(bits):
-        for k in range(d):
-            code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d + k)
-    return code, bits * d
-
-
-def morton_order(x: np.ndarray) -> np.ndarray:
-    """Permutation sorting points along a Z-order (Morton) curve."""
-    return np.argsort(morton_codes(x)[0], kind="stable")
-
-
-class CoincidentPointsError(ValueError):
-    """Walkers that coincide (or nearly) for Qhull. `rows` are the walkers it left out of the
-    triangulation and `partners` the vertex each coincides with (original indices)."""
-
-    def __init__(self, message: str, rows: np.ndarray, partners: np.ndarray):
-        super().__init__(message)
-        self.rows, self.partners = rows, partners
-
-
-def qhull_input(x: np.ndarray) -> np.ndarray:
-    """Points as handed to Qhull: centred on their bounding box and scaled to unit size (a
-    similarity, so the Delaunay triangulation is unchanged). Qhull's in-sphere tests lose
-    digits with |x|^2; a grid of spacing 1e-6 centred at 1e6 is otherwise refused."""
-    lo, hi = x.min(axis=0), x.max(axis=0)
-    extent = float(np.max(hi - lo))
-    return np.ascontiguousarray((x - 0.5 * (lo + hi)) / (extent if extent > 0 else 1.0), dtype=np.float64)
-
-
-def _qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
-    """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
-    (None where the points were not sorted: sorting pays off only for large inputs,
-    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`."""
-    perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
-    try:
-        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=QHULL_OPTIONS)
-    except QhullError as err:
-        first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
-        raise ValueError(
-            "`points` is degenerate for Delaunay: Qhull could not build a full-dimensional "
-            "triangulation (walkers nearly collinear/coplanar or too few distinct). "
-            f"Spread the walkers out or add jitter. Qhull said: {first_line}"
-        ) from None
-    if len(tri.coplanar):
-        _raise_duplicates(x, perm, tri)
-    return tri, perm
-
-
-def _raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri: Delaunay) -> None:
-    rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
-    if perm is not None:
-        rows, partners = perm[rows], perm[partners]
-    i, j = rows[0], partners[0]
-    kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
-    raise CoincidentPointsError(
-        f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
-        f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them.",
-        rows, partners)
-
-
-def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarray, Capacity]:
-    """Host, 2D: Qhull's counter-clockwise triangles (S, 3) and the triangle across the edge
-    opposite each vertex (-1 on the hull), padded to the capacities (padding rows N and -1).
+def planar_triangles(x: np.ndarray, capacity=None, triangulator: str = "qhull"
+                     ) -> tuple[np.ndarray, np.ndarray, Capacity, tuple[str, ...]]:
+    """Host, 2D: counter-clockwise triangles (S, 3) and the triangle across the edge opposite
+    each vertex (-1 on the hull), padded to the capacities (padding rows N and -1), and the
+    fallback reasons (`build_delaunay`) of the resolved backend `triangulator`.
     Raises `CapacityError` when the graph does not fit a pinned `capacity`."""
-    tri, perm = _qhull(x)
+    tri, perm, fallback = triangulate(x, triangulator)
     simplices = tri.simplices if perm is None else perm[tri.simplices]  # triangle ids are unchanged
     n = len(x)
     triangles_at = np.bincount(simplices.ravel(), minlength=n)
@@ -204,7 +158,7 @@ def planar_triangles(x: np.ndarray, capacity=None) -> tuple[np.ndarray, np.ndarr
     cap = _fit_capacity(Capacity(len(simplices), bound), n, 2, capacity)
     padded = np.full((cap.simplices, 3), n, np.int32)
     padded[: len(simplices)] = simplices
-    return padded, _pad_adjacency(tri.neighbors, cap.simplices), cap
+    return padded, _pad_adjacency(tri.neighbors, cap.simplices), cap, () if fallback is None else (fallback,)
 
 
 def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacency: np.ndarray) -> int:
@@ -230,7 +184,7 @@ def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tes
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
 
 
-def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _csr_rows(tri, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Directed Delaunay edges (src, dst) leaving the sorted points `rows`, grouped by src."""
     indptr, indices = tri.vertex_neighbor_vertices
     if len(rows) == len(indptr) - 1:
@@ -242,18 +196,18 @@ def _csr_rows(tri: Delaunay, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return src, dst
 
 
-def _plain_graph(x: np.ndarray) -> RawGraph:
-    tri, perm = _qhull(x)
+def _plain_graph(x: np.ndarray, triangulator: str) -> RawGraph:
+    tri, perm, fallback = triangulate(x, triangulator)
     src, dst = _csr_rows(tri, np.arange(len(x)))
     simplices, hull_ids = tri.simplices, tri.convex_hull.ravel()
     if perm is not None:  # map sorted indices back
         simplices, src, dst, hull_ids = perm[simplices], perm[src], perm[dst], perm[hull_ids]
     hull = np.zeros(len(x), bool)
     hull[hull_ids] = True
-    return RawGraph(simplices, None, src, dst, None, hull, tri.neighbors)
+    return RawGraph(simplices, None, src, dst, None, hull, tri.neighbors, () if fallback is None else (fallback,))
 
 
-def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
+def _periodic_graph(x: np.ndarray, box: np.ndarray, triangulator: str) -> RawGraph:
     """Periodic Delaunay graph from slabs of the box triangulated in parallel threads.
 
     The box is cut along its longest side into slabs; each slab triangulates its own
@@ -274,23 +228,27 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray) -> RawGraph:
     # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.
     n_slabs = max(1, min(2 * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (4 * skin))))
     cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
-    jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin) for j in range(n_slabs)]
+    jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin, triangulator) for j in range(n_slabs)]
     if n_slabs == 1:
         parts = [_periodic_slab(*jobs[0])]
     else:
         with ThreadPoolExecutor(n_slabs) as pool:
             parts = list(pool.map(lambda job: _periodic_slab(*job), jobs))
     cat = lambda k: np.concatenate([p[k] for p in parts])  # noqa: E731
-    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool))
+    fallbacks = tuple(reason for p in parts for reason in p[5])
+    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), None, fallbacks)
 
 
-def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float):
-    """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop."""
+def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
+    """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop, and the
+    fallback reasons of its triangulations."""
+    fallbacks = []
     for _ in range(SKIN_ATTEMPTS):
         lo, hi = np.full(len(lengths), -skin), lengths + skin
         lo[axis], hi[axis] = start - skin, stop + skin
         ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
-        tri, perm = _qhull(ext)
+        tri, perm, fallback = triangulate(ext, triangulator)
+        fallbacks += [] if fallback is None else [fallback]
         if perm is not None:
             ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
         home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
@@ -304,7 +262,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
     canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
     simp = simp[owned[canonical]]
     src, dst = _csr_rows(tri, np.flatnonzero(owned))
-    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst]
+    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks
 
 
 def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):

@@ -56,15 +56,15 @@ def test_coplanar_3d_rejected(rng):
 
 
 def test_qhull_errors_are_wrapped(monkeypatch, rng):
-    import jaxgeom.tessellation._delaunay as dl
+    import jaxgeom.tessellation._triangulators as backends
     from scipy.spatial import QhullError
 
     def failing(*args, **kwargs):
         raise QhullError("QH6154 Qhull precision error: initial simplex is flat")
 
-    monkeypatch.setattr(dl, "Delaunay", failing)
+    monkeypatch.setattr(backends, "Delaunay", failing)
     with pytest.raises(ValueError, match="degenerate for Delaunay.*QH6154"):
-        jaxgeom.delaunay(rng.random((10, 2)))
+        jaxgeom.delaunay(rng.random((10, 2)), triangulator="qhull")
 
 
 def test_points_outside_box_rejected(rng):

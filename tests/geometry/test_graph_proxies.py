@@ -71,7 +71,7 @@ def test_lobpcg_flags_non_convergence_with_nan(rng):
 def test_nested_dissection_eliminates_every_separator_after_its_pieces(rng, d):
     """Fill-reducing invariant: an edge never joins two different pieces of the same
     level, and a separator vertex comes after every vertex of the piece it splits."""
-    from jaxgeom.tessellation._delaunay import morton_codes
+    from jaxgeom.tessellation._triangulators import morton_codes
     from jaxgeom.geometry._spectral import _separator_levels, nested_dissection_order
 
     x = rng.random((5000, d))

@@ -31,7 +31,7 @@ def test_one_growth_rule_for_allocation_and_overflow():
     cap = capacity_with_headroom(fresh)
     degree, count = int(np.max(fresh.degree)), int(np.sum(fresh.simplex_mask))
     assert cap == (bucket_simplices(int(np.ceil(SIMPLEX_HEADROOM * count))), bucket_neighbors(degree + NEIGHBOR_HEADROOM))
-    tess, grew, _, moved = allocate_graph(x, "delaunay", 12, None)
+    tess, grew, _, moved, _ = allocate_graph(x, "delaunay", 12, None)
     assert tess.capacity == cap and not grew and moved == 0
     bigger = grown(tess)
     assert bigger.capacity.neighbors >= cap.neighbors + NEIGHBOR_HEADROOM
@@ -39,14 +39,14 @@ def test_one_growth_rule_for_allocation_and_overflow():
     assert not bool(bigger.overflow)
     # A graph that does not fit the previous capacity grows by the same rule, never below it.
     small = jaxgeom.Capacity(cap.simplices // 2, 8)
-    regrown, grew, _, _ = allocate_graph(x, "delaunay", 12, small)
+    regrown, grew, _, _, _ = allocate_graph(x, "delaunay", 12, small)
     assert grew and regrown.capacity == cap
     np.testing.assert_allclose(jaxgeom.voronoi_volumes(regrown), jaxgeom.voronoi_volumes(fresh), rtol=1e-12)
 
 
 def test_planar_graphs_keep_the_exact_simplex_bound():
     x = np.random.default_rng(2).random((300, 2))
-    tess, _, _, _ = allocate_graph(x, "delaunay", 12, None)
+    tess = allocate_graph(x, "delaunay", 12, None).tess
     assert tess.capacity.simplices == jaxgeom.delaunay(x).capacity.simplices
     assert grown(tess).capacity.simplices == tess.capacity.simplices
     assert jnp.all(grown(tess).neighbors[:, tess.capacity.neighbors:] == 300)

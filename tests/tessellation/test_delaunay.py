@@ -138,8 +138,8 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     monkeypatch.setattr(dl.os, "cpu_count", lambda: 2)
     monkeypatch.setitem(dl.SKIN_SPACINGS, d, 1.0)
     calls = []
-    real_qhull = dl._qhull
-    monkeypatch.setattr(dl, "_qhull", lambda pts: calls.append(len(pts)) or real_qhull(pts))
+    real_triangulate = dl.triangulate
+    monkeypatch.setattr(dl, "triangulate", lambda pts, name: calls.append(len(pts)) or real_triangulate(pts, name))
     x = rng.random((n, d))
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
@@ -153,11 +153,11 @@ def test_morton_sorted_path_maps_indices_back():
     """Above MORTON_MIN_POINTS Qhull sees sorted points; results must be in the caller's order."""
     from scipy.spatial import ConvexHull, Delaunay
 
-    import jaxgeom.tessellation._delaunay as dl
+    from jaxgeom.tessellation._triangulators import MORTON_MIN_POINTS
 
-    n = dl.MORTON_MIN_POINTS + 5000
+    n = MORTON_MIN_POINTS + 5000
     x = np.random.default_rng(3).random((n, 2))
-    tess = jaxgeom.delaunay(x)
+    tess = jaxgeom.delaunay(x, triangulator="qhull")
     indptr, indices = Delaunay(x).vertex_neighbor_vertices
     ref = np.full(np.asarray(tess.neighbors).shape, n, np.int64)
     rows = np.repeat(np.arange(n), np.diff(indptr))

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull, Delaunay
 
-from jaxgeom.tessellation._delaunay import QHULL_OPTIONS, planar_tessellation, planar_triangles
+from jaxgeom.tessellation._delaunay import planar_tessellation, planar_triangles
+from jaxgeom.tessellation._triangulators import QHULL_OPTIONS
 from jaxgeom.tessellation._planar import _merge_network, fan_neighbors, sort_rows
 
 
@@ -99,7 +100,7 @@ def test_planar_triangles_pads_and_checks_capacity(rng):
     from jaxgeom.tessellation._delaunay import CapacityError
 
     x = rng.random((100, 2))
-    simplices, adjacency, cap = planar_triangles(x)
+    simplices, adjacency, cap, _ = planar_triangles(x)
     assert cap.simplices == 200 and simplices.shape == adjacency.shape == (200, 3)
     n_real = len(Delaunay(x).simplices)
     assert np.all(simplices[n_real:] == 100) and np.all(adjacency[n_real:] == -1)

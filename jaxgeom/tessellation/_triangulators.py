@@ -1,0 +1,279 @@
+"""Host triangulators behind one interface.
+
+- "qhull": scipy's Qhull, the reference, always installed (2D-4D). It builds a d-dimensional
+  Delaunay as a (d + 1)-dimensional convex hull, in floating point (options `QHULL_OPTIONS`).
+- "cdt": pythoncdt (MPL-2.0; BSD-3 and Apache-2.0 parts), 2D incremental Delaunay with
+  Shewchuk's exact predicates; a hard dependency.
+- "shull": shull (GPL-3.0), sweep-hull in Rust, 2D and 3D, exact predicates; only with the
+  opt-in extra `pip install "jaxgeom[gpl]"`.
+- "auto": the fastest installed for the dimension (`AUTO_ORDER`, measured in bench/README.md).
+
+Every backend returns scipy's layout (`simplices`, `neighbors` opposite each vertex, -1 on
+the hull, `convex_hull`, `vertex_neighbor_vertices`, `coplanar` = points left out). A
+result from a backend other than Qhull is checked cheaply (`check_triangulation`: indices,
+every walker used, positive orientation, symmetric adjacency, Euler's formula); a backend
+that raises or fails the check is replaced by Qhull for that call, and the caller is told
+(`Triangulated.fallback`), never silently.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+from typing import Any, NamedTuple
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError
+
+from ..base._checks import check_choice
+
+TRIANGULATORS = ("auto", "qhull", "cdt", "shull")
+DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3)}
+MODULES = {"qhull": "scipy", "cdt": "pythoncdt", "shull": "shull"}
+INSTALL = {"cdt": 'pip install pythoncdt (MPL-2.0)', "shull": 'pip install "jaxgeom[gpl]" (shull, GPL-3.0)'}
+AUTO_ORDER = ("shull", "cdt", "qhull")  # fastest first, per dimension where supported
+QHULL_OPTIONS = "Qbb Qc Qz Q12"
+MORTON_MIN_POINTS = 30_000
+
+
+class CoincidentPointsError(ValueError):
+    """Walkers that coincide (or nearly) for the triangulator. `rows` are the walkers it left
+    out of the triangulation and `partners` the vertex each coincides with (original indices)."""
+
+    def __init__(self, message: str, rows: np.ndarray, partners: np.ndarray):
+        super().__init__(message)
+        self.rows, self.partners = rows, partners
+
+
+class Triangulated(NamedTuple):
+    """A host triangulation in original walker indices: `tri` has scipy's layout on the points
+    `x[perm]` (`perm` None: unsorted); `fallback` is None, or why the asked-for backend was
+    replaced by Qhull."""
+
+    tri: Any
+    perm: np.ndarray | None
+    fallback: str | None
+
+
+@functools.cache
+def installed(name: str) -> bool:
+    return importlib.util.find_spec(MODULES[name]) is not None
+
+
+def resolve_triangulator(name: str, d: int) -> str:
+    """The backend `name` stands for in dimension `d` ("auto": the fastest installed); a
+    clear `ValueError` for an unknown name, an unsupported dimension or a missing package."""
+    if not isinstance(name, str):
+        raise TypeError(f"`triangulator` must be a string, one of {TRIANGULATORS}; got {type(name).__name__}.")
+    check_choice(name, "triangulator", TRIANGULATORS)
+    if name == "auto":
+        return next((b for b in AUTO_ORDER if d in DIMENSIONS[b] and installed(b)), "qhull")
+    if d not in DIMENSIONS[name]:
+        raise ValueError(f"triangulator={name!r} builds d = {', '.join(map(str, DIMENSIONS[name]))} only; these "
+                         f"points have d = {d}. Use triangulator='auto' or 'qhull'.")
+    if not installed(name):
+        raise ValueError(f"triangulator={name!r} is not installed: {INSTALL[name]}. Or use triangulator='auto'.")
+    return name
+
+
+def triangulate(x: np.ndarray, name: str) -> Triangulated:
+    """Delaunay triangulation of `x` (N, d) by the resolved backend `name`, Qhull where it
+    fails. Raises `CoincidentPointsError` for walkers the triangulation leaves out, and
+    `ValueError` for degenerate input (all walkers on a hyperplane)."""
+    if name == "qhull":
+        return Triangulated(*qhull(x), None)
+    try:
+        tri = BUILDERS[name](x)
+    except CoincidentPointsError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any failure of a backend means Qhull builds this call
+        reason = f"{name} raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    else:
+        if len(tri.coplanar):
+            raise_duplicates(x, None, tri)
+        reason = check_triangulation(tri, x)
+        if reason is None:
+            return Triangulated(tri, None, None)
+        reason = f"{name}'s triangulation failed its check: {reason}"
+    return Triangulated(*qhull(x), reason)
+
+
+# --- Qhull ------------------------------------------------------------------------------
+
+
+def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
+    """Z-order (Morton) codes of points quantised on their bounding box, and the
+    number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
+    n, d = x.shape
+    bits = max(1, min(16, 60 // d))
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
+    code = np.zeros(n, np.uint64)
+    for b in range(bits):
+        for k in range(d):
+            code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d + k)
+    return code, bits * d
+
+
+def morton_order(x: np.ndarray) -> np.ndarray:
+    """Permutation sorting points along a Z-order (Morton) curve."""
+    return np.argsort(morton_codes(x)[0], kind="stable")
+
+
+def qhull_input(x: np.ndarray) -> np.ndarray:
+    """Points as handed to Qhull: centred on their bounding box and scaled to unit size (a
+    similarity, so the Delaunay triangulation is unchanged). Qhull's in-sphere tests lose
+    digits with |x|^2; a grid of spacing 1e-6 centred at 1e6 is otherwise refused."""
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    extent = float(np.max(hi - lo))
+    return np.ascontiguousarray((x - 0.5 * (lo + hi)) / (extent if extent > 0 else 1.0), dtype=np.float64)
+
+
+def qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
+    """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
+    (None where the points were not sorted: sorting pays off only for large inputs,
+    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`."""
+    perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
+    try:
+        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=QHULL_OPTIONS)
+    except QhullError as err:
+        first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
+        raise ValueError(
+            "`points` is degenerate for Delaunay: Qhull could not build a full-dimensional "
+            "triangulation (walkers nearly collinear/coplanar or too few distinct). "
+            f"Spread the walkers out or add jitter. Qhull said: {first_line}"
+        ) from None
+    if len(tri.coplanar):
+        raise_duplicates(x, perm, tri)
+    return tri, perm
+
+
+def raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri) -> None:
+    rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
+    if perm is not None:
+        rows, partners = perm[rows], perm[partners]
+    i, j = rows[0], partners[0]
+    kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
+    raise CoincidentPointsError(
+        f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
+        f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them.",
+        rows, partners)
+
+
+# --- CDT and shull ----------------------------------------------------------------------
+
+
+class _Triangulation:
+    """scipy's layout for a backend that gives only simplices and their adjacency."""
+
+    def __init__(self, simplices: np.ndarray, neighbors: np.ndarray):
+        self.simplices, self.neighbors = simplices, neighbors
+        self.coplanar = np.zeros((0, 3), np.int32)
+
+    @functools.cached_property
+    def convex_hull(self) -> np.ndarray:
+        simplex, corner = np.nonzero(self.neighbors < 0)
+        d1 = self.simplices.shape[1]
+        others = (corner[:, None] + np.arange(1, d1)) % d1
+        return self.simplices[simplex[:, None], others]
+
+    @functools.cached_property
+    def vertex_neighbor_vertices(self) -> tuple[np.ndarray, np.ndarray]:
+        s = self.simplices
+        d1 = s.shape[1]
+        pairs = np.array([(a, b) for a in range(d1) for b in range(d1) if a != b])
+        src, dst = s[:, pairs[:, 0]].ravel(), s[:, pairs[:, 1]].ravel()
+        n = int(s.max()) + 1
+        code = np.unique(src.astype(np.int64) * n + dst)  # each directed edge once, grouped by src
+        src, dst = code // n, (code % n).astype(np.int32)
+        return np.r_[0, np.cumsum(np.bincount(src, minlength=n))].astype(np.int32), dst
+
+
+def _cdt(x: np.ndarray) -> _Triangulation:
+    import pythoncdt
+
+    tri = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
+                                  pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
+    try:
+        tri.insert_vertices(np.ascontiguousarray(x, dtype=np.float64))
+    except RuntimeError as err:
+        if "Duplicate vertex" in str(err):
+            _raise_exact_duplicates(x)
+        raise
+    raw = tri.triangles_array(copy=False)
+    # Vertices 0-2 are CDT's super-triangle: dropping its triangles here, in numpy, costs a
+    # quarter of `erase_super_triangle` (1.9 ms at N = 1e4).
+    vertices = raw["vertices"].astype(np.int32)
+    keep = (vertices >= 3).all(axis=1)
+    renumber = np.where(keep, np.cumsum(keep) - 1, -1).astype(np.int32)
+    # CDT's neighbour k lies across the edge (v_k, v_k+1), i.e. opposite vertex k + 2.
+    across = raw["neighbors"][keep][:, [1, 2, 0]].astype(np.int64)
+    neighbors = np.where(across == pythoncdt.NO_NEIGHBOR, -1, renumber[np.minimum(across, len(keep) - 1)])
+    return _Triangulation(vertices[keep] - 3, neighbors.astype(np.int32))
+
+
+def _raise_exact_duplicates(x: np.ndarray) -> None:
+    _, first, inverse = np.unique(x, axis=0, return_index=True, return_inverse=True)
+    rows = np.flatnonzero(first[inverse.ravel()] != np.arange(len(x)))
+    if rows.size:
+        raise_duplicates(x, None, _Coplanar(np.c_[rows, rows, first[inverse.ravel()][rows]]))
+
+
+class _Coplanar(NamedTuple):
+    coplanar: np.ndarray
+
+
+def _shull(x: np.ndarray):
+    import shull
+
+    return shull.Delaunay(np.ascontiguousarray(x, dtype=np.float64))
+
+
+BUILDERS = {"cdt": _cdt, "shull": _shull}
+
+
+# --- the check --------------------------------------------------------------------------
+
+
+def check_triangulation(tri, x: np.ndarray) -> str | None:
+    """None if `tri` is a valid triangulation of the convex hull of `x`, else what is wrong:
+    indices in range, every walker a vertex, every simplex positively oriented, adjacency
+    symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1)."""
+    s, adj = np.asarray(tri.simplices), np.asarray(tri.neighbors)
+    n, d = x.shape
+    if s.ndim != 2 or s.shape[1] != d + 1 or adj.shape != s.shape or len(s) == 0:
+        return f"simplices of shape {s.shape}, adjacency {adj.shape}"
+    if s.min() < 0 or s.max() >= n or np.bincount(s.ravel(), minlength=n).min() == 0:
+        return "a vertex index out of range or a walker left out"
+    if not (_volumes(x, s) > 0).all():
+        return f"{int((_volumes(x, s) <= 0).sum())} simplices not positively oriented"
+    if adj.max() >= len(s) or not _symmetric(adj):
+        return "the simplex adjacency is not symmetric"
+    hull_faces = int((adj < 0).sum())
+    if d == 2 and len(s) != 2 * n - hull_faces - 2:
+        return f"{len(s)} triangles where Euler's formula needs {2 * n - hull_faces - 2}"
+    if d == 3:
+        edges = len(tri.vertex_neighbor_vertices[1]) // 2
+        if n - edges + (4 * len(s) + hull_faces) // 2 - len(s) != 1:
+            return "Euler's characteristic V - E + F - S is not 1"
+    return None
+
+
+def _symmetric(adj: np.ndarray) -> bool:
+    """Whether every simplex lists, among its own neighbours, each simplex that lists it."""
+    flat = adj.ravel()
+    listed = flat >= 0
+    owner = np.repeat(np.arange(len(adj), dtype=adj.dtype), adj.shape[1])[listed]
+    back = adj[flat[listed]]
+    return bool(np.logical_or.reduce([back[:, k] == owner for k in range(adj.shape[1])]).all())
+
+
+def _volumes(x: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Signed volumes (times d!) of simplices `s` of `x`, in float64 coordinates centred on
+    the mean (column gathers: 4x faster than gathering rows)."""
+    cols = [c - c.mean() for c in np.asarray(x, np.float64).T]
+    e = [[c[s[:, a]] - c[s[:, 0]] for c in cols] for a in range(1, s.shape[1])]
+    if x.shape[1] == 2:
+        return e[0][0] * e[1][1] - e[0][1] * e[1][0]
+    return (e[0][0] * (e[1][1] * e[2][2] - e[1][2] * e[2][1]) - e[0][1] * (e[1][0] * e[2][2] - e[1][2] * e[2][0])
+            + e[0][2] * (e[1][0] * e[2][1] - e[1][1] * e[2][0]))
