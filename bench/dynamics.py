@@ -51,8 +51,10 @@ def best_of(fn, repeats=3):
 class QhullClock:
     """Wall time spent inside scipy's Delaunay constructor (Qhull) while enabled."""
 
+    module, name = jaxgeom.tessellation._triangulators, "Delaunay"
+
     def __init__(self):
-        self.seconds, self.calls, self._real = 0.0, 0, jaxgeom.tessellation._delaunay.Delaunay
+        self.seconds, self.calls, self._real = 0.0, 0, getattr(self.module, self.name)
 
     def __enter__(self):
         def timed(*args, **kwargs):
@@ -63,11 +65,17 @@ class QhullClock:
                 self.seconds += time.perf_counter() - start
                 self.calls += 1
 
-        jaxgeom.tessellation._delaunay.Delaunay = timed
+        setattr(self.module, self.name, timed)
         return self
 
     def __exit__(self, *exc):
-        jaxgeom.tessellation._delaunay.Delaunay = self._real
+        setattr(self.module, self.name, self._real)
+
+
+class TriangulatorClock(QhullClock):
+    """Wall time spent triangulating (the backend, its check, a fallback) while enabled."""
+
+    module, name = jaxgeom.tessellation._delaunay, "triangulate"
 
 
 def qhull_alone(positions, repeats=5) -> float:
@@ -113,7 +121,8 @@ def run(state, params, n_steps, rebuild_every, observe, rebuild="host", repeats=
 
 def throughput(n: int, n_steps: int) -> dict:
     rng = np.random.default_rng(0)
-    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0)
+    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0,
+                               triangulator="qhull")
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     row = {"n": n, "n_steps": n_steps}
     for observe, label in ((jaxgeom.OBSERVABLES, "all_observables"), (OBS_FITNESS, "fitness_observables")):
@@ -125,7 +134,8 @@ def throughput(n: int, n_steps: int) -> dict:
 
 def rebuild_strategy(n: int, n_steps: int) -> dict:
     rng = np.random.default_rng(1)
-    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0)
+    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0,
+                               triangulator="qhull")
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     out = {"n": n, "n_steps": n_steps}
     for rebuild in ("host", "callback"):
@@ -135,6 +145,52 @@ def rebuild_strategy(n: int, n_steps: int) -> dict:
         out[f"{rebuild}_qhull_alone_seconds_per_step"] = timed["qhull_alone_seconds_per_step"]
     print(json.dumps(out))
     return out
+
+
+def timed_steps(state, params, n_steps, observe, rebuild, repeats=3) -> dict:
+    """Seconds per step (rebuild every step): a warm-up, then `repeats` runs; median, min,
+    max, and the median time inside the triangulator per step."""
+    kwargs = dict(n_steps=n_steps, rebuild_every=1, observe=observe, rebuild=rebuild)
+    jaxgeom.simulate(rastrigin, state, params, **kwargs)
+    per_step, inside, fallbacks = [], [], 0
+    for _ in range(repeats):
+        with TriangulatorClock() as clock:
+            start = time.perf_counter()
+            final, history = jaxgeom.simulate(rastrigin, state, params, **kwargs)
+            jax.block_until_ready(final.positions)
+            per_step.append((time.perf_counter() - start) / n_steps)
+        inside.append(clock.seconds / n_steps)
+        fallbacks += int(history["n_triangulator_fallbacks"])
+    return {"seconds_per_step": float(np.median(per_step)), "min": min(per_step), "max": max(per_step),
+            "triangulating_seconds_per_step": float(np.median(inside)), "n_triangulator_fallbacks": fallbacks}
+
+
+def triangulator_matrix(triangulators, configs) -> list:
+    """Every configuration with each triangulator, side by side in this run (float32)."""
+    params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
+    rows = []
+    for label, d, n, n_steps, observe, rebuild in configs:
+        rng = np.random.default_rng(0)
+        x = rng.uniform(-5.12, 5.12, (n, d)).astype(np.float32)
+        row = {"config": label, "dim": d, "n": n, "n_steps": n_steps, "rebuild": rebuild}
+        for t in triangulators:
+            if t != "qhull" and jaxgeom.tessellation._triangulators.resolve_triangulator(t, d) == "qhull":
+                continue
+            state = jaxgeom.init_swarm(rastrigin, x, key=0, triangulator=t)
+            row[t] = dict(timed_steps(state, params, n_steps, observe, rebuild), backend=state.triangulator)
+        base = row["qhull"]["seconds_per_step"]
+        row["speedup_over_qhull"] = {t: base / row[t]["seconds_per_step"] for t in triangulators if t in row}
+        print(json.dumps({"config": label, **{t: round(v, 2) for t, v in row["speedup_over_qhull"].items()},
+                          **{f"{t}_ms": round(1e3 * row[t]["seconds_per_step"], 2) for t in triangulators if t in row}}))
+        rows.append(row)
+    return rows
+
+
+MATRIX = [("2D N=1e4 fitness observables", 2, 10_000, 20, OBS_FITNESS, "host"),
+          ("2D N=1e4 every observable", 2, 10_000, 20, None, "host"),
+          ("2D N=1e4 callback", 2, 10_000, 20, OBS_FITNESS, "callback"),
+          ("2D N=1e5 fitness observables", 2, 100_000, 5, OBS_FITNESS, "host"),
+          ("3D N=1e4 fitness observables", 3, 10_000, 10, OBS_FITNESS, "host")]
 
 
 def numpy_viscous_force(x, v, nbrs, nu, ell):
@@ -172,8 +228,20 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
     parser.add_argument("--steps", type=int, nargs="+", default=[40, 10], help="timed steps per size")
     parser.add_argument("--force-n", type=int, default=1_000_000)
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "dynamics.json")
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--triangulators", nargs="+", help="only the step matrix (MATRIX), with these backends "
+                        "side by side (e.g. qhull cdt shull auto), into results/dynamics_triangulators.json")
     args = parser.parse_args()
+    if args.triangulators:
+        configs = [c[:4] + (jaxgeom.OBSERVABLES if c[4] is None else c[4],) + c[5:] for c in MATRIX]
+        result = {"machine": {"platform": platform.platform(), "cpus": jax.device_count("cpu"),
+                              "jax": jax.__version__, "dtype": "float32"},
+                  "matrix": triangulator_matrix(["qhull"] + [t for t in args.triangulators if t != "qhull"], configs)}
+        out = args.out or Path(__file__).parent / "results" / "dynamics_triangulators.json"
+        out.write_text(json.dumps(result, indent=2))
+        print(f"wrote {out}")
+        return
+    args.out = args.out or Path(__file__).parent / "results" / "dynamics.json"
     result = {"machine": {"platform": platform.platform(), "cpus": jax.device_count("cpu"),
                           "jax": jax.__version__, "dtype": "float32"},
               "throughput": [throughput(n, s) for n, s in zip(args.sizes, args.steps)],

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -411,17 +412,36 @@ def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
     """Host pre-check for `positive_measure_contacts` (a compilation of seconds per shape):
     zero-measure contacts exist only inside a Delaunay cell split into several simplices,
     which then share a circumcentre (or are flat). Centres are compared on a grid of 1e-9
-    mean spacings, modulo the box when periodic."""
+    mean spacings, modulo the box when periodic. In float32 the centres' own rounding makes
+    slivers look flat and near-cospherical centres coincide: those few suspects are decided
+    again in float64, where only centres within the walkers' float32 rounding still count as
+    shared (3D, N = 1e5 uniform: 5 suspects, of which 2 pairs 1e-6 spacings apart remain,
+    so the contact filter still runs there: 1.1 s)."""
     center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(tess))
-    if flat.any():
-        return True
+    suspects = flat | _shared_centers(center, tess)
+    if not suspects.any() or tess.points.dtype == np.float64:
+        return bool(suspects.any())
+    rows = np.flatnonzero(suspects)
+    coords = np.asarray(tess.points, np.float64)[np.asarray(tess.simplices)[rows]]
+    if tess.periodic:
+        coords = coords + np.asarray(tess.simplex_shifts)[rows] * np.asarray(tess.box_lengths, np.float64)
+    center64, radius = _circumballs(coords)
+    # the walkers' own float32 rounding moves truly shared centres apart by ~eps32 |x|
+    rounding = 4 * float(np.finfo(np.float32).eps) * float(np.abs(coords).max())
+    return bool(not np.isfinite(radius).all() or _shared_centers(center64, tess, rounding).any())
+
+
+def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0.0) -> np.ndarray:
+    """(S,) bool: centres that another centre shares on a grid of 1e-9 mean spacings (or
+    `tolerance`, if coarser)."""
     x = np.asarray(tess.points, np.float64)
     if tess.periodic:
         box = np.asarray(tess.box, np.float64)
         center = np.mod(center - box[0], box[1] - box[0])
-    keys = np.round(center / (1e-9 * mean_spacing(x))).astype(np.int64)
+    keys = np.round(center / max(1e-9 * mean_spacing(x), tolerance)).astype(np.int64)
     hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][: x.shape[1]], np.int64)  # a collision only costs time
-    return len(np.unique(hashed)) < len(hashed)
+    _, inverse, counts = np.unique(hashed, return_inverse=True, return_counts=True)
+    return counts[inverse.ravel()] > 1
 
 
 def _pad_adjacency(adjacency: np.ndarray, s_cap: int) -> np.ndarray:
@@ -453,17 +473,46 @@ def boundary_tiers(tess: Tessellation, adjacency=None):
 
 
 HULL_WALK_STEPS = 64  # a walk still going after this many simplices counts as outside
+HULL_WALK_ALL = 3  # steps taken by every simplex; the few still walking then go on alone
 
 
 def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
     """(S,) bool: whether each simplex's circumcentre lies outside the convex hull, by a
     visibility walk: from the simplex, step across the face with the most negative
     barycentric coordinate of the centre until a simplex contains it (inside) or the face
-    is on the hull (outside). Flat simplices stop at once (inside: they have no centre)."""
+    is on the hull (outside). Flat simplices stop at once (inside: they have no centre).
+    Most centres lie in or next to their simplex: after `HULL_WALK_ALL` steps of all
+    simplices, the ones still walking (near the hull) are gathered into a short buffer and
+    walk on alone (the whole array again only if the buffer overflows), which makes the walk
+    O(S) instead of O(S x longest walk): 0.2 s instead of 2.3 s at N = 1e6 (2D)."""
     n = tess.n_points
     table = jnp.concatenate([tess.points, jnp.zeros((1, tess.dim), tess.points.dtype)])
     s_count = tess.simplices.shape[0]
-    walking, inside, outside = 0, 1, 2
+    start = jnp.arange(s_count, dtype=jnp.int32)
+    state = jnp.where(tess.simplices[:, 0] < n, _WALKING, _INSIDE)
+    current, state = _hull_walk(tess, table, adjacency, centers, start, state, HULL_WALK_ALL)
+    size = min(s_count, 64 + 8 * math.isqrt(s_count))
+    (rows,) = jnp.nonzero(state == _WALKING, size=size, fill_value=s_count)
+    fits = jnp.sum(state == _WALKING) <= size
+
+    def few(state):
+        rest = HULL_WALK_STEPS - HULL_WALK_ALL
+        safe = jnp.minimum(rows, s_count - 1)
+        _, sub = _hull_walk(tess, table, adjacency, centers[safe], current[safe],
+                            jnp.where(rows < s_count, state[safe], _INSIDE), rest)
+        return state.at[rows].set(sub, mode="drop")
+
+    def all_(state):
+        return _hull_walk(tess, table, adjacency, centers, current, state, HULL_WALK_STEPS - HULL_WALK_ALL)[1]
+
+    return jax.lax.cond(fits, few, all_, state) != _INSIDE
+
+
+_WALKING, _INSIDE, _OUTSIDE = 0, 1, 2
+
+
+def _hull_walk(tess, table, adjacency, centers, current, state, steps: int):
+    """At most `steps` steps of the visibility walk of `centers` from simplices `current`."""
 
     def step(carry):
         k, current, state = carry
@@ -472,16 +521,14 @@ def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
         worst = jnp.argmin(coords, axis=0)
         done = jnp.min(coords, axis=0) >= -1e-9
         across = adjacency[current, worst]
-        new_state = jnp.where(done, inside, jnp.where(across < 0, outside, walking))
-        state = jnp.where(state == walking, new_state, state)
-        current = jnp.where(state == walking, across, current)
+        new_state = jnp.where(done, _INSIDE, jnp.where(across < 0, _OUTSIDE, _WALKING))
+        state = jnp.where(state == _WALKING, new_state, state)
+        current = jnp.where(state == _WALKING, across, current)
         return k + 1, current, state
 
-    start = jnp.arange(s_count, dtype=jnp.int32)
-    state0 = jnp.where(tess.simplices[:, 0] < n, walking, inside)
-    _, _, state = jax.lax.while_loop(lambda c: (c[0] < HULL_WALK_STEPS) & jnp.any(c[2] == walking), step,
-                                     (0, start, state0))
-    return state != inside
+    _, current, state = jax.lax.while_loop(lambda c: (c[0] < steps) & jnp.any(c[2] == _WALKING), step,
+                                           (0, current, state))
+    return current, state
 
 
 def _barycentric(verts, point):
