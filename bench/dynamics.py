@@ -174,7 +174,8 @@ def triangulator_matrix(triangulators, configs) -> list:
         x = rng.uniform(-5.12, 5.12, (n, d)).astype(np.float32)
         row = {"config": label, "dim": d, "n": n, "n_steps": n_steps, "rebuild": rebuild}
         for t in triangulators:
-            if t != "qhull" and jaxgeom.tessellation._triangulators.resolve_triangulator(t, d) == "qhull":
+            backends = jaxgeom.tessellation._triangulators
+            if t != "auto" and d not in backends.DIMENSIONS[t]:
                 continue
             state = jaxgeom.init_swarm(rastrigin, x, key=0, triangulator=t)
             row[t] = dict(timed_steps(state, params, n_steps, observe, rebuild), backend=state.triangulator)

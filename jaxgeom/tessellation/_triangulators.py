@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from ..base._checks import check_choice
+from ..base._checks import check_choice, columns
 
 TRIANGULATORS = ("auto", "qhull", "cdt", "shull")
 DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3)}
@@ -124,7 +124,8 @@ def qhull_input(x: np.ndarray) -> np.ndarray:
     """Points as handed to Qhull: centred on their bounding box and scaled to unit size (a
     similarity, so the Delaunay triangulation is unchanged). Qhull's in-sphere tests lose
     digits with |x|^2; a grid of spacing 1e-6 centred at 1e6 is otherwise refused."""
-    lo, hi = x.min(axis=0), x.max(axis=0)
+    cols = columns(x)
+    lo, hi = cols.min(axis=1), cols.max(axis=1)
     extent = float(np.max(hi - lo))
     return np.ascontiguousarray((x - 0.5 * (lo + hi)) / (extent if extent > 0 else 1.0), dtype=np.float64)
 
