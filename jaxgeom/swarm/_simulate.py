@@ -94,7 +94,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     - `rebuild`: "host" (default: fastest on CPU), "callback" (jittable and differentiable
       end to end, vmap runs the lanes' Qhull calls one after another) or "device" (the
       same, with the 2D graph rebuilt in JAX and Qhull only on the steps the device rebuild
-      cannot certify; module docstring).
+      cannot certify; module docstring). Host triangulations (every mode) use the swarm's
+      `state.triangulator`, chosen in `init_swarm`.
     - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
       component (`bulk_spectral_gap`) and the number of components at every step whose
       count `state.step` is a multiple of M (host, rebuild="host"; a continued call keeps
