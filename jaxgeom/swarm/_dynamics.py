@@ -139,8 +139,9 @@ class SwarmState(eqx.Module):
     - `eps_factor`: current eps_Sigma / params.eps_sigma (10^raises).
     - `status`: int32 bit flags of problems met so far (`REBUILD_FAILED`: a traced
       rebuild could not triangulate the walkers and kept the previous graph).
-    - `n_separated`: walkers moved apart because they coincided for Qhull (cloning with
-      a tiny jitter); each is moved by `SEPARATION` mean spacings or the dtype's resolution.
+    - `n_separated`: walkers moved apart because they coincided for the triangulator (cloning
+      with a tiny jitter: Qhull merges walkers closer than its precision, CDT and shull only
+      exact duplicates); each is moved by `SEPARATION` mean spacings or the dtype's resolution.
     - `n_triangulator_fallbacks`: host triangulations in which `triangulator` failed (raised,
       or its result failed the check) and Qhull built the graph instead.
     - `triangulator`: static, the host triangulator of the Delaunay rebuilds ("qhull",

@@ -4,7 +4,7 @@ allocation on the host, updates that keep the shapes, an overflow flag).
 
 - `allocate_graph(x, graph, k, capacity)`: host; the first graph, or a rebuild that may
   grow the capacity to a larger bucket (`capacity_with_headroom`, the one growth rule).
-- `update_host(state, k)`: host, between jitted chunks; Qhull (or the k-d tree) on the
+- `update_host(state, k)`: host, between jitted chunks; `state.triangulator` (or the k-d tree) on the
   final positions, capacity grown when needed.
 - `update_in_trace(state, k)`: inside a trace, through `jax.pure_callback`; the shapes
   cannot change, so a graph that does not fit sets `tess.overflow` and keeps the old one.
@@ -12,7 +12,7 @@ allocation on the host, updates that keep the shapes, an overflow flag).
   a rebuild it cannot certify falls back to `update_in_trace` for that step.
 - `grown(tess)`: the next capacity after an overflow.
 
-Walkers that coincide for Qhull (cloning puts them there) are moved apart first
+Walkers that coincide for the triangulator (cloning puts them there) are moved apart first
 (`separate_coincident`) and counted.
 """
 
@@ -205,9 +205,9 @@ def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved,
 
 def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     """Rebuild inside a trace with `jax.pure_callback` (`vmap_method="sequential"`). A graph
-    that does not fit keeps the old arrays and sets `tess.overflow`; walkers Qhull cannot
+    that does not fit keeps the old arrays and sets `tess.overflow`; walkers the triangulator cannot
     triangulate keep the old graph and set `REBUILD_FAILED` in `state.status`. In 2D the
-    callback runs Qhull alone and the neighbour rows are derived in the trace."""
+    callback runs the triangulator alone and the neighbour rows are derived in the trace."""
     tess = state.tess
     if tess.simplices is not None and tess.dim == 2 and not tess.periodic:
         return _callback_planar_rebuild(state)
@@ -250,7 +250,7 @@ def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bo
 
 
 def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
-    """2D rebuild in a trace: the callback returns Qhull's triangles, the rows are built here."""
+    """2D rebuild in a trace: the callback returns the triangulator's triangles, the rows are built here."""
     tess = state.tess
     cap = tess.capacity
 
