@@ -165,6 +165,17 @@ def test_lattices_keep_exact_volumes_and_positive_measure_neighbours(name, d, pe
         assert all(len(s) == 2 * d for s in neighbor_sets(ours))
 
 
+def test_collinear_hull_walkers_make_cdt_fall_back_to_qhull():
+    """A sheared hexagonal lattice: its bottom row is an exactly collinear hull side, and CDT
+    keeps zero-area triangles along it. The check rejects them; Qhull builds the graph, warned."""
+    i, j = np.meshgrid(np.arange(14), np.arange(14))
+    z = np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], -1).reshape(-1, 2) @ np.array([[1.0, 0.0], [0.15, 1.0]])
+    assert "flat" in check_triangulation(backends._cdt(z), z)
+    with pytest.warns(RuntimeWarning, match="cdt's triangulation failed its check: .* flat"):
+        ours = jaxgeom.delaunay(z, triangulator="cdt")
+    assert neighbor_sets(ours) == neighbor_sets(jaxgeom.delaunay(z, triangulator="qhull"))
+
+
 @pytest.mark.parametrize("name, d", CASES)
 def test_far_from_the_origin(rng, name, d):
     """A 1e15 offset: the walkers stay resolved (spacing 1e4 >> the ulp 0.125)."""
@@ -190,7 +201,7 @@ def test_the_check_accepts_delaunay_and_names_each_defect(rng):
     tri = backends._cdt(x)
     assert check_triangulation(tri, x) is None
     bad = backends._Triangulation(tri.simplices[:, [0, 2, 1]], tri.neighbors[:, [0, 2, 1]])
-    assert "positively oriented" in check_triangulation(bad, x)
+    assert "flat or negatively oriented" in check_triangulation(bad, x)
     assert "left out" in check_triangulation(tri, np.vstack([x, [[5.0, 5.0]]]))
     dropped = backends._Triangulation(tri.simplices[1:], tri.neighbors[1:])
     assert check_triangulation(dropped, x) is not None
@@ -200,8 +211,8 @@ def test_the_check_accepts_delaunay_and_names_each_defect(rng):
     assert "out of range" in check_triangulation(out, x)
     x3 = rng.random((200, 3))
     tri3 = backends.qhull(x3)[0]
-    assert "positively oriented" in check_triangulation(tri3, x3)  # Qhull's 3D simplices are not oriented
-    flip = backends._volumes(x3, tri3.simplices) < 0
+    assert "flat or negatively oriented" in check_triangulation(tri3, x3)  # Qhull's 3D simplices are not oriented
+    flip = backends._volumes(x3, tri3.simplices)[0] < 0
     oriented = backends._Triangulation(np.where(flip[:, None], tri3.simplices[:, [1, 0, 2, 3]], tri3.simplices),
                                        np.where(flip[:, None], tri3.neighbors[:, [1, 0, 2, 3]], tri3.neighbors))
     assert check_triangulation(oriented, x3) is None
