@@ -249,7 +249,7 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
     if s.min() < 0 or s.max() >= n or np.bincount(s.ravel(), minlength=n).min() == 0:
         return "a vertex index out of range or a walker left out"
     volume, size = _volumes(x, s)
-    flat = volume <= 1e-10 * size
+    flat = volume <= 8 * np.finfo(np.float64).eps * size  # zero, up to the rounding of its terms
     if flat.any():
         return f"{int(flat.sum())} simplices flat or negatively oriented"
     if adj.max() >= len(s) or not _symmetric(adj):
@@ -275,7 +275,7 @@ def _symmetric(adj: np.ndarray) -> bool:
 
 def _volumes(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Signed volumes (times d!) of simplices `s` of `x` in float64, and the size of their
-    terms (a volume within 1e-10 of it counts as flat: its sign is rounding)."""
+    terms (a volume within 8 float64 epsilons of it counts as flat: its sign is rounding)."""
     cols = np.asarray(x, np.float64).T
     e = [[c[s[:, a]] - c[s[:, 0]] for c in cols] for a in range(1, s.shape[1])]
     if x.shape[1] == 2:
