@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 from scipy.spatial import Delaunay
 
 import jaxgeom
+from graph import timed  # median and spread of warm runs (bench/graph.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -90,13 +91,8 @@ def bench_one(d: int, n: int, repeat: int, seed: int) -> dict:
 
 
 def median_spread(fn, repeat: int) -> dict:
-    jax.block_until_ready(fn())
-    runs = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - start)
-    return {"median_s": float(np.median(runs)), "min_s": min(runs), "max_s": max(runs)}
+    median, (low, high) = timed(fn, repeat)
+    return {"median_s": median, "min_s": low, "max_s": high}
 
 
 def triangulator_rows(d: int, n: int, repeat: int, seed: int) -> dict:

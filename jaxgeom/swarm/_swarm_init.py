@@ -76,10 +76,9 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     key = _as_key(key)
     backend = resolve_triangulator(triangulator, x.shape[1])
     check_fitness(fitness, x)
-    fallbacks = 0
     if capacity is not None and graph == "delaunay":  # pinned: raises CapacityError when the graph does not fit
-        tess, fallbacks = build_delaunay(x, capacity=capacity, triangulator=backend)
-        fallbacks = len(fallbacks)
+        tess, reasons = build_delaunay(x, capacity=capacity, triangulator=backend)
+        fallbacks = len(reasons)
     else:
         tess, _, x, _, fallbacks = allocate_graph(x, graph, k, None, backend)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set

@@ -90,7 +90,7 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
         reason = f"{name} raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
     else:
         if len(tri.coplanar):
-            raise_duplicates(x, None, tri)
+            raise_duplicates(x, tri.coplanar[:, 0], tri.coplanar[:, 2])
         reason = check_triangulation(tri, x)
         if reason is None:
             return Triangulated(tri, None, None)
@@ -106,7 +106,8 @@ def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
     number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
     n, d = x.shape
     bits = max(1, min(16, 60 // d))
-    lo, hi = x.min(axis=0), x.max(axis=0)
+    cols = columns(x)
+    lo, hi = cols.min(axis=1), cols.max(axis=1)
     q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
     code = np.zeros(n, np.uint64)
     for b in range(bits):
@@ -145,14 +146,13 @@ def qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
             f"Spread the walkers out or add jitter. Qhull said: {first_line}"
         ) from None
     if len(tri.coplanar):
-        raise_duplicates(x, perm, tri)
+        rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
+        raise_duplicates(x, *((rows, partners) if perm is None else (perm[rows], perm[partners])))
     return tri, perm
 
 
-def raise_duplicates(x: np.ndarray, perm: np.ndarray | None, tri) -> None:
-    rows, partners = tri.coplanar[:, 0], tri.coplanar[:, 2]
-    if perm is not None:
-        rows, partners = perm[rows], perm[partners]
+def raise_duplicates(x: np.ndarray, rows: np.ndarray, partners: np.ndarray) -> None:
+    """`CoincidentPointsError` for walkers `rows` left out, each coinciding with `partners`."""
     i, j = rows[0], partners[0]
     kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
     raise CoincidentPointsError(
@@ -217,11 +217,7 @@ def _raise_exact_duplicates(x: np.ndarray) -> None:
     _, first, inverse = np.unique(x, axis=0, return_index=True, return_inverse=True)
     rows = np.flatnonzero(first[inverse.ravel()] != np.arange(len(x)))
     if rows.size:
-        raise_duplicates(x, None, _Coplanar(np.c_[rows, rows, first[inverse.ravel()][rows]]))
-
-
-class _Coplanar(NamedTuple):
-    coplanar: np.ndarray
+        raise_duplicates(x, rows, first[inverse.ravel()][rows])
 
 
 def _shull(x: np.ndarray):
