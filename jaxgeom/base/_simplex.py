@@ -334,3 +334,12 @@ def small_cholesky(m):
         for i in range(j + 1, d):
             low[i][j] = (a[i][j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
     return jnp.stack([jnp.stack(row, axis=-1) for row in low], axis=-2)
+
+
+def small_positive_definite(m):
+    """Whether symmetric (..., d, d) arrays are positive definite: every pivot of their
+    Cholesky elimination is > 0 (Sylvester). A positive determinant alone is not enough
+    from d = 3 on (two negative eigenvalues)."""
+    low = small_cholesky(m)
+    pivots = jnp.diagonal(low, axis1=-2, axis2=-1)
+    return jnp.all(pivots > 0, axis=-1)  # NaN pivots compare False

@@ -4,6 +4,7 @@ geodesic distance), and shortest paths along graph edges (the graph distance).""
 from __future__ import annotations
 
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -14,7 +15,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from ..base._checks import check_choice, check_positive
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
-from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances
+from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, closing_sq_lengths, heat_distances
 from ._metric import edge_lengths
 
 GEODESIC_METHODS = ("heat", "dijkstra", "bellman_ford")
@@ -39,7 +40,12 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
           Converges to the geodesic distance of the metric as the walkers refine (flat
           space, tier-2 walkers, median relative error in 2D: 0.5% at N = 1e4, 0.19% at
           1e5; bench/results/graph.json). Jittable and differentiable in the positions,
-          the metric and `t` (implicit differentiation of the linear solves).
+          the metric and `t` (implicit differentiation of the linear solves). Where the
+          metric varies faster than the walkers resolve it, a simplex's metric edge lengths
+          may close no simplex (a triangle inequality fails): that simplex takes the mean of
+          its edge metrics (a constant metric, so it closes) and its negative cotangent
+          weights are set to 0; a warning counts such simplices. Walkers cut off from the
+          source's component of the weight graph get NaN.
         - "dijkstra": shortest paths along graph edges of metric length
           (`scipy.sparse.csgraph.dijkstra` on the host). This is the *graph* distance: on a
           random Delaunay graph it converges to about 1.04x the geodesic distance (the
@@ -99,12 +105,25 @@ def _heat(tess: Tessellation, sources, metric, *, mode: str, t, boundary: str, s
         check_positive(t, "t", " (the heat time step, a length squared; None picks N^(1/(2d)) h^2)")
     if solver == "auto":
         solver = "direct" if jax.default_backend() == "cpu" else "cg"
-    return _heat_jit(tess, sources, metric, mode, t, boundary, solver)
+    distances, n_open = _heat_jit(tess, sources, metric, mode, t, boundary, solver)
+    if not isinstance(n_open, jax.core.Tracer) and int(n_open) > 0:
+        warnings.warn(f"geodesic_distances: in {int(n_open)} of {int(jnp.sum(tess.simplex_mask))} simplices the metric "
+                      "edge lengths do not close (the metric varies faster than the walkers resolve it); those "
+                      "simplices take the mean of their edge metrics and non-negative cotangent weights. Heat "
+                      "distances there are coarse: add walkers, or compare method='dijkstra' (the graph distance, "
+                      "an upper bound).", stacklevel=4)
+    if not isinstance(distances, jax.core.Tracer) and bool(jnp.all(jnp.isnan(distances))):
+        warnings.warn("geodesic_distances: the heat method's linear systems were singular for this metric; every "
+                      "distance is NaN. Use method='dijkstra'.", stacklevel=4)
+    return distances
 
 
 @eqx.filter_jit
 def _heat_jit(tess, sources, metric, mode, t, boundary, solver):
-    return heat_distances(tess, sources, metric, mode=mode, t=t, boundary=boundary, solver=solver)
+    """Distances, and how many simplices' metric edge lengths do not close (said by `_heat`)."""
+    closes = closing_sq_lengths(tess, metric, mode)[1]
+    n_open = jnp.sum(~closes & tess.simplex_mask, dtype=jnp.int32)
+    return heat_distances(tess, sources, metric, mode=mode, t=t, boundary=boundary, solver=solver), n_open
 
 
 def _check_sources(sources, n: int):

@@ -38,9 +38,9 @@ try:
 except ImportError:  # no wheel for this platform: SuperLU alone
     cholespy = None
 
-from ..base._simplex import safe_sqrt, small_adjugate, small_det
+from ..base._simplex import safe_sqrt, small_adjugate, small_det, small_positive_definite
 from ..tessellation._graph import Tessellation
-from ._metric import edge_pairs, simplex_sq_length_columns
+from ._metric import edge_pairs, simplex_sq_length_columns, simplex_sq_lengths_with_references
 
 HEAT_BOUNDARIES = ("mean", "neumann", "dirichlet")
 HEAT_SOLVERS = ("auto", "direct", "cg")
@@ -62,6 +62,7 @@ class HeatOperators(eqx.Module):
     - `volumes`: (S,) metric volumes (0 where invalid).
     - `mass`: (N,) lumped mass.
     - `t`: () heat time step.
+    - `closes`: (S,) whether the simplex's own metric edge lengths closed (`closing_sq_lengths`).
     """
 
     simplices: Int[Array, "S d1"]
@@ -70,6 +71,7 @@ class HeatOperators(eqx.Module):
     volumes: Float[Array, " S"]
     mass: Float[Array, " N"]
     t: Float[Array, ""]
+    closes: Bool[Array, " S"]
 
     @property
     def n_points(self) -> int:
@@ -89,9 +91,9 @@ def default_time_step(mean_edge, n: int, d: int):
 def heat_operators(tess: Tessellation, metric=None, *, mode: str = "full", t=None) -> HeatOperators:
     """Assemble [`HeatOperators`][] from the squared metric edge lengths of the simplices."""
     d, n = tess.dim, tess.n_points
-    columns = simplex_sq_length_columns(tess, metric, mode=mode)
-    sq = jnp.stack(columns, axis=1)
     valid = tess.simplex_mask
+    sq, closes = closing_sq_lengths(tess, metric, mode)
+    columns = [sq[:, k] for k in range(sq.shape[1])]
     gram = _gram(columns, d)
     # scale each simplex to unit size so that det G (length^2d) neither under- nor overflows. The
     # results do not depend on the scale's value, so it carries no gradient (reduce_max's
@@ -101,17 +103,49 @@ def heat_operators(tess: Tessellation, metric=None, *, mode: str = "full", t=Non
     scale = jnp.where(scale > 0, scale, 1.0)
     unit = gram / scale[:, None, None]
     det = small_det(unit)
-    ok = valid & (det > 0)
+    ok = valid & (det > 0) & small_positive_definite(unit)
     safe_det = jnp.where(ok, det, 1.0)
     inverse = jnp.where(ok[:, None, None], small_adjugate(unit) / (safe_det * scale)[:, None, None], 0.0)
     volumes = jnp.where(ok, safe_sqrt(safe_det) * scale ** (d / 2) / math.factorial(d), 0.0)
     stiffness = volumes[:, None, None] * _expand_barycentric(inverse)
+    stiffness = jnp.where(closes[:, None, None], stiffness, nonnegative_weights(stiffness))
     mass = jax.ops.segment_sum(jnp.repeat(volumes / (d + 1), d + 1), tess.simplices.ravel(), num_segments=n)
     if t is None:
         edges = jnp.where(valid[:, None], safe_sqrt(sq), 0.0)
         mean_edge = jnp.sum(edges) / jnp.maximum(jnp.sum(valid, dtype=jnp.int32) * sq.shape[1], 1).astype(sq.dtype)
         t = default_time_step(mean_edge, n, d)
-    return HeatOperators(tess.simplices, stiffness, inverse, volumes, mass, jnp.asarray(t, sq.dtype))
+    return HeatOperators(tess.simplices, stiffness, inverse, volumes, mass, jnp.asarray(t, sq.dtype), closes)
+
+
+def closing_sq_lengths(tess: Tessellation, metric, mode: str):
+    """(S, P) squared metric edge lengths that close every simplex of positive Euclidean
+    volume, and (S,) whether a simplex's own edge lengths closed.
+
+    Each edge is measured in its own metric, as the curvature measures it. Where those
+    metrics differ so much along a simplex that its lengths violate a triangle (Cayley-Menger)
+    inequality, G not positive definite (the metric varies on a scale shorter than the edges: a clipped
+    Hessian metric across Rastrigin's wells with a few hundred walkers), the simplex takes
+    the mean of its edge metrics instead: a constant metric, in which a nondegenerate
+    simplex always closes. So the heat operators keep every simplex and stay connected.
+    """
+    if metric is None:
+        sq = jnp.stack(simplex_sq_length_columns(tess, metric, mode=mode), axis=1)
+        return sq, jnp.ones(sq.shape[0], bool)
+    every_edge = tuple(range(len(edge_pairs(tess.dim))))
+    sq_g, (sq_mean,) = simplex_sq_lengths_with_references(tess, metric, mode=mode, hinge_edges=(every_edge,))
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(sq_g), axis=1, keepdims=True))
+    unit = sq_g / jnp.where(scale > 0, scale, 1.0)
+    closes = small_positive_definite(_gram([unit[:, k] for k in range(unit.shape[1])], tess.dim)) | ~tess.simplex_mask
+    return jnp.where(closes[:, None], sq_g, sq_mean), closes
+
+
+def nonnegative_weights(stiffness):
+    """The local stiffness with its negative edge weights (positive off-diagonal entries) set to
+    0 and the diagonal refilled so that rows still sum to 0: a graph Laplacian with non-negative
+    weights, whose heat flow cannot undershoot (the discrete maximum principle)."""
+    eye = jnp.eye(stiffness.shape[-1], dtype=stiffness.dtype)
+    off = jnp.minimum(stiffness, 0.0) * (1.0 - eye)
+    return off - eye * jnp.sum(off, axis=-1, keepdims=True)
 
 
 def _gram(columns, d: int):
@@ -297,8 +331,20 @@ def new_factor(matrix, backend: str = DIRECT_BACKEND):
             return _Cholesky(matrix)
         except (RuntimeError, ValueError):
             pass
-    return scipy.sparse.linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                    options={"SymmetricMode": True})
+    try:
+        return scipy.sparse.linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                        options={"SymmetricMode": True})
+    except RuntimeError:  # a zero pivot without pivoting: an indefinite matrix, LU with partial pivoting
+        pass
+    try:
+        return scipy.sparse.linalg.splu(matrix.tocsc())
+    except RuntimeError:  # exactly singular: NaN distances, said by geodesic_distances
+        return _Singular()
+
+
+class _Singular:
+    def solve(self, rhs):
+        return np.full(np.shape(rhs), np.nan)
 
 
 class _Cholesky:
@@ -335,10 +381,12 @@ def heat_distances(tess: Tessellation, sources: Int[Array, " M"], metric=None, *
     everyone = jnp.ones(n, bool)
     inside = everyone if tess.periodic else ~tess.hull
     boundary = "neumann" if tess.periodic else boundary  # a torus has no boundary
-    # pinning walker 0 (adding c e_0 e_0^T) makes K invertible; with sum(b) = 0 the pinned
-    # solution solves K phi = b exactly, with phi_0 = 0
+    # pinning one walker per connected component (adding c e_r e_r^T) makes K invertible; with
+    # sum(b) = 0 on a component the pinned solution solves K phi = b there exactly, phi_r = 0
     k_diag = stiffness_diagonal(op)
-    pin = jnp.zeros(n, dtype).at[0].set(jnp.where(k_diag[0] > 0, k_diag[0], 1.0))
+    component = component_labels(op)
+    root = component == jnp.arange(n, dtype=component.dtype)
+    pin = jnp.where(root, jnp.where(k_diag > 0, k_diag, 1.0), 0.0)
     poisson = LinearSystem.build(op, pin, 1.0, everyone)
     solve = _solver(solver, op, tess.dim)
     heat = _heat_step(op, solve, boundary, inside, everyone, op.t)
@@ -357,9 +405,32 @@ def heat_distances(tess: Tessellation, sources: Int[Array, " M"], metric=None, *
             b = unit_gradient_divergence(op, u, far(delta), jnp.abs(u) > floor * jnp.max(u))
         phi = solve(poisson, b, "poisson")
         distance = phi - phi.at[source].get(mode="fill", fill_value=jnp.nan)
-        return jnp.where(poisson.keep & (op.mass > 0), distance, jnp.nan)
+        reached = component == component.at[source].get(mode="fill", fill_value=-1)
+        return jnp.where(reached & poisson.keep & (op.mass > 0), distance, jnp.nan)
 
     return jax.lax.map(one, sources, batch_size=min(SOURCE_BATCH, sources.shape[0]))
+
+
+def component_labels(op: HeatOperators) -> Int[Array, " N"]:
+    """The smallest walker id of each walker's connected component in the graph of nonzero
+    stiffness entries. Only meshes with simplices that did not close (whose clamped weights
+    can cut walkers off) are searched; a mesh of closing simplices is one component
+    (Delaunay meshes are connected), labelled 0."""
+    n, d1 = op.n_points, op.simplices.shape[1]
+    linked = (op.stiffness != 0) & ~jnp.eye(d1, dtype=bool)
+
+    def sweep(state):
+        labels, _ = state
+        local = labels.at[op.simplices].get(mode="fill", fill_value=n)
+        reach = jnp.min(jnp.where(linked, local[:, None, :], n), axis=2)
+        new = jnp.minimum(labels, jax.ops.segment_min(reach.ravel(), op.simplices.ravel(), num_segments=n))
+        new = jnp.minimum(new, new[new])  # pointer jumping: a label's own label is smaller or equal
+        return new, jnp.any(new != labels)
+
+    labels = jnp.arange(n, dtype=jnp.int32)
+    search = jnp.any(~op.closes)
+    labels, _ = jax.lax.while_loop(lambda s: s[1], sweep, (labels, search))
+    return jnp.where(search, labels, 0)
 
 
 def _heat_step(op: HeatOperators, solve, boundary: str, inside, everyone, t):

@@ -11,6 +11,7 @@ import pytest
 from helpers import sphere
 
 import jaxgeom
+from jaxgeom.apps._landscapes import rastrigin
 from jaxgeom.geometry import _heat
 
 
@@ -257,6 +258,11 @@ def test_direct_backends_solve_the_assembled_systems(rng, backend):
     # a matrix that is not positive definite falls back to SuperLU
     indefinite = _heat.scipy.sparse.csr_matrix(np.array([[1.0, 2.0], [2.0, 1.0]]))
     np.testing.assert_allclose(_heat.new_factor(indefinite, backend).solve(np.array([1.0, 0.0])), [-1 / 3, 2 / 3])
+    # one that needs pivoting is solved; an exactly singular one gives NaN, not an exception
+    swap = _heat.scipy.sparse.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]]))
+    np.testing.assert_allclose(_heat.new_factor(swap, backend).solve(np.array([1.0, 2.0])), [2.0, 1.0])
+    singular = _heat.scipy.sparse.csr_matrix(np.array([[1.0, 1.0], [1.0, 1.0]]))
+    assert np.all(np.isnan(_heat.new_factor(singular, backend).solve(np.array([1.0, 0.0]))))
 
 
 def test_heat_bad_arguments(rng):
@@ -282,3 +288,48 @@ def test_gram_route_matches_simplex_volumes_in_4d(rng):
     ref = np.abs(np.linalg.det(p[:, 1:] - p[:, :1])) / math.factorial(4)
     np.testing.assert_allclose(np.asarray(op.volumes)[valid], ref, rtol=1e-10)
     assert op.stiffness.shape[1:] == (5, 5) and np.allclose(np.asarray(op.stiffness).sum(axis=2), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("dim, n", [(2, 300), (3, 400)])
+def test_heat_distances_where_the_metric_lengths_do_not_close(dim, n):
+    """A clipped Hessian metric of Rastrigin varies faster than a few hundred walkers resolve:
+    most simplices' metric edge lengths violate a triangle inequality. (Once: a singular factor
+    raised from the host callback.) Those simplices take their mean edge metric with
+    non-negative weights; the distances are finite, said to be coarse, the same with both
+    solvers, and (2D) above the bound sqrt(eps) |x - x_0| that g >= eps I gives."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-5.12, 5.12, (n, dim))
+    tess, metric = jaxgeom.delaunay(x), jaxgeom.hessian_metric(rastrigin, 0.1)
+    with pytest.warns(UserWarning, match=r"in \d+ of \d+ simplices the metric edge lengths do not close"):
+        direct = np.asarray(jaxgeom.geodesic_distances(tess, 0, metric, solver="direct"))[0]
+    with pytest.warns(UserWarning, match="do not close"):
+        cg = np.asarray(jaxgeom.geodesic_distances(tess, 0, metric, solver="cg"))[0]
+    assert np.all(np.isfinite(direct))
+    np.testing.assert_allclose(cg, direct, atol=1e-7)
+    lower = np.sqrt(0.1) * np.linalg.norm(x[1:] - x[0], axis=1)
+    graph = np.asarray(jaxgeom.geodesic_distances(tess, 0, metric, method="dijkstra"))[0]
+    if dim == 2:
+        assert np.all(direct[1:] >= lower) and np.median(direct[1:] / graph[1:]) < 1.0
+    else:  # 96% of simplices fall back: coarse, a few walkers below the bound
+        assert np.mean(direct[1:] >= lower) > 0.95 and np.median(direct[1:] / graph[1:]) < 1.5
+
+
+def test_positive_definite_is_not_a_positive_determinant():
+    """Gram matrices with two negative eigenvalues have det > 0 and are no simplex."""
+    from jaxgeom.base._simplex import small_positive_definite
+
+    m = np.array([np.diag([1.0, 2.0, 3.0]), np.diag([1.0, -2.0, -3.0]), np.diag([1.0, 0.0, 3.0])])
+    assert np.linalg.det(m[1]) > 0
+    np.testing.assert_array_equal(small_positive_definite(jnp.asarray(m)), [True, False, False])
+
+
+def test_components_of_the_weight_graph(rng):
+    """A walker whose simplices all lost their weights is its own component, pinned on its own."""
+    tess = jaxgeom.delaunay(rng.random((60, 2)))
+    op = _heat.heat_operators(tess)
+    assert np.all(np.asarray(_heat.component_labels(op)) == 0)
+    cut = np.any(np.asarray(tess.simplices) == 7, axis=1)
+    op = eqx.tree_at(lambda o: (o.stiffness, o.closes), op,
+                     (jnp.where(cut[:, None, None], 0.0, op.stiffness), jnp.asarray(~cut)))
+    labels = np.asarray(_heat.component_labels(op))
+    assert labels[7] == 7 and np.all(np.delete(labels, 7) == 0)
