@@ -126,7 +126,7 @@ def section_metric(a: Analysis) -> dict:
     if g is not None:
         lam = np.linalg.eigvalsh(np.asarray(g)[np.asarray(a.tess.interior)])
         out.update(_stats(lam[:, -1] / lam[:, 0], "tier2_condition"))
-        out["tier2_min_eigenvalue"] = float(lam[:, 0].min())
+        out["tier2_min_eigenvalue"] = float(lam[:, 0].min()) if len(lam) else np.nan  # no tier-2 walker
     return out
 
 
@@ -369,7 +369,8 @@ def add_analyze_parser(sub) -> argparse.ArgumentParser:
                          "BOX = (lower, upper)): the sampled density, the Hessian metric, the fitness values "
                          "(None: double_well for a sampled swarm; with --points no landscape, so only "
                          "landscape-free geometry is reported)")
-    an.add_argument("--beta", type=float, default=2.0, help="inverse temperature of the default sample")
+    an.add_argument("--beta", type=float, default=2.0,
+                    help="inverse temperature of the default sample (0: uniform on the box)")
     an.add_argument("--dim", type=int, default=2, help="dimension of the sampled walkers")
     an.add_argument("--n", type=int, default=5000, help="walkers sampled")
     an.add_argument("--seed", type=int, default=0, help="seed of the sample")

@@ -5,6 +5,7 @@ import jax
 import numpy as np
 import pytest
 
+import jaxgeom
 from jaxgeom.cli import main
 
 
@@ -161,3 +162,36 @@ def test_tune_refuses_bad_arguments(argv, message, capsys):
 def test_tune_reports_a_bad_start_clearly(capsys):
     assert main(["tune", "--n", "50", "--steps", "2", "--tune", "nu", "--nu", "0", "--no-progress"]) == 2
     assert "--nu must be > 0 to be tuned" in capsys.readouterr().err
+
+
+def test_analyze_metric_section_without_tier2_walkers():
+    """300 walkers in 4D have no tier-2 walker: the metric section reports NaN (once: numpy's
+    'zero-size array to reduction operation minimum')."""
+    import argparse
+
+    from jaxgeom.apps._landscapes import double_well, sample_boltzmann
+    from jaxgeom.cli._analyze import Analysis, section_metric
+
+    points, box = sample_boltzmann("double_well", 300, 4, seed=0)
+    args = argparse.Namespace(metric="hessian", landscape="double_well", eps_sigma=0.1)
+    a = Analysis(args=args, points=points, box=box, source="test", fitness=double_well)
+    a.tess = jaxgeom.delaunay(points)
+    assert not np.any(np.asarray(a.tess.interior))
+    out = section_metric(a)
+    assert np.isnan(out["tier2_min_eigenvalue"]) and out["tier2_condition_count"] == 0
+
+
+@pytest.mark.slow
+def test_analyze_in_4d_with_few_walkers(tmp_path):
+    assert main(["analyze", "--n", "300", "--dim", "4", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["graph"]["tier2"] == 0 and report["swarm"]["dim"] == 4
+
+
+@pytest.mark.parametrize("landscape", ["quadratic", "rastrigin"])
+def test_analyze_at_beta_zero_samples_the_box_uniformly(tmp_path, landscape):
+    """(Once: a hang for the double well, a misleading error for these two.)"""
+    assert main(["analyze", "--beta", "0", "--landscape", landscape, "--n", "200", "--metric", "none",
+                 "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert "exp(-0.0 V)" in report["swarm"]["source"]

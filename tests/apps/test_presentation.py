@@ -102,6 +102,33 @@ def test_sample_boltzmann_of_a_callable_has_the_gaussian_variance():
         sample_boltzmann(lambda p: jnp.sum(p**2), 10, 2)
 
 
+@pytest.mark.parametrize("name", ["double_well", "quadratic", "rastrigin", "rosenbrock"])
+def test_sample_boltzmann_at_zero_and_tiny_beta_is_uniform_on_the_box(name):
+    """exp(-0 V) = 1. (Once: beta = 0 hung the double well's sampler, NaN for the quadratic;
+    beta = 1e-300 put every quadratic walker at 0.) Uniform on [-h, h]: variance h^2 / 3."""
+    for beta in (0.0, 1e-300):
+        x, (lower, upper) = sample_boltzmann(name, 20000, 2, beta=beta, seed=0)
+        half = upper[0]
+        assert np.all(np.isfinite(x)) and np.all(np.abs(x) <= half)
+        np.testing.assert_allclose(x.var(axis=0), half**2 / 3, rtol=0.04)
+
+
+def test_double_well_sample_in_high_dimension_at_low_beta():
+    """The x_0 marginal carries Z(x_0)^(d - 1), which overflowed from d ~ 500 (then the
+    sampler looped for ever); it is normalised in log space."""
+    x, _ = sample_boltzmann("double_well", 200, 1000, beta=1e-3, seed=0)
+    assert x.shape == (200, 1000) and np.all(np.isfinite(x))
+
+
+def test_sample_boltzmann_refuses_a_beta_it_cannot_sample():
+    with pytest.raises(ValueError, match="`beta` must be"):
+        sample_boltzmann("quadratic", 10, 2, beta=-1.0)
+    with pytest.raises(ValueError, match="`beta` must be"):
+        sample_boltzmann("double_well", 10, 2, beta=np.nan)
+    with pytest.raises(ValueError, match=r"exp\(-1e\+300 V\) by rejection accepted 0 of 10 walkers in 200 rounds"):
+        sample_boltzmann("double_well", 10, 2, beta=1e300)  # a capped loop, not a hang
+
+
 def test_observable_panels_skip_constant_and_undefined_series():
     t = np.arange(5) * 0.1
     series = {"time": t, "mean_fitness": np.array([3.0, 2.0, 1.5, 1.2, 1.0]), "nu": np.full(5, 0.1),
