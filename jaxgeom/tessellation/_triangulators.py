@@ -36,6 +36,9 @@ QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MORTON_MIN_POINTS = 30_000
 
 
+COINCIDENT_RELATIVE = 1e-6  # a left-out walker this close to its partner (times the extent) coincides with it
+
+
 class CoincidentPointsError(ValueError):
     """Walkers that coincide (or nearly) for the triangulator. `rows` are the walkers it left
     out of the triangulation and `partners` the vertex each coincides with (original indices)."""
@@ -152,8 +155,20 @@ def qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
 
 
 def raise_duplicates(x: np.ndarray, rows: np.ndarray, partners: np.ndarray) -> None:
-    """`CoincidentPointsError` for walkers `rows` left out, each coinciding with `partners`."""
+    """`CoincidentPointsError` for walkers `rows` left out, each coinciding with `partners`;
+    a `ValueError` (degenerate input) where a left-out walker is far from its partner: it lies
+    within rounding of a flat piece of the swarm (walkers on a line with 1e-13 noise)."""
     i, j = rows[0], partners[0]
+    extent = float(np.max(np.ptp(x, axis=0)))
+    gap = np.max(np.abs(x[rows] - x[partners]), axis=1)
+    if np.any(gap > COINCIDENT_RELATIVE * extent):
+        far = int(np.argmax(gap))
+        what = {2: "collinear", 3: "coplanar"}.get(x.shape[1], "on a hyperplane")
+        raise ValueError(
+            f"`points` is nearly degenerate: walker {rows[far]} lies within rounding of a {what} piece of the "
+            f"swarm (its nearest triangulated walker {partners[far]} is {gap[far]:.3g} away, so it is no "
+            f"duplicate) and no triangulation resolves it. Spread the walkers out (nearly {what} walkers "
+            "have Voronoi cells ~1/thickness large), or drop the flat coordinate(s).")
     kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
     raise CoincidentPointsError(
         f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
