@@ -151,7 +151,10 @@ def metric_defect_masks(g, xp):
     scale = functools.reduce(xp.maximum, [xp.abs(v) for v in c.values()])
     skew = functools.reduce(xp.maximum, [xp.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)],
                             0 * scale)
-    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(c, g, d, xp)
+    # definiteness of g / scale: the minors of g itself overflow or underflow (g = 1e-200 I)
+    unit = xp.where(scale > 0, scale, 1.0)
+    c = {key: v / unit for key, v in c.items()}
+    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(c, g / unit[:, None, None], d, xp)
 
 
 def _positive_definite(c: dict, g, d: int, xp):

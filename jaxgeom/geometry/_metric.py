@@ -248,8 +248,13 @@ def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> F
     g = metric_at_walkers(tess, metric, mode=mode)
     if g is None:
         return jnp.ones(tess.n_points, tess.points.dtype)
-    det = small_det(g) if tess.dim <= 4 else jnp.linalg.det(g)
-    return jnp.where(det > 0, jnp.sqrt(jnp.where(det > 0, det, 1.0)), jnp.nan)
+    # sqrt(det g) = s^(d/2) sqrt(det(g / s)) with s the largest entry of each g: det g alone
+    # overflows or underflows (g = 1e200 I: det = 1e400) where the result is representable
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(g), axis=(1, 2)))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    unit = g / scale[:, None, None]
+    det = small_det(unit) if tess.dim <= 4 else jnp.linalg.det(unit)
+    return jnp.where(det > 0, jnp.sqrt(jnp.where(det > 0, det, 1.0)) * jnp.sqrt(scale) ** tess.dim, jnp.nan)
 
 
 @takes_tessellation

@@ -2,7 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import tile
+from helpers import sphere, tile
 
 import jaxgeom
 
@@ -171,3 +171,23 @@ def test_periodic_callable_metric_sees_wrapped_positions(rng):
     ours = np.asarray(jaxgeom.riemannian_volumes(tess, metric=periodic_metric))
     ref = np.asarray(jaxgeom.riemannian_volumes(big, metric=periodic_metric))[:150]
     np.testing.assert_allclose(ours, ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("d, n", [(2, 300), (3, 300)])
+@pytest.mark.parametrize("c", [1e200, 1e-200])
+def test_metric_of_extreme_scale(rng, d, n, c):
+    """c g for c = 1e200 and 1e-200: Riemannian volumes scale by c^(d/2) and the Ricci scalar
+    by 1/c, all representable. (Once: det g overflowed to inf, and the host check refused
+    1e-200 I because its minor underflowed to 0.)"""
+    x = rng.uniform(-0.5, 0.5, (n, d))
+    tess = jaxgeom.delaunay(x)
+    g = np.asarray(jax.vmap(sphere)(jnp.asarray(x)))
+    for metric, scaled in ((g, c * g), (sphere, lambda p: c * sphere(p))):
+        vol, vol_c = (np.asarray(jaxgeom.riemannian_volumes(tess, metric=m)) for m in (metric, scaled))
+        ricci, ricci_c = (np.asarray(jaxgeom.ricci_scalar(tess, metric=m)) for m in (metric, scaled))
+        finite = np.isfinite(vol)
+        assert finite.sum() > n // 2 and np.array_equal(np.isfinite(vol_c), finite)
+        np.testing.assert_allclose(vol_c[finite], c ** (d / 2) * vol[finite], rtol=1e-12)
+        finite = np.isfinite(ricci)
+        assert finite.sum() > n // 4 and np.array_equal(np.isfinite(ricci_c), finite)
+        np.testing.assert_allclose(ricci_c[finite], ricci[finite] / c, rtol=1e-6)
