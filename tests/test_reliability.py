@@ -99,6 +99,26 @@ def test_anisotropic_noise_needs_a_positive_floor():
         jaxgeom.SwarmParams(anisotropic=True, eps_sigma=0.0)
 
 
+def test_a_zero_metric_is_named_not_run_on(rng):
+    """eps_sigma = 0 on a linear landscape: the Hessian metric is 0. Once: NaN curvature
+    without a word, infinite metric weights, and simulate blamed dt."""
+    linear = lambda x: jnp.sum(x)  # noqa: E731
+    x = rng.random((200, 2))
+    tess = jaxgeom.delaunay(x)
+    with pytest.warns(UserWarning, match=r"eps_sigma = 0 leaves g = floor\(H\) singular.*Give eps_sigma > 0"):
+        zero = jaxgeom.hessian_metric(linear, 0.0)
+    assert np.all(np.isnan(np.asarray(jaxgeom.ricci_scalar(tess, metric=zero))))
+    w = np.asarray(jaxgeom.edge_weights(tess, weights="metric_full", metric=zero))
+    mask = np.asarray(tess.neighbor_mask)
+    assert np.all(np.isnan(w[mask])) and np.all(w[~mask] == 0)
+    force = jaxgeom.viscous_force(tess, rng.random((200, 2)), nu=0.1, weights="metric_full", metric=zero)
+    assert np.all(np.isnan(np.asarray(force)))  # not 0: row normalisation keeps the NaN
+    state = jaxgeom.init_swarm(linear, x)
+    params = jaxgeom.SwarmParams(eps_sigma=0.0, weights="metric_full")
+    with pytest.raises(SimulationDiverged, match=r"eps_sigma = 0\) is singular.*the zero metric at 200.*raise eps_sigma"):
+        jaxgeom.simulate(linear, state, params, n_steps=3, observe=("mean_fitness",))
+
+
 @pytest.mark.parametrize("rebuild", ["host", "callback"])
 @pytest.mark.parametrize("triangulator", ["qhull", "cdt"])
 def test_cloning_onto_one_point_separates_the_walkers(rng, rebuild, triangulator):

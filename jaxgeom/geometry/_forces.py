@@ -72,10 +72,12 @@ def with_volume_weights(tess: Tessellation, weights, volume_weights):
 
 
 def normalize_rows(weights):
-    """(W~, degree): weights divided by their row sums (rows summing to 0 stay 0)."""
+    """(W~, degree): weights divided by their row sums (rows summing to 0 stay 0, rows with a
+    NaN weight, undefined by a zero metric, are NaN)."""
     degree = jnp.sum(weights, axis=1)
     safe = jnp.where(degree > 0, degree, 1.0)[:, None]
-    return jnp.where(degree[:, None] > 0, weights / safe, 0.0), degree
+    normalized = jnp.where(degree[:, None] > 0, weights / safe, 0.0)
+    return jnp.where(jnp.isnan(degree)[:, None], jnp.nan, normalized), degree
 
 
 def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Float[Array, "N d"]:

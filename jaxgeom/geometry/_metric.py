@@ -12,6 +12,7 @@ symmetric in i and j, so every edge has one length).
 from __future__ import annotations
 
 import functools
+import warnings
 import itertools
 from collections.abc import Callable
 
@@ -314,6 +315,10 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
     """
     check_choice(floor, "floor", HESSIAN_FLOORS)
     check_nonnegative(eps_sigma, "eps_sigma")  # a spectral floor
+    if isinstance(eps_sigma, (int, float)) and eps_sigma == 0:
+        warnings.warn("hessian_metric: eps_sigma = 0 leaves g = floor(H) singular wherever the Hessian has an "
+                      "eigenvalue <= 0 (a zero metric on a linear landscape); lengths, curvatures and metric "
+                      "weights are NaN there. Give eps_sigma > 0 (the spectral floor eps_Sigma).", stacklevel=2)
     if isinstance(eps_sigma, (int, float)):  # the same callable for the same arguments: no recompilation
         return _cached_hessian_metric(fitness, float(eps_sigma), floor)
     return _hessian_metric(fitness, eps_sigma, floor)

@@ -56,10 +56,12 @@ def kernel(sq, mask, *, length_scale=None, alpha=DEFAULT_ALPHA, shift: str = "no
 
 def inverse_distance(sq, mask, *, relative_eps=INVERSE_DISTANCE_EPS, **_):
     """w_ij = 1 / (|dx| + eps), eps = `relative_eps` x the mean nearest-neighbour length
-    (the estimators' stencils exclude coincident walkers and use 0)."""
+    (the estimators' stencils exclude coincident walkers and use 0); NaN where the length and
+    eps are both 0 (a zero metric)."""
     lengths = safe_sqrt(sq)
     eps = relative_eps * mean_row_minimum(lengths, mask)
-    return jnp.where(mask, 1.0 / jnp.where(mask, lengths + eps, 1.0), 0.0)
+    defined = mask & (lengths + eps > 0)  # a zero metric has no lengths at all: NaN, not inf
+    return jnp.where(defined, 1.0 / jnp.where(defined, lengths + eps, 1.0), jnp.where(mask, jnp.nan, 0.0))
 
 
 def gaussian(sq, mask, **_):

@@ -52,14 +52,17 @@ def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: i
 def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
     x = np.asarray(state.positions)
     x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
-    if params.anisotropic:
+    if params.needs_metric:
         g = np.asarray(metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
         lam = np.linalg.eigvalsh(np.where(np.isfinite(g), g, 0.0))[:, 0]
         if not np.isfinite(g).all() or lam.min() <= 0:
-            return (f"Likely cause: the Hessian metric is singular or not positive definite at "
-                    f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s) "
-                    f"(smallest eigenvalue {lam.min():.3g}), so the anisotropic noise D = g^-1 is undefined; "
-                    "raise eps_sigma or use floor='softabs'.")
+            zero = int(np.sum(np.all(g == 0, axis=(1, 2))))
+            uses = "the anisotropic noise D = g^-1 is" if params.anisotropic else f"the {params.weights!r} weights are"
+            return (f"Likely cause: the Hessian metric g = floor(H) + eps_Sigma I (eps_sigma = "
+                    f"{float(params.eps_sigma):.3g}) is singular or not positive definite at "
+                    f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s)"
+                    f"{f', the zero metric at {zero}' if zero else ''} (smallest eigenvalue {lam.min():.3g}), so "
+                    f"{uses} undefined; raise eps_sigma or use floor='softabs'.")
     curvature = np.asarray(jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x))  # no batched LAPACK
     curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
