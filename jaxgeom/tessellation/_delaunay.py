@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..base._checks import (
-    check_full_rank, check_min_points, check_representable_spacing, host_box, host_points,
+    check_full_rank, check_min_points, check_representable_spacing, check_resolved_positions, host_box, host_points,
     mean_spacing,
 )
 from ..base._simplex import det_entries, simplex_circumcenter
@@ -123,6 +123,7 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
     box_arr = host_box(box, x, periodic=periodic)
     check_full_rank(x)
     check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
+    check_resolved_positions(x, jnp.asarray(x[:1]).dtype)
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
         points = jnp.asarray(x)

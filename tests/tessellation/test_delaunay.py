@@ -167,3 +167,20 @@ def test_morton_sorted_path_maps_indices_back():
     hull[ConvexHull(x).vertices] = True
     np.testing.assert_array_equal(np.asarray(tess.hull), hull)
     assert int(tess.simplex_mask.sum()) == len(Delaunay(x).simplices)
+
+
+@pytest.mark.parametrize("offset", [1e3, 1e6])
+def test_float32_walkers_far_from_the_origin_are_refused(offset):
+    """5000 walkers in [offset, offset + 1]^2: float32's rounding is 0.8% (1e3) and 840%
+    (1e6) of their spacing; once they collapsed silently (17 distinct x at 1e6, tier-2 volumes
+    summing to 1.003 instead of 0.875; a negative cell at 1e3). Refused, naming the fixes;
+    centred, the same walkers give float64's volumes."""
+    u = np.random.default_rng(0).random((5000, 2))
+    with pytest.raises(ValueError, match=r"cannot be resolved in float32.*Centre the walkers.*jax_enable_x64"):
+        jaxgeom.delaunay((u + offset).astype(np.float32))
+    exact = np.asarray(jaxgeom.voronoi_volumes(jaxgeom.delaunay(u + offset)))  # float64 (the suite's x64)
+    tess = jaxgeom.delaunay((u - 0.5).astype(np.float32))
+    ours = np.asarray(jaxgeom.voronoi_volumes(tess))
+    inner = np.asarray(tess.interior)
+    assert ours.dtype == np.float32 and abs(ours[inner].sum() / exact[inner].sum() - 1) < 1e-5
+    np.testing.assert_allclose(ours[inner], exact[inner], rtol=2e-3)
