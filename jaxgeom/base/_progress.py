@@ -3,7 +3,10 @@ installed, text on stderr in a terminal)."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
 
 PROGRESS_CHOICES = "False, True, 'auto' or a tqdm bar"
 
@@ -46,3 +49,42 @@ def open_bar(progress, total: int, desc: str, unit: str = "step"):
 def close_bar(bar, owned: bool) -> None:
     if bar is not None and owned:
         bar.close()
+
+
+# Ctrl-C between iterations. Python runs a SIGINT handler in whatever frame is executing; a
+# KeyboardInterrupt raised inside a garbage-collector callback (JAX registers one) is printed
+# and dropped, and the run went on (seen in `jaxgeom tune`). Under `deferred_interrupt` the
+# first Ctrl-C only sets a flag that the host loops read between iterations
+# (`raise_if_interrupted`); a second one interrupts at once, as usual.
+_INTERRUPT = {"requested": False, "active": False}
+
+
+@contextlib.contextmanager
+def deferred_interrupt():
+    """Within: Ctrl-C stops the run at the next iteration boundary (the CLI's commands).
+    Outside the main thread (signal handlers cannot be set there) Ctrl-C acts as usual."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def handler(signum, frame):
+        if _INTERRUPT["requested"]:  # the second Ctrl-C: at once
+            signal.signal(signal.SIGINT, previous)
+            raise KeyboardInterrupt
+        _INTERRUPT["requested"] = True
+
+    _INTERRUPT.update(requested=False, active=True)
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _INTERRUPT.update(requested=False, active=False)
+
+
+def raise_if_interrupted() -> None:
+    """KeyboardInterrupt here if a deferred Ctrl-C is pending (once)."""
+    if _INTERRUPT["requested"]:
+        _INTERRUPT["requested"] = False
+        raise KeyboardInterrupt

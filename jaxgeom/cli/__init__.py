@@ -11,6 +11,7 @@ import os
 import jax
 import numpy as np
 
+from ..base._progress import deferred_interrupt
 from ._analyze import add_analyze_parser, analyze_main
 from ._simulate import add_simulate_parser, simulate_main
 from ._tune import add_tune_parser, tune_main
@@ -57,4 +58,7 @@ def main(argv=None) -> int:
     check_arguments(parser, args)
 
     jax.config.update("jax_enable_x64", args.precision == "float64")
-    return {"simulate": simulate_main, "analyze": analyze_main, "tune": tune_main}[args.command](args)
+    if args.command == "analyze":  # no iterations to stop between: Ctrl-C as usual
+        return analyze_main(args)
+    with deferred_interrupt():  # Ctrl-C ends simulate / tune at the next step or iteration
+        return {"simulate": simulate_main, "tune": tune_main}[args.command](args)

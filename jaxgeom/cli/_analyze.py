@@ -267,6 +267,13 @@ def resolve_options(args) -> None:
                          "or choose --metric none / emergent.")
     if args.dim < 1:
         raise ValueError(f"--dim must be >= 1; got {args.dim}.")
+    if args.box is not None:
+        lower, upper = args.box
+        if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
+            raise ValueError(f"--box LOWER UPPER must be finite with LOWER < UPPER; got {lower} {upper}.")
+        if args.points is None:
+            raise ValueError("--box applies to walkers given with --points; a sampled swarm lives in its landscape's "
+                             "box (a .py landscape sets it with BOX = (lower, upper)), which --periodic wraps.")
     if args.graph == "delaunay" and args.points is None:
         check_delaunay_dim(args.dim, "--dim")
 
@@ -379,7 +386,8 @@ def add_analyze_parser(sub) -> argparse.ArgumentParser:
                     help="neighbours per walker with --graph knn (None: max(12, (d + 1)(d + 2)/2 + d), what a "
                          "quadratic fit of the Hessian needs plus d)")
     an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
-    an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"), help="domain bounds for every axis")
+    an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"),
+                    help="domain bounds for every axis of --points (a sampled swarm uses its landscape's box)")
     an.add_argument("--metric", choices=["none", "hessian", "emergent"], default=None,
                     help="metric for curvature and Riemannian volumes (hessian: of the landscape; None: hessian "
                          "when there is a landscape, else none)")

@@ -18,11 +18,13 @@ from ..apps._landscapes import LANDSCAPES
 from ..apps._plots import plot_observables, plot_swarm_snapshots
 from ..base._progress import close_bar, open_bar
 from ..geometry._forces import VISCOUS_WEIGHTS
+from ..swarm._drivers import SimulationInterrupted
 from ..swarm._dynamics import metric_field
 from ..swarm._observables import OBSERVABLE_TABLE
 from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
+INTERRUPTED = 130  # the shell's exit status for SIGINT (128 + 2)
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
@@ -140,18 +142,29 @@ def run_simulation(args) -> dict:
     segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
     snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0
     bar, owned = open_bar(progress_choice(args), args.steps, "simulate")
+    interrupted = False
     try:
         while done < args.steps:
             n = min(segment, args.steps - done)
-            state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, rebuild_every=args.rebuild_every,
-                                              spectral_gap_every=args.gap_every,
-                                              progress=bar if bar is not None else False)
+            try:
+                state, history = jaxgeom.simulate(fitness, state, params, n_steps=n,
+                                                  rebuild_every=args.rebuild_every, spectral_gap_every=args.gap_every,
+                                                  progress=bar if bar is not None else False)
+            except SimulationInterrupted as stop:  # Ctrl-C: keep the steps that ran
+                state, history, n, interrupted = stop.state, stop.history, stop.steps, True
             parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
             done += n
             snapshots.append(_snapshot(fitness, params, state, done))
+            if interrupted:
+                break
+    except KeyboardInterrupt:  # outside a simulate call (a snapshot): the segments so far
+        interrupted = True
     finally:
         close_bar(bar, owned)
+    if not parts:  # interrupted before the first segment returned anything
+        raise KeyboardInterrupt
     result = _merge(parts, float(args.dt))
+    result["interrupted_at"] = done if interrupted else None
     result.update(config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                   seconds_total=time.perf_counter() - start, seconds_init=seconds_init,
                   seconds_snapshots=sum(snap.pop("seconds") for snap in snapshots), snapshots=snapshots,
@@ -250,6 +263,7 @@ def write_outputs(result: dict, out: Path) -> dict:
                                 "value": _json_ready(result["spectral_gap"]),
                                 "components": result["spectral_components"].tolist(),
                                 "at_rounding_level": result["spectral_gap_rounding"].tolist()},
+               "interrupted_at_step": result["interrupted_at"],
                "n_reallocations": result["n_reallocations"], "seconds_total": result["seconds_total"],
                "seconds_rebuild": result["seconds_rebuild"], "seconds_steps": result["seconds_steps"]}
     (out / "history.json").write_text(json.dumps(payload, indent=1))
@@ -265,8 +279,15 @@ def simulate_main(args) -> int:
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
         print(f"jaxgeom simulate: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before the first step: nothing ran
+        print(f"jaxgeom simulate: interrupted at step 0 of {args.steps}; nothing written", file=sys.stderr)
+        return INTERRUPTED
     print(summary_table(result))
     if args.out is not None:
         for name, path in write_outputs(result, args.out).items():
             print(f"wrote {name}: {path}")
+    if result["interrupted_at"] is not None:
+        print(f"jaxgeom simulate: interrupted at step {result['interrupted_at']} of {args.steps}"
+              + ("; the steps that ran are written" if args.out is not None else ""), file=sys.stderr)
+        return INTERRUPTED
     return 0

@@ -35,7 +35,7 @@ from ..geometry._forces import VISCOUS_WEIGHTS
 from ..geometry._metric import HESSIAN_FLOORS
 from ..swarm._tune import SOLVERS
 from ..swarm._tuning import OBJECTIVES
-from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice
+from ._simulate import INTERRUPTED, HelpFormatter, add_progress_flag, load_landscape, progress_choice
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
 MATCHED = ("velocity_variance", "mean_fitness")
@@ -169,7 +169,7 @@ def iteration_table(result, truth) -> str:
 
 
 def tune_main(args) -> int:
-    began = time.perf_counter()
+    began, interrupted = time.perf_counter(), None
     try:
         loss, start, truth = build_loss(args)
         result = jaxgeom.tune(loss, start, solver=args.solver, max_steps=args.max_steps, target_seeds=args.seeds,
@@ -177,11 +177,22 @@ def tune_main(args) -> int:
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
         print(f"jaxgeom tune: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as stop:  # Ctrl-C: report and write the iterations accepted so far
+        result = getattr(stop, "result", None)
+        interrupted = 0 if result is None else len(result.iterations) - 1
+        if result is None:
+            print(f"jaxgeom tune: interrupted at iteration 0 of {args.max_steps}; nothing written", file=sys.stderr)
+            return INTERRUPTED
     print(iteration_table(result, truth))
     if args.out is not None:
-        grid = loss_grid(loss, result, truth, args.grid) if args.grid >= 2 and len(loss.tuned) >= 2 else None
+        ready = interrupted is None and args.grid >= 2 and len(loss.tuned) >= 2  # no grid after Ctrl-C
+        grid = loss_grid(loss, result, truth, args.grid) if ready else None
         for name, path in write_outputs(args, result, truth, grid, time.perf_counter() - began).items():
             print(f"wrote {name}: {path}")
+    if interrupted is not None:
+        print(f"jaxgeom tune: interrupted at iteration {interrupted} of {args.max_steps}"
+              + ("; the iterations that ran are written" if args.out is not None else ""), file=sys.stderr)
+        return INTERRUPTED
     return 0
 
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from ..base._progress import close_bar, open_bar
+from ..base._progress import close_bar, open_bar, raise_if_interrupted
 from ..base._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, shard_walkers
 from ._divergence import _health, check_health
 from ._dynamics import SwarmState, health
@@ -25,6 +25,15 @@ from ._steps import (
 )
 
 
+class SimulationInterrupted(KeyboardInterrupt):
+    """Ctrl-C during `simulate` (rebuild="host"): `state` and `history` are those of the steps
+    completed before it (`steps` of `n_steps`), as `simulate` would have returned them."""
+
+    def __init__(self, state, history: dict, steps: int, n_steps: int):
+        super().__init__(f"simulate: interrupted at step {steps} of {n_steps}")
+        self.state, self.history, self.steps, self.n_steps = state, history, steps, n_steps
+
+
 def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_every, k, progress):
     n_total = jnp.asarray(n_steps, jnp.int32)
     gaps, reallocations, seconds = [], 0, {"rebuild": 0.0, "steps": 0.0}
@@ -34,39 +43,56 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         gaps.append((0,) + _bulk_gap(state.tess))
     opening, pending = _begin_step(params, state), []
     dtype = state.positions.dtype
-    for start in range(0, n_steps, rebuild_every):
-        t0 = time.perf_counter()
-        entering = state
-        moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32), n_total,
-                                       rebuild_every, observe)
-        # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
-        state, opening = _finish_and_begin(fitness, params, moved)
-        end = min(start + rebuild_every, n_steps)
-        first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
-        pending.append((obs, first, end - start))
-        jax.block_until_ready(moved.positions)
-        codes = [*np.asarray(obs["_health"])[: end - start], int(_health(moved))]
-        if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
-            jax.block_until_ready((state, opening, first))
-        check_health(fitness, params, codes, start, entering)
-        t1 = time.perf_counter()
-        moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
-        if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
+    done = (state, 0, 0)  # the last consistent state, its steps, its chunks: what Ctrl-C keeps
+    try:
+        for start in range(0, n_steps, rebuild_every):
+            raise_if_interrupted()
+            t0 = time.perf_counter()
+            entering = state
+            moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32),
+                                           n_total, rebuild_every, observe)
+            # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
             state, opening = _finish_and_begin(fitness, params, moved)
-        state = eqx.tree_at(lambda s: (s.tess, s.n_triangulator_fallbacks), state,
-                            (moved.tess, moved.n_triangulator_fallbacks))
-        reallocations += grew
-        seconds["steps"] += t1 - t0
-        seconds["rebuild"] += time.perf_counter() - t1
-        if gap_every and (first_step + end) % gap_every == 0:
-            gaps.append((end,) + _bulk_gap(state.tess))
-        if bar is not None:
-            bar.update(end - start)
+            end = min(start + rebuild_every, n_steps)
+            first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
+            pending.append((obs, first, end - start))
+            jax.block_until_ready(moved.positions)
+            codes = [*np.asarray(obs["_health"])[: end - start], int(_health(moved))]
+            if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
+                jax.block_until_ready((state, opening, first))
+            check_health(fitness, params, codes, start, entering)
+            t1 = time.perf_counter()
+            moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
+            if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
+                state, opening = _finish_and_begin(fitness, params, moved)
+            state = eqx.tree_at(lambda s: (s.tess, s.n_triangulator_fallbacks), state,
+                                (moved.tess, moved.n_triangulator_fallbacks))
+            reallocations += grew
+            seconds["steps"] += t1 - t0
+            seconds["rebuild"] += time.perf_counter() - t1
+            if gap_every and (first_step + end) % gap_every == 0:
+                gaps.append((end,) + _bulk_gap(state.tess))
+            done = (state, end, len(pending))
+            if bar is not None:
+                bar.update(end - start)
+    except KeyboardInterrupt:
+        close_bar(bar, owned)
+        kept, steps, n_chunks = done
+        kept, history = _host_history(fitness, params, kept, pending[:n_chunks], observe,
+                                      [g for g in gaps if g[0] <= steps], reallocations, seconds)
+        raise SimulationInterrupted(kept, history, steps, n_steps) from None
     close_bar(bar, owned)
+    return _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, (n_steps, entering))
+
+
+def _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, check=None):
+    """(state with its final observables, history) from the chunks' pending observables;
+    `check` = (step, last sound state): the final state's health is checked too."""
     chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
                for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)
-    check_health(fitness, params, [health(state)], n_steps, entering)
+    if check is not None:
+        check_health(fitness, params, [health(state)], *check)
     series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
     return state, _history(series, gaps, reallocations, seconds, state, -1)
 

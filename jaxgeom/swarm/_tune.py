@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..base._progress import check_progress, close_bar, open_bar
+from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
 from ._dynamics import SwarmParams
 from ._tuning import SimulationLoss, _inverse_map
 
@@ -33,6 +33,15 @@ class TuningFailed(FloatingPointError):
 
     def __init__(self, message: str, result: "TuneResult"):
         super().__init__(message)
+        self.result = result
+
+
+class TuningInterrupted(KeyboardInterrupt):
+    """Ctrl-C during `tune`: `result` holds the iterations accepted before it (None if none was)."""
+
+    def __init__(self, result: "TuneResult | None"):
+        done = 0 if result is None else len(result.iterations) - 1
+        super().__init__(f"tune: interrupted after {done} iteration(s)")
         self.result = result
 
 
@@ -140,6 +149,8 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
             theta, n_steps, converged, message = _run_lbfgsb(loss, theta0, scale, max_steps, rtol, bounds, recorder)
         else:
             theta, n_steps, converged, message = _run_optimistix(loss, minimiser, theta0, scale, max_steps, recorder)
+    except KeyboardInterrupt:
+        raise TuningInterrupted(recorder.partial("interrupted", time.perf_counter() - began)) from None
     finally:
         close_bar(bar, owned)
     errors, covariance, note = parameter_errors(loss, theta, target_seeds)
@@ -204,7 +215,7 @@ class _Recorder:
     """The list of accepted iterates; raises `TuningFailed` at the first non-finite one."""
 
     def __init__(self, loss: SimulationLoss, bar, name: str):
-        self.loss, self.bar, self.iterations, self.name = loss, bar, [], name
+        self.loss, self.bar, self.iterations, self.name, self.thetas = loss, bar, [], name, []
 
     def add(self, theta, value, grad) -> None:
         record = {"iteration": len(self.iterations), "loss": float(value),
@@ -215,15 +226,25 @@ class _Recorder:
             shown = " ".join(f"{k}={v:.4g}" for k, v in record["values"].items())
             self.bar.set_postfix_str(f"loss {record['loss']:.4g} {shown}", refresh=False)
             self.bar.update(1)
+        self.thetas.append(np.asarray(theta))
+        raise_if_interrupted()
         if not (np.isfinite(record["loss"]) and np.isfinite(record["grad_norm"])):
-            partial = TuneResult(np.asarray(theta), record["values"], self.loss.to_params(jnp.asarray(theta)),
-                                 record["loss"], self.iterations, self.name, len(self.iterations), False,
-                                 "non-finite", float("nan"), float("nan"))
+            partial = self.partial("non-finite", float("nan"))
             what = "loss" if not np.isfinite(record["loss"]) else "gradient"
             raise TuningFailed(
                 f"tune: the {what} is not finite at iteration {record['iteration']} ({record['values']}): the swarm "
                 "diverged or an observable is undefined there. Start closer to sound values (a smaller dt, "
                 "a larger eps_sigma), bound the parameters, or use float64.", partial)
+
+
+    def partial(self, message: str, seconds: float) -> "TuneResult | None":
+        """A `TuneResult` at the last recorded iterate (not converged), None before the first."""
+        if not self.iterations:
+            return None
+        theta, record = self.thetas[-1], self.iterations[-1]
+        return TuneResult(theta, record["values"], self.loss.to_params(jnp.asarray(theta)), record["loss"],
+                          self.iterations, self.name, len(self.iterations), False, message, seconds, float("nan"),
+                          error_note=f"the run stopped ({message}) before it converged")
 
 
 @eqx.filter_jit

@@ -28,7 +28,6 @@ flagged instead of returned wrong.
 from __future__ import annotations
 
 import functools
-import math
 from typing import NamedTuple
 
 import equinox as eqx

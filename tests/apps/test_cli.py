@@ -195,3 +195,66 @@ def test_analyze_at_beta_zero_samples_the_box_uniformly(tmp_path, landscape):
                  "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "summary.json").read_text())
     assert "exp(-0.0 V)" in report["swarm"]["source"]
+
+
+def _interrupt_when(argv, pattern, tmp_path, timeout=240):
+    """Run the CLI in its own process, send SIGINT once its stderr matches `pattern` (a regex
+    whose group 1 is an integer > 0), and return (exit status, stderr)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.Popen([sys.executable, "-m", "jaxgeom.cli", *argv, "--out", str(tmp_path), "--progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=tmp_path)
+    err = []
+    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1).decode(errors="replace"),
+                                                             "")), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + timeout
+    while not re.search(pattern, "".join(err)):
+        assert proc.poll() is None, "".join(err)
+        assert time.monotonic() < deadline, "".join(err)
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    proc.stdout.read()
+    status = proc.wait(timeout=120)
+    reader.join(timeout=10)
+    return status, "".join(err)
+
+
+def test_ctrl_c_during_simulate_writes_the_steps_that_ran(tmp_path):
+    """Once: a KeyboardInterrupt traceback and an empty --out."""
+    status, err = _interrupt_when(["simulate", "--n", "100", "--steps", "100000", "--gap-every", "0",
+                                   "--precision", "float64"], r"\b([1-9]\d*)/100000", tmp_path)
+    assert status == 130 and "Traceback" not in err, err
+    step = int(re.search(r"interrupted at step (\d+) of 100000; the steps that ran are written", err).group(1))
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert history["interrupted_at_step"] == step > 0
+    assert len(history["series"]["mean_fitness"]) == step + 1 and history["series"]["time"][-1] > 0
+    assert (tmp_path / "swarm.png").stat().st_size > 0 and (tmp_path / "observables.png").stat().st_size > 0
+
+
+def test_ctrl_c_during_tune_writes_the_iterations_that_ran(tmp_path):
+    status, err = _interrupt_when(["tune", "--n", "30", "--steps", "5", "--max-steps", "100000", "--seeds", "1",
+                                   "--tune", "nu"], r"\b([1-9]\d*)/100001", tmp_path, timeout=480)
+    assert status == 130 and "Traceback" not in err, err
+    done = int(re.search(r"interrupted at iteration (\d+) of 100000; the iterations that ran are written", err).group(1))
+    report = json.loads((tmp_path / "tune.json").read_text())
+    assert len(report["iterations"]) == done + 1 and report["message"] == "interrupted" and not report["converged"]
+    assert (tmp_path / "tune.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--box", "1", "0"], "--box LOWER UPPER must be finite with LOWER < UPPER; got 1.0 0.0"),
+    (["--box", "nan", "1"], "--box LOWER UPPER must be finite"),
+    (["--box", "0", "1"], "--box applies to walkers given with --points"),
+    (["--periodic", "--box", "0", "1"], "--box applies to walkers given with --points"),
+])
+def test_analyze_box_is_validated_and_not_ignored(argv, message, capsys):
+    """Once: a sampled swarm ignored --box without a word."""
+    assert main(["analyze", "--n", "100", *argv]) == 2
+    assert message in capsys.readouterr().err
