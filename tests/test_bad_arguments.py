@@ -283,3 +283,131 @@ def test_edge_weights_refuse_an_unknown_rule_instead_of_returning_inverse_distan
         jaxgeom.graph_laplacian(tess, weights="gaussian")
     with pytest.raises(ValueError, match=r"unknown weights 'kernel'; valid values are 'uniform'"):
         jaxgeom.estimate_gradient(tess, np.zeros(200), method="fd", weights="kernel")
+
+
+# --- issue 32: the last unchecked arguments -------------------------------------------------
+
+
+N = 200  # walkers of the `tess` fixture
+VOL = np.linspace(0.5, 1.5, N)
+
+
+@pytest.mark.parametrize("call, error, message", [
+    # per-walker arrays of the cell proxies and curvature: length, strings, complex, signs, masks
+    (lambda t: jaxgeom.volume_distortion(t, VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
+    (lambda t: jaxgeom.volume_distortion(t, "abc"), TypeError, r"`volumes` must be numeric; got str"),
+    (lambda t: jaxgeom.volume_distortion(t, VOL + 0j), TypeError, r"`volumes` must be real; got complex"),
+    (lambda t: jaxgeom.volume_distortion(t, -VOL), ValueError, r"`volumes` must be >= 0"),
+    (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
+    (lambda t: jaxgeom.ricci_scalar(t, volumes="abc"), TypeError, r"`volumes` must be numeric"),
+    (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL + 0j), TypeError, r"`volumes` must be real"),
+    (lambda t: jaxgeom.riemannian_volumes(t, volumes=list(VOL[:5])), ValueError, r"`volumes` must have shape"),
+    (lambda t: jaxgeom.riemannian_volumes(t, volumes=-VOL), ValueError, r"`volumes` must be >= 0"),
+    (lambda t: jaxgeom.viscous_force(t, np.zeros((N, 2)), nu=0.1, volume_weights=VOL + 0j), TypeError,
+     r"`volume_weights` must be real"),
+    (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(N)), TypeError, r"`mask` must be a bool mask"),
+    (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(5, bool)), ValueError, r"`mask` must have shape"),
+    (lambda t: jaxgeom.riemannian_mean(VOL, "abc"), TypeError, r"`weights` must be a 1-D array"),
+    (lambda t: jaxgeom.riemannian_mean(VOL, -VOL), ValueError, r"`weights` must be >= 0"),
+    (lambda t: jaxgeom.riemannian_mean(VOL + 0j, VOL), TypeError, r"`values` must be real"),
+    (lambda t: jaxgeom.riemannian_mean(VOL, VOL[:5]), ValueError, r"`values` and `weights` must have the same"),
+    (lambda t: jaxgeom.raychaudhuri_expansion(np.ones((N, 2)), np.ones((N, 2)), 0.1), ValueError,
+     r"`volumes_before` must be 1-D"),
+    (lambda t: jaxgeom.raychaudhuri_expansion(VOL + 0j, VOL, 0.1), TypeError, r"`volumes_before` must be real"),
+    (lambda t: jaxgeom.raychaudhuri_expansion(VOL, VOL, 0.1, valid=np.ones(N)), TypeError, r"`valid` must be a bool"),
+    (lambda t: jaxgeom.mean_curvature_estimate(np.array([1.0, 2.0]) + 0j), TypeError, r"`theta` must be real"),
+    # callables
+    (lambda t: jaxgeom.hessian_metric(5, 0.1), TypeError, r"`fitness` must be a JAX function"),
+    (lambda t: jaxgeom.ricci_scalar(t, metric=lambda p: float(p[0]) * jnp.eye(2)), TypeError,
+     r"the metric callable must be JAX-traceable.*no float\(\)"),
+    (lambda t: jaxgeom.init_swarm(lambda p: 1, np.random.default_rng(0).random((30, 2))), TypeError,
+     r"`fitness` must return a real floating-point scalar.*int"),
+    (lambda t: jaxgeom.init_swarm(lambda p: jnp.sum(p).astype(complex), np.random.default_rng(0).random((30, 2))),
+     TypeError,
+     r"`fitness` must return a real floating-point scalar.*complex"),
+    # the estimation helpers
+    (lambda t: jaxgeom.geometric_hessian(t, -1.0), ValueError, r"`eps_sigma` must be a finite number >= 0"),
+    (lambda t: jaxgeom.geometric_hessian(t, float("nan")), ValueError, r"`eps_sigma` must be a finite number >= 0"),
+    (lambda t: jaxgeom.compare_estimation_methods(t, VOL, eps_sigma=-1.0), ValueError, r"`eps_sigma` must be"),
+    (lambda t: jaxgeom.validate_on_synthetic_function("quadratic", n_walkers=100.5), TypeError,
+     r"`n_walkers` must be an int >= 4; got 100.5"),
+    (lambda t: jaxgeom.validate_on_synthetic_function("quadratic", eps_sigma=float("nan")), ValueError,
+     r"`eps_sigma` must be"),
+    (lambda t: jaxgeom.plot_estimation_quality({}, "unused.png"), ValueError, r"`result` lacks \['points'"),
+    # LOBPCG and meshes
+    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=-1.0), ValueError, r"`tol` must be a finite number > 0"),
+    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=float("nan")), ValueError, r"`tol` must be"),
+    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", maxiter=-3), ValueError, r"`maxiter` must be an int >= 1"),
+    (lambda t: jaxgeom.batch_mesh("cpu"), TypeError, r"`devices` must be a sequence of JAX devices.*jax.devices\('cpu'\)"),
+    (lambda t: jaxgeom.batch_mesh([jax.devices()[0]] * 2), ValueError, r"`devices` lists a device more than once"),
+])
+def test_unchecked_arguments_of_issue_32(tess, call, error, message):
+    with pytest.raises(error, match=message):
+        call(tess)
+
+
+def test_plain_lists_and_nan_entries_are_legal_per_walker_input(tess):
+    """A list is an array (once: jnp.isfinite on a list); NaN entries are left out, not zero."""
+    vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+    assert float(jaxgeom.volume_distortion(tess, list(vol))) == pytest.approx(float(jaxgeom.volume_distortion(tess, vol)))
+    assert float(jaxgeom.mean_curvature_estimate([1.0, 2.0, float("nan")])) == -1.5
+
+
+@pytest.fixture(scope="module")
+def swarm():
+    return jaxgeom.init_swarm(bowl, np.random.default_rng(0).random((40, 2)))
+
+
+@pytest.mark.parametrize("call, error, message", [
+    (lambda s: jaxgeom.simulate(bowl, s, jaxgeom.SwarmParams(), n_steps=1, spectral_gap_every=-2), ValueError,
+     r"`spectral_gap_every` must be an int >= 0; got -2"),
+    (lambda s: jaxgeom.simulate(lambda p: float(np.sum(p)), s, jaxgeom.SwarmParams(), n_steps=1), TypeError,
+     r"`fitness` must be a JAX-traceable function"),
+    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), key="abc"), TypeError,
+     r"`key` must be an int seed or a jax.random key"),
+    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), bounds={"nu": ("a", "b")}),
+     TypeError, r"bounds for 'nu' must be real numbers or None"),
+    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams())(jnp.zeros(5)), ValueError,
+     r"theta must have shape \(2,\), one entry per tuned parameter"),
+    (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()), rtol=-1.0),
+     ValueError, r"`rtol` must be a finite number > 0"),
+    (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()),
+                            solver="lbfgsb", bounds={"nu": (1.0, 0.1)}), ValueError,
+     r"bounds for 'nu' must have lower < upper; got \(1.0, 0.1\)"),
+    (lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), "cpu"), TypeError,
+     r"`mesh` must be a jax.sharding.Mesh"),
+    (lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), jaxgeom.walker_mesh()), ValueError,
+     r"`mesh` must have an axis named 'batch'"),
+])
+def test_unchecked_swarm_arguments_of_issue_32(swarm, call, error, message):
+    with pytest.raises(error, match=message):
+        call(swarm)
+
+
+def test_one_observable_name_is_one_observable(swarm):
+    """Once: observe="mean_fitness" was read letter by letter ("unknown observable 'm'")."""
+    _, history = jaxgeom.simulate(bowl, swarm, jaxgeom.SwarmParams(), n_steps=2, observe="mean_fitness")
+    assert history["mean_fitness"].shape == (3,)
+    loss = jaxgeom.simulation_loss(bowl, swarm, lambda h: h["mean_fitness"][-1], n_steps=2,
+                                   params=jaxgeom.SwarmParams(), observe="mean_fitness")
+    assert loss.observe == ("mean_fitness",)
+
+
+@pytest.mark.parametrize("body, message", [
+    ("import jax.numpy as jnp\ndef V(x):\n    return 2.0 * x\n", r"it must return a scalar \(shape \(\)\)"),
+    ("def V(x):\n    raise RuntimeError('boom')\n", r"tracing it failed: RuntimeError: boom"),
+    ("import numpy as np\ndef V(x):\n    return float(np.sum(np.asarray(x) ** 2))\n",
+     r"must be a JAX-traceable function.*TracerArrayConversionError"),
+    ("import jax.numpy as jnp\ndef V(x):\n    return jnp.sum(x ** 2).astype(int)\n",
+     r"it must return a real floating-point scalar.*int"),
+])
+def test_analyze_refuses_a_landscape_file_it_cannot_use(tmp_path, capsys, body, message):
+    (tmp_path / "v.py").write_text(body)
+    assert main(["analyze", "--landscape", str(tmp_path / "v.py"), "--n", "100"]) == 2
+    assert re.search(r"V in .*v\.py: .*" + message, capsys.readouterr().err)
+
+
+@pytest.mark.parametrize("dim", ["0", "-1"])
+def test_analyze_refuses_a_dimension_below_one(capsys, dim):
+    assert main(["analyze", "--dim", dim, "--n", "100"]) == 2
+    assert f"--dim must be >= 1; got {dim}" in capsys.readouterr().err

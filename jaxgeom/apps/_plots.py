@@ -9,6 +9,21 @@ import numpy as np
 NEIGHBOUR_COUNTS = (6, 10, 16, 30)
 
 
+ESTIMATION_KEYS = ("points", "valid", "values", "hessian_fd", "hessian_geometric", "eigenvalues_fd",
+                   "eigenvalues_geometric", "metrics")
+
+
+def _check_estimation_result(result) -> None:
+    if not isinstance(result, dict):
+        raise TypeError(f"`result` must be the dict of jaxgeom.compare_estimation_methods or "
+                        f"validate_on_synthetic_function; got {type(result).__name__}.")
+    comparison = result.get("comparison", result)
+    missing = [key for key in ESTIMATION_KEYS if not isinstance(comparison, dict) or key not in comparison]
+    if missing:
+        raise ValueError(f"`result` lacks {missing}: pass the dict that jaxgeom.compare_estimation_methods or "
+                         "jaxgeom.validate_on_synthetic_function returned.")
+
+
 def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     """The chapter's four-panel diagnostic of Hessian estimation, written to `path` (PNG).
 
@@ -23,6 +38,7 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     error; median error against the number of k-NN neighbours (the fit redone on
     k-NN graphs); histogram of the per-walker errors.
     """
+    _check_estimation_result(result)
     plt = pyplot()
     comparison = result.get("comparison", result)
     truth = result.get("true_hessian")

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..base._checks import check_choice
+from ..base._checks import check_choice, check_integer, check_nonnegative
 from ..geometry._estimation import estimate_gradient, estimate_hessian, geometric_hessian
 from ..tessellation._graph import Tessellation
 from ..tessellation._knn import knn_graph
@@ -113,6 +113,12 @@ def validate_on_synthetic_function(name: str, *, n_walkers: int = 100, dim: int 
     errors below `PASS_THRESHOLDS[name]` (quadratic: the fit is exact, 1e-8).
     """
     check_choice(name, "name", SYNTHETIC)
+    check_integer(n_walkers, "n_walkers", 4)
+    check_integer(dim, "dim", 1)
+    check_integer(seed, "seed")
+    if k is not None:
+        check_integer(k, "k", 1)
+    check_nonnegative(eps_sigma, "eps_sigma")
     fitness, half = SYNTHETIC[name]
     k = max(10, dim * (dim + 3) // 2 + 2) if k is None else k
     x = np.random.default_rng(seed).uniform(-half, half, size=(n_walkers, dim))

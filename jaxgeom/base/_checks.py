@@ -7,6 +7,7 @@ import weakref
 from collections.abc import Iterable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -76,6 +77,14 @@ def check_number(value, name: str, *, low=None, high=None, strict: bool = False,
         raise ValueError(f"`{name}` must be a finite number{' ' + rule if rule else ''}{hint}; got {v:g}.")
 
 
+def check_integer(value, name: str, low: int = 0) -> None:
+    """A concrete int (not bool) >= `low`: TypeError for another type, ValueError below."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"`{name}` must be an int >= {low}; got {value!r} ({type(value).__name__}).")
+    if value < low:
+        raise ValueError(f"`{name}` must be an int >= {low}; got {value}.")
+
+
 def check_nonnegative(value, name: str) -> None:
     """A physical parameter: a finite real scalar >= 0 (None and tracers pass)."""
     check_number(value, name, low=0)
@@ -90,14 +99,61 @@ def _concrete(value) -> bool:
     return value is not None and not callable(value) and not isinstance(value, (str, jax.core.Tracer))
 
 
-def check_walker_array(value, name: str, shape: tuple) -> None:
-    """A per-walker input of a kernel: of `shape` (static, so traced values too), and real."""
-    if value is None or callable(value) or isinstance(value, str):
+def check_walker_array(value, name: str, shape: tuple, *, nonnegative: bool = False) -> None:
+    """A per-walker input of a kernel: of `shape` (static, so traced values too), real and
+    floating (a traced value: by its dtype), and with `nonnegative` (cell volumes) >= 0
+    where finite."""
+    if value is None or callable(value):
         return
-    if not isinstance(value, jax.core.Tracer):
+    if isinstance(value, jax.core.Tracer):
+        _check_real_dtype(value.dtype, name)
+    else:
         value = real_array(value, name)
+        if nonnegative and np.any(value < 0):
+            rows = np.flatnonzero(value < 0) if value.ndim == 1 else []
+            raise ValueError(f"`{name}` must be >= 0 (cell volumes or weights); got negative entries, first "
+                             f"rows {list(map(int, rows[:5]))}.")
     if np.shape(value) != shape:
         raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {np.shape(value)}.")
+
+
+def _check_real_dtype(dtype, name: str) -> None:
+    if np.issubdtype(dtype, np.complexfloating):
+        raise TypeError(f"`{name}` must be real; got complex dtype {dtype}. Pass `x.real` if the imaginary part "
+                        "is meant to be zero.")
+
+
+def check_walker_mask(value, name: str, shape: tuple) -> None:
+    """A per-walker bool mask (None: every walker) of `shape`, traced values by their dtype."""
+    if value is None:
+        return
+    if not isinstance(value, jax.core.Tracer):
+        if isinstance(value, str):
+            raise TypeError(f"`{name}` must be a bool array of shape {shape}; got the string {value!r}.")
+        value = real_array(value, name)
+    if value.dtype != np.bool_:
+        raise TypeError(f"`{name}` must be a bool mask; got dtype {value.dtype}. Compare to get one, e.g. "
+                        f"`{name}=tess.interior` or `values > 0`.")
+    if np.shape(value) != shape:
+        raise ValueError(f"`{name}` must have shape {shape}, one entry per walker; got {np.shape(value)}.")
+
+
+def walker_values(value, name: str, *, nonnegative: bool = False):
+    """A 1-D per-walker array of real values for the functions that take no graph
+    (checked where concrete; a traced value by its rank and dtype); returned as a JAX array."""
+    if isinstance(value, jax.core.Tracer):
+        _check_real_dtype(value.dtype, name)
+        arr = value
+    else:
+        if isinstance(value, str):
+            raise TypeError(f"`{name}` must be a 1-D array of per-walker values; got the string {value!r}.")
+        arr = real_array(value, name)
+        if nonnegative and np.any(arr < 0):
+            raise ValueError(f"`{name}` must be >= 0 (cell volumes or weights); got "
+                             f"{int(np.sum(arr < 0))} negative entries.")
+    if np.ndim(arr) != 1:
+        raise ValueError(f"`{name}` must be 1-D, one value per walker (N,); got shape {np.shape(arr)}.")
+    return jnp.asarray(arr, dtype=None if np.issubdtype(arr.dtype, np.floating) else float)
 
 
 def check_metric_array(metric, n: int, d: int) -> None:

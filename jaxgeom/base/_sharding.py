@@ -23,19 +23,32 @@ WALKER_AXIS = "walkers"
 def batch_mesh(devices=None) -> Mesh:
     """A 1-D mesh named "batch" over `devices` (default: every device of the default backend,
     every process's in a multi-host run)."""
-    devices = jax.devices() if devices is None else list(devices)
-    if not devices:
-        raise ValueError("`devices` is empty; give at least one device (jax.devices()).")
-    return Mesh(np.array(devices), (BATCH_AXIS,))
+    return Mesh(np.array(_device_list(devices)), (BATCH_AXIS,))
 
 
 def walker_mesh(devices=None) -> Mesh:
     """A 1-D mesh named "walkers" over `devices` (default: every device of the default
     backend), to split one swarm's walkers (`simulate(..., mesh=walker_mesh())`)."""
-    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.array(_device_list(devices)), (WALKER_AXIS,))
+
+
+def _device_list(devices) -> list:
+    """`devices` (None: jax.devices()) as a non-empty list of distinct JAX devices."""
+    if devices is None:
+        return jax.devices()
+    if isinstance(devices, (str, bytes)) or not hasattr(devices, "__iter__"):
+        raise TypeError(f"`devices` must be a sequence of JAX devices (e.g. jax.devices()[:2]) or None; got "
+                        f"{devices!r}. For a platform's devices use jax.devices('cpu').")
+    devices = list(devices)
     if not devices:
         raise ValueError("`devices` is empty; give at least one device (jax.devices()).")
-    return Mesh(np.array(devices), (WALKER_AXIS,))
+    strange = [d for d in devices if not isinstance(d, jax.Device)]
+    if strange:
+        raise TypeError(f"`devices` must hold JAX devices (jax.devices()); got {strange[0]!r}.")
+    if len({id(d) for d in devices}) < len(devices):
+        raise ValueError(f"`devices` lists a device more than once ({devices}); each device can hold one part "
+                         "of the mesh.")
+    return devices
 
 
 def check_mesh(mesh, batch: int | None, what: str, axis: str = BATCH_AXIS) -> None:
@@ -68,6 +81,10 @@ def shard_batch(tree, mesh: Mesh):
     """Place every array of `tree` with its leading axis split over the mesh's batch axis. In a
     multi-process run every process passes the same whole batch (built from the same seeds) and
     keeps the lanes of its own devices."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    check_mesh(mesh, int(np.shape(leaves[0])[0]) if leaves and np.ndim(leaves[0]) else None, "the batch size B")
+    if mesh is None:
+        raise TypeError("`mesh` must be a jax.sharding.Mesh (jaxgeom.batch_mesh()); got None.")
     sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
 
     def place(leaf):

@@ -20,6 +20,7 @@ from ..base._progress import close_bar, open_bar
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..swarm._drivers import SimulationInterrupted
 from ..swarm._dynamics import metric_field
+from ..swarm._swarm_init import check_traceable_fitness
 from ..swarm._observables import OBSERVABLE_TABLE
 from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
 
@@ -100,6 +101,10 @@ def load_landscape(spec: str, dim: int):
         raise ValueError(f"--landscape {path} could not be loaded: {type(err).__name__}: {err}") from None
     if not callable(getattr(module, "V", None)):
         raise ValueError(f"{path} must define a function V(x) mapping a ({dim},) array to a scalar.")
+    try:
+        check_traceable_fitness(module.V, dim, jnp.zeros(0).dtype)
+    except TypeError as err:  # say which file
+        raise ValueError(f"V in {path}: {err}".replace("`fitness` must", "it must")) from None
     return module.V, landscape_box(getattr(module, "BOX", (-3.0, 3.0)), path)
 
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..base._checks import check_positive
+from ..base._checks import check_positive, check_walker_mask, walker_values
 from ..base._simplex import simplex_circumradius
 from ..tessellation._graph import (
     Tessellation, nearest_neighbor_distances, simplex_coords, takes_tessellation,
@@ -93,9 +93,11 @@ def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> 
     (N,) theta, NaN where undefined. Under x -> s x, theta = (s^d - 1) / dt exactly.
     """
     check_positive(dt, "dt")
-    before, after = jnp.asarray(volumes_before), jnp.asarray(volumes_after)
+    before = walker_values(volumes_before, "volumes_before", nonnegative=True)
+    after = walker_values(volumes_after, "volumes_after", nonnegative=True)
     if before.shape != after.shape:
         raise ValueError(f"volume arrays differ in shape: {before.shape} vs {after.shape}; both must be (N,).")
+    check_walker_mask(valid, "valid", before.shape)
     ok = jnp.isfinite(before) & jnp.isfinite(after) & (before > 0)
     if valid is not None:
         ok = ok & valid
@@ -105,5 +107,6 @@ def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> 
 
 def mean_curvature_estimate(theta) -> Float[Array, ""]:
     """-<theta> over walkers with a defined expansion (NaN entries are excluded, not zero)."""
+    theta = walker_values(theta, "theta")
     ok = jnp.isfinite(theta)
     return -jnp.sum(jnp.where(ok, theta, 0.0)) / jnp.sum(ok).astype(theta.dtype)

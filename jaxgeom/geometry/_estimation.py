@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ..base._checks import check_choice
+from ..base._checks import check_choice, check_nonnegative
 from ..tessellation._graph import (
     Tessellation, neighbor_coord_displacements, neighbor_displacements, padded_points,
     takes_tessellation,
@@ -309,5 +309,6 @@ def geometric_hessian(tess: Tessellation, eps_sigma, *, eps_reg: float = 1e-5) -
     It assumes walkers sampled at equilibrium from a density whose neighbour
     covariance encodes g = H + eps_Sigma I; see `compare_estimation_methods`.
     """
+    check_nonnegative(eps_sigma, "eps_sigma")
     g = emergent_metric(tess, eps_reg=eps_reg)
     return g - eps_sigma * jnp.eye(tess.dim, dtype=g.dtype)

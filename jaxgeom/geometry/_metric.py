@@ -21,7 +21,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ..base._checks import check_choice, check_nonnegative, metric_defect_masks, real_array
+from ..base._checks import (
+    check_choice, check_nonnegative, check_walker_mask, metric_defect_masks, real_array, walker_values,
+)
 from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
 from ..tessellation._graph import (
     Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords,
@@ -68,7 +70,14 @@ def _wrap(tess: Tessellation, x):
 
 def _call_metric(metric: Callable, x):
     flat = x.reshape(-1, x.shape[-1])
-    g = jax.vmap(metric)(flat)
+    try:
+        g = jax.vmap(metric)(flat)
+    except jax.errors.JAXTypeError as err:  # float(), numpy or a Python branch on the traced x
+        raise TypeError(f"the metric callable must be JAX-traceable, x (d,) -> g (d, d) with jax.numpy (no float(), "
+                        f"numpy calls or Python branches on x); tracing it failed: {type(err).__name__}: "
+                        f"{str(err).splitlines()[0]}") from None
+    if jnp.issubdtype(g.dtype, jnp.complexfloating):
+        raise TypeError(f"the metric callable must return a real matrix; it returned dtype {g.dtype}.")
     if g.shape[1:] != (x.shape[-1],) * 2:
         raise ValueError(f"the metric callable must map x (d,) to g (d, d); it returned shape {g.shape[1:]}.")
     return g.reshape(x.shape + (x.shape[-1],))
@@ -284,6 +293,11 @@ def riemannian_mean(values, weights, mask=None) -> Float[Array, ""]:
     Pass `weights=riemannian_volumes(...)` and `mask=tess.interior` for the
     Riemannian average of an observable over tier-2 walkers.
     """
+    values, weights = walker_values(values, "values"), walker_values(weights, "weights", nonnegative=True)
+    if values.shape != weights.shape:
+        raise ValueError(f"`values` and `weights` must have the same shape (N,); got {values.shape} and "
+                         f"{weights.shape}.")
+    check_walker_mask(mask, "mask", values.shape)
     ok = jnp.isfinite(values) & jnp.isfinite(weights)
     if mask is not None:
         ok = ok & mask
@@ -313,6 +327,8 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
 
     A callable x (d,) -> g (d, d), usable as `metric=` everywhere.
     """
+    if not callable(fitness):
+        raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar V(x); got {type(fitness).__name__}.")
     check_choice(floor, "floor", HESSIAN_FLOORS)
     check_nonnegative(eps_sigma, "eps_sigma")  # a spectral floor
     if isinstance(eps_sigma, (int, float)) and eps_sigma == 0:

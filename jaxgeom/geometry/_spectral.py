@@ -13,7 +13,7 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ..base._checks import check_choice
+from ..base._checks import check_choice, check_integer, check_positive
 from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._weights import (
@@ -144,6 +144,9 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     spacing): the graph has then fallen apart and its small eigenvalues are 0.
     """
     check_choice(method, "method", SPECTRAL_METHODS)
+    check_positive(tol, "tol", " (LOBPCG's residual tolerance; None: 1e-8 in float64, 1e-3 in float32)")
+    check_integer(maxiter, "maxiter", 1)
+    check_integer(seed, "seed")
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k < tess.n_points:
         raise ValueError(f"`k` must be an int with 1 <= k < N = {tess.n_points}; got {k!r}.")
     if method == "lobpcg" and 5 * (k - 1) >= tess.n_points:  # LOBPCG's search block: 5 (k - 1) < N

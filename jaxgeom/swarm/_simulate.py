@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..base._checks import check_choice
+from ..base._checks import check_choice, check_integer
 from ..base._progress import check_progress
 from ..base._sharding import check_mesh, over_batch
 from ..tessellation._cellclip import describe_graph, rebuilds_on_device
@@ -43,7 +43,7 @@ from ._drivers import _simulate_callback, _simulate_host, _simulate_split, _spli
 from ._dynamics import SwarmParams, SwarmState
 from ._observables import OBSERVABLES
 from ._steps import _is_traced
-from ._swarm_init import check_callable_fitness
+from ._swarm_init import check_callable_fitness, check_traceable_fitness
 
 
 REBUILD_MODES = ("host", "callback", "device")
@@ -61,6 +61,9 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     for name in observe:
         check_choice(name, "observable", OBSERVABLES)
     check_choice(rebuild, "rebuild", REBUILD_MODES)
+    check_integer(spectral_gap_every, "spectral_gap_every")
+    if not _is_traced(state, params):
+        check_traceable_fitness(fitness, state.positions.shape[-1], state.positions.dtype)
     if rebuild == "host" and _is_traced(state, params):
         raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
                         "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
@@ -135,7 +138,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     runaway, all dead, a failed rebuild, or a graph that outgrew its capacity).
     For a batch: the same with a leading (B,) axis on every array of both.
     """
-    observe = tuple(observe)
+    observe = (observe,) if isinstance(observe, str) else tuple(observe)  # one name is one observable
     if is_batch(state):
         return _simulate_batch(fitness, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
                                observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh,

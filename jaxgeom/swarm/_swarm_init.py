@@ -30,10 +30,33 @@ def check_fitness(fitness, x: np.ndarray) -> None:
     if jnp.shape(values) != (len(x),):
         raise TypeError(f"`fitness` must return a scalar per walker (shape ()); it returned shape "
                         f"{jnp.shape(values)[1:]} for one walker.")
+    check_fitness_dtype(values.dtype)
     bad = np.flatnonzero(~np.isfinite(np.asarray(values)))
     if bad.size:
         raise ValueError(f"`fitness` is NaN or inf at {bad.size} initial walker(s), first rows "
                          f"{bad[:5].tolist()}; move them into the landscape's domain.")
+
+
+def check_fitness_dtype(dtype) -> None:
+    """The force is -grad V: V must be real and floating."""
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"`fitness` must return a real floating-point scalar (the force is -grad V); it returned "
+                        f"{jnp.dtype(dtype).name}. Use float arithmetic (e.g. 1.0 * ...), and the real part of a "
+                        "complex value.")
+
+
+def check_traceable_fitness(fitness, d: int, dtype) -> None:
+    """`fitness` traced on one abstract walker (no evaluation): jax.numpy operations only, a real
+    floating scalar out. (init_swarm evaluates it; simulate may get another function.)"""
+    try:
+        out = jax.eval_shape(fitness, jax.ShapeDtypeStruct((d,), dtype))
+    except Exception as err:  # noqa: BLE001 - re-raised with the fix
+        raise TypeError(f"`fitness` must be a JAX-traceable function x (d,) = ({d},) -> scalar (jax.numpy, no numpy "
+                        f"calls, float() or Python branches on x); tracing it failed: "
+                        f"{type(err).__name__}: {str(err).splitlines()[0]}") from err
+    if getattr(out, "shape", None) != ():
+        raise TypeError(f"`fitness` must return a scalar (shape ()); it returned {out}.")
+    check_fitness_dtype(out.dtype)
 
 
 def _as_key(key):

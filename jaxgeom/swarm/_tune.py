@@ -20,9 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ..base._checks import check_nonnegative, check_positive
 from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
 from ._dynamics import SwarmParams
-from ._tuning import SimulationLoss, _inverse_map
+from ._tuning import SimulationLoss, _bound, _inverse_map
 
 SOLVERS = ("bfgs", "nonlinear_cg", "lbfgsb")
 
@@ -133,6 +134,8 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     check_progress(progress)
     if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"`max_steps` must be an integer >= 1; got {max_steps!r}.")
+    check_positive(rtol, "rtol", " (the solver's relative tolerance)")
+    check_nonnegative(atol, "atol")
     name, minimiser = _solver_of(solver, rtol, atol)
     if bounds is not None and name != "lbfgsb":
         raise ValueError("hard `bounds` need solver='lbfgsb'; with optimistix solvers give them to "
@@ -328,7 +331,12 @@ def _theta_bounds(loss: SimulationLoss, bounds: dict | None):
         raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(loss.tuned)}.")
     lower, upper = [], []
     for name, (map_lower, map_upper) in zip(loss.tuned, loss.bounds):
-        lo, hi = bounds.get(name, (None, None))
+        pair = bounds.get(name, (None, None))
+        if isinstance(pair, str) or np.shape(pair) != (2,):
+            raise ValueError(f"bounds for {name!r} must be a pair (lower, upper) of numbers or None; got {pair!r}.")
+        lo, hi = (None if b is None else _bound(b, name) for b in pair)
+        if lo is not None and hi is not None and not lo < hi:
+            raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lo}, {hi}).")
         open_below = lo is None or lo <= (map_lower or 0.0)
         open_above = hi is None or (map_upper is not None and hi >= map_upper)
         lower.append(-np.inf if open_below else _inverse_map(float(lo), map_lower, map_upper))

@@ -90,6 +90,12 @@ class SimulationLoss(eqx.Module):
     def n_seeds(self) -> int:
         return self.keys.shape[0]
 
+    def check_theta(self, theta) -> None:
+        """theta must be a real (p,) vector, one entry per tuned parameter (shapes are static)."""
+        if np.shape(theta) != (len(self.tuned),):
+            raise ValueError(f"theta must have shape ({len(self.tuned)},), one entry per tuned parameter "
+                             f"{list(self.tuned)} (loss.to_theta({{...}}) builds it); got shape {np.shape(theta)}.")
+
     def to_params(self, theta: Float[Array, " p"]) -> SwarmParams:
         """The `SwarmParams` simulated at theta (the tuned fields replaced)."""
         dtype = self.state.positions.dtype
@@ -134,6 +140,7 @@ class SimulationLoss(eqx.Module):
         return jnp.where((history["diverged_step"] >= 0) | ~jnp.isfinite(values), jnp.inf, values)
 
     def __call__(self, theta, args=None) -> Float[Array, ""]:
+        self.check_theta(theta)
         if self.objective != "match":
             return jnp.mean(self.per_seed(theta))
         # Matching compares the seed average of each observable with its target (a method of
@@ -269,15 +276,25 @@ def _bounds_of(tuned: tuple, bounds: dict | None) -> tuple:
         raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(tuned)}.")
     out = []
     for name in tuned:
-        lower, upper = bounds.get(name, (None, None))
-        lower = None if lower is None else float(lower)
-        upper = None if upper is None else float(upper)
+        pair = bounds.get(name, (None, None))
+        if isinstance(pair, str) or np.shape(pair) != (2,):
+            raise ValueError(f"bounds for {name!r} must be a pair (lower, upper) of numbers or None; got {pair!r}.")
+        lower, upper = (None if b is None else _bound(b, name) for b in pair)
         if lower is None and upper is not None:
             lower = 0.0  # the parameters are non-negative
         if upper is not None and not upper > lower:
             raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lower}, {upper}).")
         out.append((lower, upper))
     return tuple(out)
+
+
+def _bound(value, name: str) -> float:
+    if isinstance(value, (str, bytes)) or np.iscomplexobj(value):
+        raise TypeError(f"bounds for {name!r} must be real numbers or None; got {value!r}.")
+    value = float(value)
+    if np.isnan(value):
+        raise ValueError(f"bounds for {name!r} must be numbers or None (no bound); got nan.")
+    return value
 
 
 def _observables_for(objective, targets: tuple, observe) -> tuple:
@@ -287,14 +304,18 @@ def _observables_for(objective, targets: tuple, observe) -> tuple:
         return ("best_fitness",)
     if objective == "match":
         return tuple(name for name, _ in targets)
-    observe = DEFAULT_OBSERVE if observe is None else tuple(observe)
+    observe = DEFAULT_OBSERVE if observe is None else (observe,) if isinstance(observe, str) else tuple(observe)
     for name in observe:
         check_choice(name, "observable", OBSERVABLES)
     return observe
 
 
 def _key_like(key, like):
-    key = jax.random.PRNGKey(key) if isinstance(key, (int, np.integer)) else key
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        key = jax.random.PRNGKey(key)
+    elif not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                                              or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+        raise TypeError(f"`key` must be an int seed or a jax.random key (jax.random.PRNGKey(seed)); got {key!r}.")
     if jnp.issubdtype(like.dtype, jax.dtypes.prng_key) and not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         return jax.random.wrap_key_data(key)
     if not jnp.issubdtype(like.dtype, jax.dtypes.prng_key) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):

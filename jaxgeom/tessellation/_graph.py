@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse
 from jaxtyping import Array, Bool, Float, Int
 
-from ..base._checks import check_metric_array, check_walker_array
+from ..base._checks import check_metric_array, check_walker_array, real_array
 
 
 class Capacity(NamedTuple):
@@ -244,9 +244,9 @@ def edge_slots(tess: Tessellation, src, dst, shift=None):
 
 def takes_tessellation(fn):
     """Decorator for public kernels: checked outside any jit, on concrete values only, that the
-    first argument is a `jaxgeom.Tessellation` and that `metric`, `values` and `velocities`
-    (where the kernel has them) are real arrays of the right shape; a metric array must
-    also be symmetric positive definite."""
+    first argument is a `jaxgeom.Tessellation` and that `metric`, `values`, `velocities`,
+    `volumes` and `volume_weights` (where the kernel has them) are real arrays of the right
+    shape, volumes >= 0; a metric array must also be symmetric positive definite."""
     signature = inspect.signature(fn)
 
     @functools.wraps(fn)
@@ -256,12 +256,18 @@ def takes_tessellation(fn):
                 f"jaxgeom.{fn.__name__} takes a jaxgeom.Tessellation as `tess`; got {type(tess).__name__}. "
                 "Build one first: tess = jaxgeom.delaunay(points) or jaxgeom.knn_graph(points, k)."
             )
-        bound = signature.bind_partial(tess, *args, **kwargs).arguments
+        call_args = signature.bind_partial(tess, *args, **kwargs)
+        bound = call_args.arguments
+        for name in ("values", "velocities", "volumes", "volume_weights"):  # plain lists: arrays (jit would
+            if isinstance(bound.get(name), (list, tuple)):                    # take them as pytrees)
+                bound[name] = real_array(bound[name], name)
         n, d = tess.points.shape
         if bound.get("mode", "full") != "none":
             check_metric_array(bound.get("metric"), n, d)
         for name, shape in (("values", (n,)), ("velocities", (n, d))):
             check_walker_array(bound.get(name), name, shape)
-        return fn(tess, *args, **kwargs)
+        for name in ("volumes", "volume_weights"):  # cell volumes: >= 0 where finite
+            check_walker_array(bound.get(name), name, (n,), nonnegative=True)
+        return fn(*call_args.args, **call_args.kwargs)
 
     return call
