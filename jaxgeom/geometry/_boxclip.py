@@ -28,20 +28,31 @@ from ..tessellation._graph import Tessellation, neighbor_displacements
 
 CLIP_CHUNK = 64  # boundary cells clipped per chunk
 PARALLEL = 1e-12  # |n_f x n_g| below this: the planes are parallel (no common line)
+ROUNDING_ULPS = 64  # a slope, or a room over the cell's size, this many epsilons from 0 is 0
 
 
-def _bounded_interval(point, direction, normals, offsets, usable):
-    """Length of {point + t direction : normals . (...) <= offsets for the usable rows}.
+def _parallel(slope, room, size):
+    """(rows parallel to the line, rows that contain it), to rounding: a lattice's cells have
+    planes through their edges (zero-area faces) whose slope and room are ~eps, not 0, and
+    room / slope is then an arbitrary bound."""
+    eps = jnp.finfo(slope.dtype).eps
+    parallel = jnp.abs(slope) <= ROUNDING_ULPS * eps
+    return parallel, parallel & (jnp.abs(room) <= ROUNDING_ULPS * eps * size)
 
-    A row parallel to the line (normal . direction = 0) either holds on the whole line or empties it."""
+
+def _bounded_interval(point, direction, normals, offsets, usable, size):
+    """Length of {point + t direction : normals . (...) <= offsets for the usable rows}; `size`
+    the cell's length scale. A row parallel to the line (normal . direction = 0, to rounding)
+    either holds on the whole line or empties it."""
     slope = normals @ direction
     room = offsets - normals @ point
-    safe = jnp.where(slope != 0, slope, 1.0)
+    parallel, _ = _parallel(slope, room, size)
+    safe = jnp.where(parallel, 1.0, slope)
     bound = room / safe
     big = jnp.asarray(0.25 * jnp.finfo(point.dtype).max, point.dtype)  # upper - lower stays finite
-    upper = jnp.min(jnp.where(usable & (slope > 0), bound, big))
-    lower = jnp.max(jnp.where(usable & (slope < 0), bound, -big))
-    empty = jnp.any(usable & (slope == 0) & (room < 0))
+    upper = jnp.min(jnp.where(usable & ~parallel & (slope > 0), bound, big))
+    lower = jnp.max(jnp.where(usable & ~parallel & (slope < 0), bound, -big))
+    empty = jnp.any(usable & parallel & (room < -ROUNDING_ULPS * jnp.finfo(point.dtype).eps * size))
     return jnp.where(empty, 0.0, jnp.maximum(upper - lower, 0.0))
 
 
@@ -52,8 +63,9 @@ def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], acti
 
     def edge(n, c, usable):
         direction = jnp.stack([-n[1], n[0]])
-        return _bounded_interval(c * n, direction, normals, offsets, usable)
+        return _bounded_interval(c * n, direction, normals, offsets, usable, size)
 
+    size = jnp.max(jnp.where(active, offsets, 0.0))
     lengths = jnp.where(active, jax.vmap(edge)(normals, offsets, others), 0.0)  # padding rows: unbounded
     return 0.5 * jnp.sum(offsets * lengths)
 
@@ -62,6 +74,7 @@ def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"],
     """Volume of {y : normals . y <= offsets (active rows)}, bounded and containing 0."""
     f = normals.shape[0]
     eye = jnp.eye(f, dtype=bool)
+    size = jnp.max(jnp.where(active, offsets, 0.0))
 
     def face(nf, cf, row):
         def edge(ng, cg, g):
@@ -73,8 +86,12 @@ def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"],
             # the point of the line nearest x_i: alpha nf + beta ng with nf.p = cf, ng.p = cg
             alpha, beta = (cf - cos * cg) / s_safe**2, (cg - cos * cf) / s_safe**2
             usable = active & ~row & (jnp.arange(f) != g)
-            length = _bounded_interval(alpha * nf + beta * ng, cross / s_safe, normals, offsets, usable)
-            return (cg - cos * cf) / s_safe * jnp.where(ok, length, 0.0)
+            point, direction = alpha * nf + beta * ng, cross / s_safe
+            length = _bounded_interval(point, direction, normals, offsets, usable, size)
+            # planes through the same edge (a lattice cell's corner): the lowest index counts it once
+            _, contains = _parallel(normals @ direction, offsets - normals @ point, size)
+            first = ~jnp.any(usable & contains & (jnp.arange(f) < g))
+            return (cg - cos * cf) / s_safe * jnp.where(ok & first, length, 0.0)
 
         return 0.5 * jnp.sum(jax.vmap(edge)(normals, offsets, jnp.arange(f)))
 
