@@ -137,6 +137,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     `diverged_step` (-1, or under a trace the first step whose state failed: non-finite,
     runaway, all dead, a failed rebuild, or a graph that outgrew its capacity).
     For a batch: the same with a leading (B,) axis on every array of both.
+
+    Ctrl-C (rebuild="host") raises a `KeyboardInterrupt` that carries the `state`, `history`
+    and `steps` of the steps completed before it (`except KeyboardInterrupt as stop:
+    stop.history`), as this function would have returned them for that many steps.
     """
     observe = (observe,) if isinstance(observe, str) else tuple(observe)  # one name is one observable
     if is_batch(state):
