@@ -11,9 +11,7 @@ combination of old ones. The plain mean velocity is NOT conserved.
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from ..base._checks import check_nonnegative
@@ -23,16 +21,6 @@ from ._weights import (
 )
 
 VISCOUS_WEIGHTS = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
-
-
-def _check_force_inputs(tess: Tessellation, weights: str, metric, volume_weights) -> None:
-    check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)
-    n = tess.points.shape[0]
-    if volume_weights is not None:
-        if jnp.shape(volume_weights) != (n,):
-            raise ValueError(f"`volume_weights` must have shape (N,) = {(n,)}; got {jnp.shape(volume_weights)}.")
-        if not isinstance(volume_weights, jax.core.Tracer) and np.any(np.asarray(volume_weights) < 0):
-            raise ValueError("`volume_weights` must be >= 0 (cell volumes); got negative entries.")
 
 
 @takes_tessellation
@@ -117,7 +105,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel"
 
     (N, d) forces; 0 for walkers without neighbours.
     """
-    _check_force_inputs(tess, weights, metric, volume_weights)
+    check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)  # volume_weights: takes_tessellation
     check_nonnegative(nu, "nu")
     check_alpha(alpha)
     check_length_scale(length_scale)

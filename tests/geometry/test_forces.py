@@ -168,7 +168,7 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
     (dict(nu=-0.1), "`nu` must be a finite number >= 0"),
     (dict(weights="metric_full"), "needs `metric`"),
     (dict(length_scale=0.0), "`length_scale` must be a finite number > 0"),
-    (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(N,\)"),
+    (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(50,\)"),
     (dict(volume_weights=-np.ones(50)), "`volume_weights` must be >= 0"),
     (dict(velocities=np.ones((50, 3))), r"`velocities` must have shape \(50, 2\)"),
 ])
