@@ -37,17 +37,32 @@ def voronoi_volumes(tess: Tessellation, *, clip: bool = True) -> Float[Array, " 
     **Returns:**
 
     (N,) volumes in the dtype of `tess.points`. Without a box (or `clip=False`, or in
-    4D), unbounded cells (hull walkers of a non-periodic graph) are NaN and bounded
+    4D), unbounded cells (hull walkers of a non-periodic graph) are NaN, and so are 2D cells
+    beside a triangle within rounding of collinear (their sign is not decided); bounded
     cells reaching outside the box keep their unclipped volume. Periodic volumes sum to
     the box volume.
     """
     pieces = jax.vmap(dual_pieces)(simplex_coords(tess))
     pieces = jnp.where(tess.simplex_mask[:, None], pieces, 0.0)
     volumes = jax.ops.segment_sum(pieces.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
-    volumes = jnp.where(tess.hull, jnp.nan, volumes)
+    volumes = jnp.where(tess.hull | _beside_flat_triangle(tess, pieces), jnp.nan, volumes)
     if clip and tess.box is not None and not tess.periodic and tess.dim in (2, 3):
         return clip_to_box(tess, volumes)
     return volumes
+
+
+def _beside_flat_triangle(tess: Tessellation, pieces):
+    """(N,) walkers of a 2D Delaunay triangle that `dual_pieces` found flat (within rounding of
+    collinear). A flat triangle is never Delaunay inside the hull, so it is a thin one whose
+    circumcentre, a real vertex of these walkers' cells (~1e13 away for walkers on a line
+    with 1e-13 noise), rounding cannot place: their volumes would be anything, of either sign.
+    From 3D on, flat simplices of cospherical walkers (a lattice's) add nothing and are kept."""
+    if tess.dim != 2:
+        return jnp.zeros(tess.n_points, bool)
+    flat = tess.simplex_mask & jnp.all(pieces == 0, axis=1)
+    hits = jax.ops.segment_max(jnp.repeat(flat, 3).astype(jnp.int32), tess.simplices.ravel(),
+                               num_segments=tess.n_points)
+    return hits > 0
 
 
 @takes_tessellation

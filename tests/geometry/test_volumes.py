@@ -1,3 +1,5 @@
+import itertools
+import re
 from fractions import Fraction
 
 import jax
@@ -172,26 +174,41 @@ def exact_voronoi_area(x: np.ndarray, i: int, big: Fraction = Fraction(10**15)) 
     return sum(u[0] * v[1] - v[0] * u[1] for u, v in zip(poly, poly[1:] + poly[:1])) / 2
 
 
-def near_line(noise: float) -> np.ndarray:
+def near_line(noise: float, seed: int = 0) -> np.ndarray:
     s = np.linspace(0, 1, 40)
-    return np.c_[s, 2 * s + noise * np.random.default_rng(0).standard_normal(40)]
+    return np.c_[s, 2 * s + noise * np.random.default_rng(seed).standard_normal(40)]
 
 
 @pytest.mark.parametrize("triangulator", ["qhull", "cdt"])
-def test_nearly_collinear_walkers_are_refused_or_get_exact_positive_volumes(triangulator):
+def test_nearly_collinear_walkers_never_get_a_volume_of_the_wrong_sign(triangulator):
     """Walkers on a line with 1e-13 noise: once a cell of -2.38e12 where exact arithmetic gives
-    +2.13e13. No triangulation resolves them (a walker is left out), so they are refused as
-    nearly collinear; at 1e-12 they are triangulated and every tier-2 volume is positive and
-    (CDT, exact predicates) equals the exact rational area to its circumcentres' rounding."""
-    with pytest.raises(ValueError, match="nearly degenerate: walker 16 lies within rounding of a collinear"):
-        jaxgeom.delaunay(near_line(1e-13), triangulator=triangulator)
-    x = near_line(1e-12)
-    tess = jaxgeom.delaunay(x, triangulator=triangulator)
-    vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+    +2.13e13. Now each such swarm is refused as nearly degenerate (a walker left out, or too
+    thin for Qhull's inexact predicates), or each bounded cell's volume has the sign of the
+    exact rational area and is close to it, or it is NaN where its pieces cannot decide (a
+    triangle within rounding of collinear, a real Voronoi vertex ~1e13 away)."""
+    refused, checked, undecided = 0, 0, 0
+    for noise, seed in itertools.product([1e-13, 1e-12], range(4)):
+        x = near_line(noise, seed)
+        try:
+            tess = jaxgeom.delaunay(x, triangulator=triangulator)
+        except ValueError as err:
+            assert re.search(r"nearly (degenerate|collinear)", str(err)), err
+            refused += 1
+            continue
+        vol = np.asarray(jaxgeom.voronoi_volumes(tess))
+        for i in np.flatnonzero(~np.asarray(tess.hull)):
+            exact = float(exact_voronoi_area(x, i))
+            if np.isnan(vol[i]):
+                undecided += 1
+                continue
+            checked += 1
+            assert vol[i] * exact > 0 and abs(vol[i] / exact - 1) < (1e-2 if triangulator == "cdt" else 5e-2)
+    assert refused >= 1 and checked > 100 and undecided < 0.05 * checked
+    tess = jaxgeom.delaunay(near_line(1e-12), triangulator=triangulator)
     inner = np.flatnonzero(np.asarray(tess.tier) == 2)
-    exact = np.array([float(exact_voronoi_area(x, i)) for i in inner])
-    assert len(inner) == 10 and np.all(exact > 7e8) and np.all(vol[inner] > 0)
-    np.testing.assert_allclose(vol[inner], exact, rtol=1e-4 if triangulator == "cdt" else 0.05)
+    exact = np.array([float(exact_voronoi_area(near_line(1e-12), i)) for i in inner])
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess))[inner], exact,
+                               rtol=1e-4 if triangulator == "cdt" else 0.05)
 
 
 @pytest.mark.parametrize("d, m", [(2, 8), (3, 5)])
