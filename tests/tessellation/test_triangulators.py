@@ -156,11 +156,9 @@ def test_lattices_keep_exact_volumes_and_positive_measure_neighbours(name, d, pe
     assert [s for s, keep in zip(neighbor_sets(ours), inside) if keep] == [
         s for s, keep in zip(neighbor_sets(ref), inside) if keep]
     volumes = np.asarray(jaxgeom.voronoi_volumes(ours))
-    # Every cell is a cube of side 1/side. Not asserted for the boxed 3D hull cells: clipping
-    # co-spherical tier-0 cells to the box is off there with every backend, Qhull included
-    # (0.009-0.01 for 0.008 at side 5; a known defect of the box clipping, not of the graph).
-    exact = np.ones(len(x), bool) if periodic or d == 2 else np.asarray(ours.tier) > 0
-    np.testing.assert_allclose(volumes[exact], side ** -d, rtol=1e-9)
+    # Every cell is a cube of side 1/side, the boxed hull cells included (their clipping once
+    # gave 0.009-0.01 for 0.008 in 3D with every backend: tests/geometry/test_volumes.py)
+    np.testing.assert_allclose(volumes, side ** -d, rtol=1e-9)
     if periodic:
         assert all(len(s) == 2 * d for s in neighbor_sets(ours))
 
