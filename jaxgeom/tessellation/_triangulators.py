@@ -253,7 +253,22 @@ def _cdt(x: np.ndarray) -> _Triangulation:
     # CDT's neighbour k lies across the edge (v_k, v_k+1), i.e. opposite vertex k + 2.
     across = raw["neighbors"][keep][:, [1, 2, 0]].astype(np.int64)
     neighbors = np.where(across == pythoncdt.NO_NEIGHBOR, -1, renumber[np.minimum(across, len(keep) - 1)])
-    return _Triangulation(vertices[keep] - 3, neighbors.astype(np.int32))
+    return _without_flat_triangles(x, vertices[keep] - 3, neighbors.astype(np.int32))
+
+
+def _without_flat_triangles(x: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray) -> _Triangulation:
+    """CDT keeps zero-area triangles along an exactly collinear hull side (a sheared lattice's
+    bottom row); Qhull has none there. Dropping them leaves the triangulation of the hull, the
+    middle walkers on its boundary (`check_triangulation` then verifies the result)."""
+    volume, size = _volumes(x, simplices)
+    flat = volume <= 8 * np.finfo(np.float64).eps * size
+    if not flat.any():
+        return _Triangulation(simplices, neighbors)
+    keep = ~flat
+    renumber = np.where(keep, np.cumsum(keep) - 1, -1).astype(np.int32)
+    kept = neighbors[keep]
+    kept = np.where(kept >= 0, renumber[np.maximum(kept, 0)], -1)
+    return _Triangulation(simplices[keep], kept.astype(np.int32))
 
 
 def _raise_exact_duplicates(x: np.ndarray) -> None:
@@ -278,9 +293,7 @@ BUILDERS = {"cdt": _cdt, "shull": _shull}
 def check_triangulation(tri, x: np.ndarray) -> str | None:
     """None if `tri` is a valid triangulation of the convex hull of `x`, else what is wrong:
     indices in range, every walker a vertex, every simplex positively oriented, adjacency
-    symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1).
-    CDT keeps zero-area triangles of exactly collinear hull walkers (a sheared lattice): they
-    fail here, and Qhull builds that graph."""
+    symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1)."""
     s, adj = np.asarray(tri.simplices), np.asarray(tri.neighbors)
     n, d = x.shape
     if s.ndim != 2 or s.shape[1] != d + 1 or adj.shape != s.shape or len(s) == 0:

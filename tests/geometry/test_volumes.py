@@ -203,7 +203,7 @@ def test_nearly_collinear_walkers_never_get_a_volume_of_the_wrong_sign(triangula
                 continue
             checked += 1
             assert vol[i] * exact > 0 and abs(vol[i] / exact - 1) < (1e-2 if triangulator == "cdt" else 5e-2)
-    assert refused >= 1 and checked > 100 and undecided < 0.05 * checked
+    assert (refused >= 1) == (triangulator == "qhull") and checked > 100 and undecided < 0.05 * checked
     tess = jaxgeom.delaunay(near_line(1e-12), triangulator=triangulator)
     inner = np.flatnonzero(np.asarray(tess.tier) == 2)
     exact = np.array([float(exact_voronoi_area(near_line(1e-12), i)) for i in inner])

@@ -163,15 +163,25 @@ def test_lattices_keep_exact_volumes_and_positive_measure_neighbours(name, d, pe
         assert all(len(s) == 2 * d for s in neighbor_sets(ours))
 
 
-def test_collinear_hull_walkers_make_cdt_fall_back_to_qhull():
+def test_cdt_drops_its_zero_area_triangles_along_a_collinear_hull_side():
     """A sheared hexagonal lattice: its bottom row is an exactly collinear hull side, and CDT
-    keeps zero-area triangles along it. The check rejects them; Qhull builds the graph, warned."""
+    keeps zero-area triangles along it. (Once: they failed the check and Qhull built the graph,
+    warned.) The adapter drops them; the graph passes the check, and its neighbours and volumes
+    are Qhull's, but for contacts between two hull walkers (co-circular ties, kept by the rule
+    of Tessellation.neighbors)."""
     i, j = np.meshgrid(np.arange(14), np.arange(14))
     z = np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], -1).reshape(-1, 2) @ np.array([[1.0, 0.0], [0.15, 1.0]])
-    assert "flat" in check_triangulation(backends._cdt(z), z)
-    with pytest.warns(RuntimeWarning, match="cdt's triangulation failed its check: .* flat"):
+    tri = backends._cdt(z)
+    assert check_triangulation(tri, z) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback warning
         ours = jaxgeom.delaunay(z, triangulator="cdt")
-    assert neighbor_sets(ours) == neighbor_sets(jaxgeom.delaunay(z, triangulator="qhull"))
+    ref = jaxgeom.delaunay(z, triangulator="qhull")
+    hull = np.asarray(ours.hull) | np.asarray(ref.hull)
+    for k, (a, b) in enumerate(zip(neighbor_sets(ours), neighbor_sets(ref))):
+        assert all(hull[m] and hull[k] for m in a ^ b), k
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(ours)), np.asarray(jaxgeom.voronoi_volumes(ref)),
+                               rtol=1e-9, equal_nan=True)
 
 
 @pytest.mark.parametrize("name, d", CASES)
