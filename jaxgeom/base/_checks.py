@@ -141,18 +141,12 @@ def check_walker_mask(value, name: str, shape: tuple) -> None:
 def walker_values(value, name: str, *, nonnegative: bool = False):
     """A 1-D per-walker array of real values for the functions that take no graph
     (checked where concrete; a traced value by its rank and dtype); returned as a JAX array."""
-    if isinstance(value, jax.core.Tracer):
-        _check_real_dtype(value.dtype, name)
-        arr = value
-    else:
-        if isinstance(value, str):
-            raise TypeError(f"`{name}` must be a 1-D array of per-walker values; got the string {value!r}.")
-        arr = real_array(value, name)
-        if nonnegative and np.any(arr < 0):
-            raise ValueError(f"`{name}` must be >= 0 (cell volumes or weights); got "
-                             f"{int(np.sum(arr < 0))} negative entries.")
+    if isinstance(value, str):
+        raise TypeError(f"`{name}` must be a 1-D array of per-walker values; got the string {value!r}.")
+    arr = value if isinstance(value, jax.core.Tracer) else real_array(value, name)
     if np.ndim(arr) != 1:
         raise ValueError(f"`{name}` must be 1-D, one value per walker (N,); got shape {np.shape(arr)}.")
+    check_walker_array(arr, name, np.shape(arr), nonnegative=nonnegative)
     return jnp.asarray(arr, dtype=None if np.issubdtype(arr.dtype, np.floating) else float)
 
 
@@ -289,6 +283,27 @@ def check_resolved_positions(points: np.ndarray, dtype, name: str = "points") ->
             f"(points - points.mean(axis=0)){fix}.")
 
 
+def flat_word(d: int, other: str = "on a hyperplane") -> str:
+    """What walkers spanning fewer than d dimensions are: collinear (2D), coplanar (3D), `other`."""
+    return {2: "collinear", 3: "coplanar"}.get(d, other)
+
+
+def thinness(points: np.ndarray) -> float | None:
+    """RMS distance of the walkers from their best-fit hyperplane over their extent (their
+    smallest singular value, centred and scaled to unit extent, over sqrt(N)); None when a
+    cheap (d, d) Gram matrix already shows the set is not thin (the common case) or the
+    extent is 0. Singular values of the cloud itself: no squaring of its condition number."""
+    x = columns(points)
+    extent = float(np.max(x.max(axis=1) - x.min(axis=1)))
+    if extent == 0:
+        return None
+    centred = (x - x.mean(axis=1, keepdims=True)) / extent
+    ev = np.linalg.eigvalsh(centred @ centred.T)
+    if ev[0] > 1e-8 * ev[-1]:
+        return None
+    return float(np.linalg.svd(centred, compute_uv=False)[-1]) / np.sqrt(x.shape[1])
+
+
 def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     """Reject point sets that span fewer than d dimensions (collinear in 2D, coplanar in 3D).
 
@@ -298,25 +313,16 @@ def check_full_rank(points: np.ndarray, name: str = "points") -> None:
     coordinates (their float64 resolution at the largest |x|).
     """
     x = columns(points)
-    lo, hi = x.min(axis=1), x.max(axis=1)
-    extent = float(np.max(hi - lo))
+    extent = float(np.max(x.max(axis=1) - x.min(axis=1)))
     if extent > 0:
-        centred = (x - 0.5 * (lo + hi)[:, None]) / extent
-        centred -= centred.mean(axis=1, keepdims=True)  # the rank of the affine hull needs the mean, not the midrange
-        gram = centred @ centred.T
-        ev = np.linalg.eigvalsh(gram)
-        if ev[0] > 1e-8 * ev[-1]:  # the common case, decided by a cheap (d, d) Gram matrix
-            return
-        # Thin sets: singular values of the centred cloud itself (no squaring of the condition number).
-        sv = np.linalg.svd(centred, compute_uv=False)
+        thin = thinness(points)
         rounding = 64.0 * np.finfo(np.float64).eps * max(float(np.max(np.abs(x))) / extent, 1.0)
-        if sv[-1] > rounding * np.sqrt(x.shape[1]):
+        if thin is None or thin > rounding:
             return
     d = x.shape[0]
-    what = {2: "collinear", 3: "coplanar"}.get(d, f"in a subspace of dimension < {d}")
     raise ValueError(
-        f"`{name}` is degenerate: all walkers are {what}, so there is no {d}-dimensional "
-        "tessellation. Spread the walkers out, or drop the flat coordinate(s)."
+        f"`{name}` is degenerate: all walkers are {flat_word(d, f'in a subspace of dimension < {d}')}, so there "
+        f"is no {d}-dimensional tessellation. Spread the walkers out, or drop the flat coordinate(s)."
     )
 
 

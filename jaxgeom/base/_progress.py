@@ -56,7 +56,7 @@ def close_bar(bar, owned: bool) -> None:
 # and dropped, and the run went on (seen in `jaxgeom tune`). Under `deferred_interrupt` the
 # first Ctrl-C only sets a flag that the host loops read between iterations
 # (`raise_if_interrupted`); a second one interrupts at once, as usual.
-_INTERRUPT = {"requested": False, "active": False}
+_INTERRUPT = {"requested": False}
 
 
 @contextlib.contextmanager
@@ -74,13 +74,13 @@ def deferred_interrupt():
             raise KeyboardInterrupt
         _INTERRUPT["requested"] = True
 
-    _INTERRUPT.update(requested=False, active=True)
+    _INTERRUPT["requested"] = False
     signal.signal(signal.SIGINT, handler)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
-        _INTERRUPT.update(requested=False, active=False)
+        _INTERRUPT["requested"] = False
 
 
 def raise_if_interrupted() -> None:

@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from ..base._checks import check_choice, columns
+from ..base._checks import check_choice, columns, flat_word, thinness
 
 TRIANGULATORS = ("auto", "qhull", "cdt", "shull")
 DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3)}
@@ -146,15 +146,9 @@ def check_thick_enough_for_qhull(x: np.ndarray) -> None:
     distance; a line with 1e-13 noise) get a triangulation that is not Delaunay, and cells
     of the wrong sign (measured: 2 of 338 cells at 1e-13, none at 1e-12, 12 seeds). CDT and
     shull decide with exact predicates."""
-    cols = columns(x)
-    extent = float(np.max(cols.max(axis=1) - cols.min(axis=1)))
-    centred = (cols - cols.mean(axis=1, keepdims=True)) / (extent if extent > 0 else 1.0)
-    ev = np.linalg.eigvalsh(centred @ centred.T / len(x))
-    if ev[0] > 1e-8 * ev[-1]:  # the common case, from the (d, d) Gram matrix
-        return
-    thickness = float(np.linalg.svd(centred, compute_uv=False)[-1]) / np.sqrt(len(x))  # no squaring
-    if thickness < QHULL_MIN_THICKNESS:
-        what = {2: "collinear", 3: "coplanar"}.get(x.shape[1], "on a hyperplane")
+    thickness = thinness(x)
+    if thickness is not None and thickness < QHULL_MIN_THICKNESS:
+        what = flat_word(x.shape[1])
         exact = "triangulator='cdt'" if x.shape[1] == 2 else "the gpl extra's triangulator='shull'"
         raise ValueError(f"`points` is nearly {what} (RMS distance from the best-fit plane {thickness:.2g} of the "
                          f"extent): Qhull, whose predicates are not exact, cannot triangulate it correctly. Use "
@@ -191,7 +185,7 @@ def raise_duplicates(x: np.ndarray, rows: np.ndarray, partners: np.ndarray) -> N
     gap = np.max(np.abs(x[rows] - x[partners]), axis=1)
     if np.any(gap > COINCIDENT_RELATIVE * extent):
         far = int(np.argmax(gap))
-        what = {2: "collinear", 3: "coplanar"}.get(x.shape[1], "on a hyperplane")
+        what = flat_word(x.shape[1])
         raise ValueError(
             f"`points` is nearly degenerate: walker {rows[far]} lies within rounding of a {what} piece of the "
             f"swarm (its nearest triangulated walker {partners[far]} is {gap[far]:.3g} away, so it is no "
