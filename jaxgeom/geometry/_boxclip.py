@@ -41,19 +41,19 @@ def _parallel(slope, room, size):
 
 
 def _bounded_interval(point, direction, normals, offsets, usable, size):
-    """Length of {point + t direction : normals . (...) <= offsets for the usable rows}; `size`
-    the cell's length scale. A row parallel to the line (normal . direction = 0, to rounding)
-    either holds on the whole line or empties it."""
+    """(length of {point + t direction : normals . (...) <= offsets for the usable rows}, the
+    rows whose plane contains the line); `size` the cell's length scale. A row parallel to the
+    line (normal . direction = 0, to rounding) either holds on the whole line or empties it."""
     slope = normals @ direction
     room = offsets - normals @ point
-    parallel, _ = _parallel(slope, room, size)
+    parallel, contains = _parallel(slope, room, size)
     safe = jnp.where(parallel, 1.0, slope)
     bound = room / safe
     big = jnp.asarray(0.25 * jnp.finfo(point.dtype).max, point.dtype)  # upper - lower stays finite
     upper = jnp.min(jnp.where(usable & ~parallel & (slope > 0), bound, big))
     lower = jnp.max(jnp.where(usable & ~parallel & (slope < 0), bound, -big))
     empty = jnp.any(usable & parallel & (room < -ROUNDING_ULPS * jnp.finfo(point.dtype).eps * size))
-    return jnp.where(empty, 0.0, jnp.maximum(upper - lower, 0.0))
+    return jnp.where(empty, 0.0, jnp.maximum(upper - lower, 0.0)), contains
 
 
 def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], active: Bool[Array, " F"]):
@@ -63,7 +63,7 @@ def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], acti
 
     def edge(n, c, usable):
         direction = jnp.stack([-n[1], n[0]])
-        return _bounded_interval(c * n, direction, normals, offsets, usable, size)
+        return _bounded_interval(c * n, direction, normals, offsets, usable, size)[0]
 
     size = jnp.max(jnp.where(active, offsets, 0.0))
     lengths = jnp.where(active, jax.vmap(edge)(normals, offsets, others), 0.0)  # padding rows: unbounded
@@ -86,10 +86,9 @@ def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"],
             # the point of the line nearest x_i: alpha nf + beta ng with nf.p = cf, ng.p = cg
             alpha, beta = (cf - cos * cg) / s_safe**2, (cg - cos * cf) / s_safe**2
             usable = active & ~row & (jnp.arange(f) != g)
-            point, direction = alpha * nf + beta * ng, cross / s_safe
-            length = _bounded_interval(point, direction, normals, offsets, usable, size)
+            point = alpha * nf + beta * ng
+            length, contains = _bounded_interval(point, cross / s_safe, normals, offsets, usable, size)
             # planes through the same edge (a lattice cell's corner): the lowest index counts it once
-            _, contains = _parallel(normals @ direction, offsets - normals @ point, size)
             first = ~jnp.any(usable & contains & (jnp.arange(f) < g))
             return (cg - cos * cf) / s_safe * jnp.where(ok & first, length, 0.0)
 

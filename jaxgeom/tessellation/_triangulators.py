@@ -240,29 +240,18 @@ def _cdt(x: np.ndarray) -> _Triangulation:
         raise
     raw = tri.triangles_array(copy=False)
     # Vertices 0-2 are CDT's super-triangle: dropping its triangles here, in numpy, costs a
-    # quarter of `erase_super_triangle` (1.9 ms at N = 1e4).
-    vertices = raw["vertices"].astype(np.int32)
-    keep = (vertices >= 3).all(axis=1)
+    # quarter of `erase_super_triangle` (1.9 ms at N = 1e4). CDT also keeps zero-area triangles
+    # along an exactly collinear hull side (a sheared lattice's bottom row), which Qhull does
+    # not have; they go too, leaving the middle walkers on the hull (`check_triangulation`
+    # then verifies the result).
+    vertices = raw["vertices"].astype(np.int32) - 3
+    keep = (vertices >= 0).all(axis=1)
+    keep[keep] = ~_flat(x, vertices[keep])
     renumber = np.where(keep, np.cumsum(keep) - 1, -1).astype(np.int32)
     # CDT's neighbour k lies across the edge (v_k, v_k+1), i.e. opposite vertex k + 2.
     across = raw["neighbors"][keep][:, [1, 2, 0]].astype(np.int64)
     neighbors = np.where(across == pythoncdt.NO_NEIGHBOR, -1, renumber[np.minimum(across, len(keep) - 1)])
-    return _without_flat_triangles(x, vertices[keep] - 3, neighbors.astype(np.int32))
-
-
-def _without_flat_triangles(x: np.ndarray, simplices: np.ndarray, neighbors: np.ndarray) -> _Triangulation:
-    """CDT keeps zero-area triangles along an exactly collinear hull side (a sheared lattice's
-    bottom row); Qhull has none there. Dropping them leaves the triangulation of the hull, the
-    middle walkers on its boundary (`check_triangulation` then verifies the result)."""
-    volume, size = _volumes(x, simplices)
-    flat = volume <= 8 * np.finfo(np.float64).eps * size
-    if not flat.any():
-        return _Triangulation(simplices, neighbors)
-    keep = ~flat
-    renumber = np.where(keep, np.cumsum(keep) - 1, -1).astype(np.int32)
-    kept = neighbors[keep]
-    kept = np.where(kept >= 0, renumber[np.maximum(kept, 0)], -1)
-    return _Triangulation(simplices[keep], kept.astype(np.int32))
+    return _Triangulation(vertices[keep], neighbors.astype(np.int32))
 
 
 def _raise_exact_duplicates(x: np.ndarray) -> None:
@@ -294,8 +283,7 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
         return f"simplices of shape {s.shape}, adjacency {adj.shape}"
     if s.min() < 0 or s.max() >= n or np.bincount(s.ravel(), minlength=n).min() == 0:
         return "a vertex index out of range or a walker left out"
-    volume, size = _volumes(x, s)
-    flat = volume <= 8 * np.finfo(np.float64).eps * size  # zero, up to the rounding of its terms
+    flat = _flat(x, s)
     if flat.any():
         return f"{int(flat.sum())} simplices flat or negatively oriented"
     if adj.max() >= len(s) or not _symmetric(adj):
@@ -317,6 +305,12 @@ def _symmetric(adj: np.ndarray) -> bool:
     owner = np.repeat(np.arange(len(adj), dtype=adj.dtype), adj.shape[1])[listed]
     back = adj[flat[listed]]
     return bool(np.logical_or.reduce([back[:, k] == owner for k in range(adj.shape[1])]).all())
+
+
+def _flat(x: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """(S,) simplices of zero or negative volume, up to the rounding of its terms."""
+    volume, size = _volumes(x, s)
+    return volume <= 8 * np.finfo(np.float64).eps * size
 
 
 def _volumes(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
