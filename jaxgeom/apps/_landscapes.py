@@ -104,37 +104,41 @@ def _batched(fitness: Callable):
     return jax.jit(jax.vmap(fitness))
 
 
-def _rejection(fitness, n: int, dim: int, beta: float, rng, box, v_min: float, max_rounds: int = 200):
-    accepted, total = [], 0
-    for _ in range(max_rounds):
+def _rejection(fitness, n: int, dim: int, beta: float, rng, box, v_min: float):
+    def accepted():
         trial = rng.uniform(box[0], box[1], size=(max(4 * n, 1024), dim))
         excess = np.maximum(_values(fitness, trial) - v_min, 0.0)
-        keep = rng.random(len(trial)) < np.exp(-beta * np.nan_to_num(excess, nan=np.inf))
-        accepted.append(trial[keep])
-        total += int(keep.sum())
-        if total >= n:
-            return np.concatenate(accepted)[:n]
-    raise ValueError(f"sampling exp(-{beta} V) by rejection accepted {total} of {n} walkers in {max_rounds} rounds; "
-                     "lower beta, shrink the box, or give the walkers yourself (--points).")
+        return trial[rng.random(len(trial)) < np.exp(-beta * np.nan_to_num(excess, nan=np.inf))]
+
+    return _collect(accepted, n, beta)
 
 
-def _rejection_1d(rng, density, n: int, half: float, beta: float, max_rounds: int = 200) -> np.ndarray:
+def _rejection_1d(rng, density, n: int, half: float, beta: float) -> np.ndarray:
     """n samples of an unnormalised 1D density on [-half, half] (max found on a fine grid)."""
     with np.errstate(all="ignore"):
         top = 1.05 * density(np.linspace(-half, half, 20001)).max()
     if not (np.isfinite(top) and top > 0):
         raise ValueError(f"the density exp(-beta V) with beta = {beta} is not a positive finite function on the "
                          f"box [-{half}, {half}] (its maximum is {top}); give a finite beta > 0 (or 0 for uniform).")
+
+    def accepted():
+        t = rng.uniform(-half, half, max(4 * n, 1024))
+        return t[rng.random(t.size) * top < density(t)]
+
+    return _collect(accepted, n, beta)
+
+
+def _collect(accepted, n: int, beta: float, max_rounds: int = 200) -> np.ndarray:
+    """The first n samples of rounds of `accepted()`, at most `max_rounds` of them (a density
+    too narrow for its box would loop for ever)."""
     out, total = [], 0
     for _ in range(max_rounds):
-        t = rng.uniform(-half, half, max(4 * n, 1024))
-        t = t[rng.random(t.size) * top < density(t)]
-        out.append(t)
-        total += t.size
+        out.append(accepted())
+        total += len(out[-1])
         if total >= n:
             return np.concatenate(out)[:n]
     raise ValueError(f"sampling exp(-{beta} V) by rejection accepted {total} of {n} walkers in {max_rounds} rounds; "
-                     "lower beta, or give the walkers yourself (--points).")
+                     "lower beta, shrink the box, or give the walkers yourself (--points).")
 
 
 def _truncated_normal(rng, scale, half: float) -> np.ndarray:

@@ -23,7 +23,7 @@ import optimistix as optx
 from ..base._checks import check_nonnegative, check_positive
 from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
 from ._dynamics import SwarmParams
-from ._tuning import SimulationLoss, _bound, _inverse_map
+from ._tuning import SimulationLoss, _inverse_map, bound_pair
 
 SOLVERS = ("bfgs", "nonlinear_cg", "lbfgsb")
 
@@ -331,10 +331,7 @@ def _theta_bounds(loss: SimulationLoss, bounds: dict | None):
         raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(loss.tuned)}.")
     lower, upper = [], []
     for name, (map_lower, map_upper) in zip(loss.tuned, loss.bounds):
-        pair = bounds.get(name, (None, None))
-        if isinstance(pair, str) or np.shape(pair) != (2,):
-            raise ValueError(f"bounds for {name!r} must be a pair (lower, upper) of numbers or None; got {pair!r}.")
-        lo, hi = (None if b is None else _bound(b, name) for b in pair)
+        lo, hi = bound_pair(bounds, name)
         if lo is not None and hi is not None and not lo < hi:
             raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lo}, {hi}).")
         open_below = lo is None or lo <= (map_lower or 0.0)

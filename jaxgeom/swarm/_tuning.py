@@ -276,16 +276,21 @@ def _bounds_of(tuned: tuple, bounds: dict | None) -> tuple:
         raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(tuned)}.")
     out = []
     for name in tuned:
-        pair = bounds.get(name, (None, None))
-        if isinstance(pair, str) or np.shape(pair) != (2,):
-            raise ValueError(f"bounds for {name!r} must be a pair (lower, upper) of numbers or None; got {pair!r}.")
-        lower, upper = (None if b is None else _bound(b, name) for b in pair)
+        lower, upper = bound_pair(bounds, name)
         if lower is None and upper is not None:
             lower = 0.0  # the parameters are non-negative
         if upper is not None and not upper > lower:
             raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lower}, {upper}).")
         out.append((lower, upper))
     return tuple(out)
+
+
+def bound_pair(bounds: dict, name: str) -> tuple:
+    """(lower, upper) of `name` in `bounds` as floats or None (no bound), checked."""
+    pair = bounds.get(name, (None, None))
+    if isinstance(pair, str) or np.shape(pair) != (2,):
+        raise ValueError(f"bounds for {name!r} must be a pair (lower, upper) of numbers or None; got {pair!r}.")
+    return tuple(None if b is None else _bound(b, name) for b in pair)
 
 
 def _bound(value, name: str) -> float:

@@ -101,8 +101,8 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
     try:
         return Triangulated(*qhull(x), reason)
     except ValueError as err:
-        raise ValueError(f"{reason}, and its fallback: {err}".replace(f" Use triangulator='{name}' (exact predicates), or",
-                                                                     "")) from None
+        advice = f" Use triangulator='{name}' (exact predicates), or"  # it was used: not advice
+        raise ValueError(f"{reason}, and its fallback: {err}".replace(advice, "")) from None
 
 
 # --- Qhull ------------------------------------------------------------------------------
