@@ -15,7 +15,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from ..base._checks import check_choice, check_positive
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
-from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, closing_sq_lengths, heat_distances
+from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances, heat_operators
 from ._metric import edge_lengths
 
 GEODESIC_METHODS = ("heat", "dijkstra", "bellman_ford")
@@ -121,9 +121,9 @@ def _heat(tess: Tessellation, sources, metric, *, mode: str, t, boundary: str, s
 @eqx.filter_jit
 def _heat_jit(tess, sources, metric, mode, t, boundary, solver):
     """Distances, and how many simplices' metric edge lengths do not close (said by `_heat`)."""
-    closes = closing_sq_lengths(tess, metric, mode)[1]
-    n_open = jnp.sum(~closes & tess.simplex_mask, dtype=jnp.int32)
-    return heat_distances(tess, sources, metric, mode=mode, t=t, boundary=boundary, solver=solver), n_open
+    op = heat_operators(tess, metric, mode=mode, t=t)
+    n_open = jnp.sum(~op.closes & tess.simplex_mask, dtype=jnp.int32)
+    return heat_distances(tess, op, sources, boundary=boundary, solver=solver), n_open
 
 
 def _check_sources(sources, n: int):

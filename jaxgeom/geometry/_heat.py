@@ -95,12 +95,7 @@ def heat_operators(tess: Tessellation, metric=None, *, mode: str = "full", t=Non
     sq, closes = closing_sq_lengths(tess, metric, mode)
     columns = [sq[:, k] for k in range(sq.shape[1])]
     gram = _gram(columns, d)
-    # scale each simplex to unit size so that det G (length^2d) neither under- nor overflows. The
-    # results do not depend on the scale's value, so it carries no gradient (reduce_max's
-    # derivative divides by the count of entries equal to the max: 0 where XLA rounds the two
-    # copies differently, as at --xla_backend_optimization_level=0, which gave NaN gradients)
-    scale = jax.lax.stop_gradient(jnp.max(jnp.where(valid[:, None], sq, 0.0), axis=1))
-    scale = jnp.where(scale > 0, scale, 1.0)
+    scale = _unit_scale(sq, valid)
     unit = gram / scale[:, None, None]
     det = small_det(unit)
     ok = valid & (det > 0) & small_positive_definite(unit)
@@ -133,10 +128,19 @@ def closing_sq_lengths(tess: Tessellation, metric, mode: str):
         return sq, jnp.ones(sq.shape[0], bool)
     every_edge = tuple(range(len(edge_pairs(tess.dim))))
     sq_g, (sq_mean,) = simplex_sq_lengths_with_references(tess, metric, mode=mode, hinge_edges=(every_edge,))
-    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(sq_g), axis=1, keepdims=True))
-    unit = sq_g / jnp.where(scale > 0, scale, 1.0)
+    unit = sq_g / _unit_scale(sq_g, tess.simplex_mask)[:, None]
     closes = small_positive_definite(_gram([unit[:, k] for k in range(unit.shape[1])], tess.dim)) | ~tess.simplex_mask
     return jnp.where(closes[:, None], sq_g, sq_mean), closes
+
+
+def _unit_scale(sq, valid):
+    """(S,) the largest squared edge length of each valid simplex (1 elsewhere): dividing by it
+    scales a simplex to unit size, so that det G (length^2d) neither under- nor overflows. The
+    results do not depend on its value, so it carries no gradient (reduce_max's derivative
+    divides by the count of entries equal to the max: 0 where XLA rounds the two copies
+    differently, as at --xla_backend_optimization_level=0, which gave NaN gradients)."""
+    scale = jax.lax.stop_gradient(jnp.max(jnp.where(valid[:, None], sq, 0.0), axis=1))
+    return jnp.where(scale > 0, scale, 1.0)
 
 
 def nonnegative_weights(stiffness):
@@ -373,10 +377,10 @@ def _assemble(simplices, stiffness, diag, scale, keep):
     return (p @ matrix @ p + scipy.sparse.diags((~keep).astype(np.float64))).tocsr()
 
 
-def heat_distances(tess: Tessellation, sources: Int[Array, " M"], metric=None, *, mode: str = "full", t=None,
-                   boundary: str = "mean", solver: str = "direct") -> Float[Array, "M N"]:
-    """Heat-method distances from each source to every walker (see `jaxgeom.geodesic_distances`)."""
-    op = heat_operators(tess, metric, mode=mode, t=t)
+def heat_distances(tess: Tessellation, op: HeatOperators, sources: Int[Array, " M"], *, boundary: str = "mean",
+                   solver: str = "direct") -> Float[Array, "M N"]:
+    """Heat-method distances from each source to every walker (see `jaxgeom.geodesic_distances`)
+    with the operators `op` of `heat_operators`."""
     n, dtype = op.n_points, op.stiffness.dtype
     everyone = jnp.ones(n, bool)
     inside = everyone if tess.periodic else ~tess.hull
