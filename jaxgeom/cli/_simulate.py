@@ -278,6 +278,14 @@ def write_outputs(result: dict, out: Path) -> dict:
     return {"history": str(out / "history.json"), "swarm": str(swarm), "observables": str(series)}
 
 
+def say_interrupted(command: str, unit: str, at: int, total: int, written: bool | None) -> int:
+    """Print the one line of a Ctrl-C'ed command and return the exit status 130; `written`:
+    whether its --out got what ran (None: nothing ran)."""
+    tail = {None: "; nothing written", True: f"; the {unit}s that ran are written", False: ""}[written]
+    print(f"jaxgeom {command}: interrupted at {unit} {at} of {total}{tail}", file=sys.stderr)
+    return INTERRUPTED
+
+
 def simulate_main(args) -> int:
     try:
         result = run_simulation(args)
@@ -285,14 +293,11 @@ def simulate_main(args) -> int:
         print(f"jaxgeom simulate: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # before the first step: nothing ran
-        print(f"jaxgeom simulate: interrupted at step 0 of {args.steps}; nothing written", file=sys.stderr)
-        return INTERRUPTED
+        return say_interrupted("simulate", "step", 0, args.steps, None)
     print(summary_table(result))
     if args.out is not None:
         for name, path in write_outputs(result, args.out).items():
             print(f"wrote {name}: {path}")
     if result["interrupted_at"] is not None:
-        print(f"jaxgeom simulate: interrupted at step {result['interrupted_at']} of {args.steps}"
-              + ("; the steps that ran are written" if args.out is not None else ""), file=sys.stderr)
-        return INTERRUPTED
+        return say_interrupted("simulate", "step", result["interrupted_at"], args.steps, args.out is not None)
     return 0

@@ -35,7 +35,7 @@ from ..geometry._forces import VISCOUS_WEIGHTS
 from ..geometry._metric import HESSIAN_FLOORS
 from ..swarm._tune import SOLVERS
 from ..swarm._tuning import OBJECTIVES
-from ._simulate import INTERRUPTED, HelpFormatter, add_progress_flag, load_landscape, progress_choice
+from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice, say_interrupted
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
 MATCHED = ("velocity_variance", "mean_fitness")
@@ -181,8 +181,7 @@ def tune_main(args) -> int:
         result = getattr(stop, "result", None)
         interrupted = 0 if result is None else len(result.iterations) - 1
         if result is None:
-            print(f"jaxgeom tune: interrupted at iteration 0 of {args.max_steps}; nothing written", file=sys.stderr)
-            return INTERRUPTED
+            return say_interrupted("tune", "iteration", 0, args.max_steps, None)
     print(iteration_table(result, truth))
     if args.out is not None:
         ready = interrupted is None and args.grid >= 2 and len(loss.tuned) >= 2  # no grid after Ctrl-C
@@ -190,9 +189,7 @@ def tune_main(args) -> int:
         for name, path in write_outputs(args, result, truth, grid, time.perf_counter() - began).items():
             print(f"wrote {name}: {path}")
     if interrupted is not None:
-        print(f"jaxgeom tune: interrupted at iteration {interrupted} of {args.max_steps}"
-              + ("; the iterations that ran are written" if args.out is not None else ""), file=sys.stderr)
-        return INTERRUPTED
+        return say_interrupted("tune", "iteration", interrupted, args.max_steps, args.out is not None)
     return 0
 
 
