@@ -34,6 +34,8 @@ from .geometry._metric import metric_at_walkers as metric_at_walkers
 from .geometry._metric import metric_defects as metric_defects
 from .geometry._metric import riemannian_mean as riemannian_mean
 from .geometry._metric import riemannian_volumes as riemannian_volumes
+from .geometry._metric_curvature import CurvatureInfo as CurvatureInfo
+from .geometry._metric_curvature import metric_curvature as metric_curvature
 from .geometry._spectral import GraphLaplacian as GraphLaplacian
 from .geometry._spectral import graph_laplacian as graph_laplacian
 from .geometry._spectral import spectral_gap as spectral_gap

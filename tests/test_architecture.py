@@ -26,7 +26,7 @@ LAYERS = {
         ("_boxclip",),  # Voronoi cells clipped to the box (volumes of tier-0 cells)
         ("_volumes",),
         ("_metric",),
-        ("_cells", "_curvature", "_heat"),
+        ("_cells", "_curvature", "_heat", "_metric_curvature"),  # ..., the curvature of a callable metric
         ("_geodesic",),  # heat method, Dijkstra, Bellman-Ford behind one entry point
         ("_weights",),  # edge weight rules
         ("_forces", "_spectral", "_estimation"),

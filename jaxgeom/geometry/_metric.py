@@ -15,6 +15,7 @@ import functools
 import warnings
 import itertools
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -310,6 +311,19 @@ def eigh(m):
     return small_eigh(m) if m.shape[-1] in JACOBI_SWEEPS else jnp.linalg.eigh(m)
 
 
+class HessianParts(NamedTuple):
+    """What a `hessian_metric` callable is made of (its attribute `hessian_parts`)."""
+    fitness: Callable
+    eps_sigma: object  # float, or a traced scalar
+    floor: str
+
+
+def hessian_parts(metric) -> HessianParts | None:
+    """The parts of a callable returned by `hessian_metric`, or None for any other metric."""
+    parts = getattr(metric, "hessian_parts", None)
+    return parts if isinstance(parts, HessianParts) else None
+
+
 def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Callable:
     """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V.
 
@@ -345,7 +359,10 @@ def _cached_hessian_metric(fitness: Callable, eps_sigma: float, floor: str) -> C
     return _hessian_metric(fitness, eps_sigma, floor)
 
 
-def _hessian_metric(fitness: Callable, eps_sigma, floor: str) -> Callable:
+def _hessian_metric(fitness: Callable, eps_sigma, floor: str, eigh: Callable = eigh) -> Callable:
+    """The metric callable; `eigh` is the eigensolver of the floor (`metric_curvature` passes
+    LAPACK's: differentiated twice, the unrolled Jacobi sweeps of `small_eigh` take minutes
+    to compile)."""
     hess = jax.hessian(fitness)
 
     def clip(x):
@@ -365,7 +382,10 @@ def _hessian_metric(fitness: Callable, eps_sigma, floor: str) -> Callable:
         value = jnp.where(small, eps_sigma + lam**2 / (3.0 * eps_sigma), safe / jnp.tanh(safe / eps_sigma))
         return (q * value) @ q.T
 
-    return clip if floor == "clip" else softabs
+    metric = clip if floor == "clip" else softabs
+    # what `metric_curvature` reads to use the Hessian-geometry formulas (g = Hess(V + eps |x|^2 / 2))
+    metric.hessian_parts = HessianParts(fitness, eps_sigma, floor)
+    return metric
 
 
 @takes_tessellation
