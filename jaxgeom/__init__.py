@@ -43,6 +43,7 @@ from .geometry._volumes import circumcenters as circumcenters
 from .geometry._volumes import voronoi_volumes as voronoi_volumes
 from .swarm._dynamics import SwarmParams as SwarmParams
 from .swarm._dynamics import SwarmState as SwarmState
+from .swarm._observables import ALL_OBSERVABLES as ALL_OBSERVABLES
 from .swarm._observables import OBSERVABLES as OBSERVABLES
 from .swarm._simulate import simulate as simulate
 from .swarm._simulate import stack_swarms as stack_swarms

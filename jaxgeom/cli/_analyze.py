@@ -20,6 +20,8 @@ import numpy as np
 import jaxgeom
 from ..apps._landscapes import LANDSCAPES, sample_boltzmann
 from ..apps._plots import pyplot, save_figure
+from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM
+from ..swarm._observables import riemannian_log_weights
 from ._simulate import HelpFormatter, load_landscape
 
 
@@ -149,6 +151,44 @@ def section_curvature(a: Analysis) -> dict:
     return out
 
 
+def section_metric_curvature(a: Analysis) -> dict:
+    """The exact Ricci scalar of the Hessian metric (`metric_curvature`), any graph and any d:
+    its region average over tier-2 walkers in the Riemannian measure, beside the Regge proxy's
+    (same walkers, same weights) where the graph is Delaunay."""
+    if a.args.metric != "hessian":
+        why = "the Euclidean metric is flat (S = 0)" if a.args.metric == "none" else (
+            "the emergent metric is known only at the walkers, and curvature needs its derivatives")
+        return {"skipped": f"needs the Hessian metric of a landscape (--metric hessian): {why}"}
+    d = a.points.shape[1]
+    probes = None if d <= EXACT_HESSIAN_MAX_DIM else DEFAULT_PROBES
+    key = jax.random.key(a.args.seed) if probes else None
+    x = jax.numpy.asarray(a.points)
+    s, info = timed_warm(a, "metric_curvature", jaxgeom.metric_curvature, analysis_metric(a), x, probes=probes,
+                         key=key, with_info=True)
+    g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
+    log_w, ok = riemannian_log_weights(a.tess, g)
+    ok = np.asarray(ok & a.tess.interior)
+    values, se = np.asarray(s), np.asarray(info.standard_error)
+    usable = ok & np.isfinite(values)
+    w = np.exp(np.asarray(log_w)[usable] - np.asarray(log_w)[usable].max()) if usable.any() else np.zeros(0)
+    out = {"method": info.method, "probes": probes, "tier2_walkers_used": int(usable.sum()),
+           "floor_active_walkers": int(np.asarray(info.floor_active).sum()),
+           "not_positive_definite_walkers": int(np.asarray(info.not_positive_definite).sum()),
+           "flagged_nan_walkers": int(np.isnan(values).sum()),
+           "weights": "Voronoi volume x sqrt(det g)" if a.tess.simplices is not None else "r_k^d x sqrt(det g) (k-NN)"}
+    out["tier2_riemannian_mean_exact_ricci"] = float(w @ values[usable] / w.sum()) if w.size else np.nan
+    if probes:
+        out["standard_error_of_the_mean"] = float(np.sqrt(np.sum((w * se[usable]) ** 2)) / w.sum()) if w.size else np.nan
+    if "ricci" in a.cache:  # the Regge proxy on the same walkers with the same weights
+        regge = a.cache["ricci"]
+        both = usable & np.isfinite(regge)
+        wb = np.exp(np.asarray(log_w)[both] - np.asarray(log_w)[both].max()) if both.any() else np.zeros(0)
+        out["regge_same_walkers"] = float(wb @ regge[both] / wb.sum()) if wb.size else np.nan
+        out["exact_same_walkers"] = float(wb @ values[both] / wb.sum()) if wb.size else np.nan
+    out.update(_stats(values[ok], "tier2_exact_ricci"))
+    return out
+
+
 @needs_simplices
 def section_cells(a: Analysis) -> dict:
     shape = np.asarray(timed_warm(a, "shape_distortion", jaxgeom.shape_distortion, a.tess))
@@ -221,6 +261,7 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("volumes", section_volumes),
     ("metric", section_metric),
     ("curvature", section_curvature),
+    ("metric_curvature", section_metric_curvature),
     ("cells", section_cells),
     ("graph_proxies", section_graph_proxies),
     ("estimation", section_estimation),

@@ -283,13 +283,15 @@ def _check_metric_output(metric, points):
 
 
 def _default_chunk(d: int, method: str, probes, parts) -> int:
-    """Walkers per batch so that one batch's float64 intermediates stay near CHUNK_BYTES."""
-    if method == "christoffel" or (parts is not None and d <= CHRISTOFFEL_FALLBACK_MAX_DIM):
-        per_walker = 128 * d**4
-    elif probes is None:
-        per_walker = 128 * d**3
+    """Walkers per batch so that one batch's float64 intermediates stay near CHUNK_BYTES
+    (per walker, XLA's memory analysis: the Christoffel form 17-24 d^4 bytes at d = 10-50,
+    the exact Hessian form ~24 d^3, the stochastic one ~110 bytes per probe and dimension)."""
+    if method == "christoffel":
+        per_walker = 32 * d**4
     else:
-        per_walker = 64 * (3 * probes * d + d * d) * 4
+        per_walker = 32 * d**3 if probes is None else 128 * probes * d + 32 * d * d
+        if d <= CHRISTOFFEL_FALLBACK_MAX_DIM:  # the fallback may run on the same batch
+            per_walker = max(per_walker, 32 * d**4)
     return max(1, CHUNK_BYTES // per_walker)
 
 

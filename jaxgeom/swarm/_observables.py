@@ -12,12 +12,15 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..geometry._cells import shape_distortion, volume_distortion
 from ..geometry._curvature import ricci_resolution, ricci_scalar
-from ..geometry._metric import riemannian_mean, riemannian_volumes
+from ..geometry._metric import hessian_metric, riemannian_mean, riemannian_volumes
+from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM, metric_curvature
+from ..tessellation._graph import neighbor_displacements
 from ..geometry._weights import weights_on_graph
 from ._dynamics import (
     SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length,
@@ -85,6 +88,46 @@ def _mean_expansion(s: _View):
     return jnp.where(ok, jnp.log(ratio) / s.params.dt, jnp.nan)
 
 
+def _mean_metric_curvature(s: _View):
+    """The exact Ricci scalar of the Hessian metric (`metric_curvature`), averaged over walkers
+    in the Riemannian measure: weights V_i sqrt(det g_i) with V_i the Voronoi volume (tier-2
+    walkers of a Delaunay graph) or the k-NN volume r_k(i)^d (k-NN graph: 1 / density up to a
+    constant), in log space so that d = 100 does not overflow. The exact Hessian form up to
+    d = EXACT_HESSIAN_MAX_DIM, the stochastic one (DEFAULT_PROBES probe pairs, a key derived
+    from the state's) above; walkers it flags (NaN) drop out of the mean."""
+    tess, eps = s.new.tess, s.params.eps_sigma * s.new.eps_factor
+    metric = hessian_metric(s.fitness, eps, floor=s.params.floor)
+    d = tess.dim
+    probes = None if d <= EXACT_HESSIAN_MAX_DIM else DEFAULT_PROBES
+    key = jax.random.fold_in(s.new.key, 33) if probes else None
+    values = metric_curvature(metric, s.new.positions, probes=probes, key=key)
+    log_w, ok = riemannian_log_weights(tess, _observed_metric(s))
+    ok = ok & s.new.alive & jnp.isfinite(values)
+    return weighted_mean_from_logs(values, log_w, ok)
+
+
+def riemannian_log_weights(tess, g):
+    """(log w, usable): log of V_i sqrt(det g_i), V_i the Voronoi volume (tier-2 walkers of a
+    Delaunay graph) or the k-NN volume r_k(i)^d, r_k the longest neighbour edge (a k-NN graph:
+    1 / density up to a constant factor). Logs: r^d and det g overflow at d = 100."""
+    log_sqrt_det = jnp.linalg.slogdet(g)[1] / 2
+    if tess.simplices is None:
+        r = jnp.max(jnp.sqrt(jnp.sum(neighbor_displacements(tess) ** 2, axis=-1)), axis=1)
+        log_volume, ok = tess.dim * jnp.log(jnp.where(r > 0, r, 1.0)), r > 0
+    else:
+        volumes, interior = cell_volumes(tess)
+        log_volume, ok = jnp.log(jnp.where(volumes > 0, volumes, 1.0)), interior & (volumes > 0)
+    log_w = log_volume + log_sqrt_det
+    return log_w, ok & jnp.isfinite(log_w)
+
+
+def weighted_mean_from_logs(values, log_w, ok):
+    """sum w O / sum w over `ok`, the weights given by their logs (shifted by their maximum)."""
+    log_w = jnp.where(ok, log_w, -jnp.inf)
+    w = jnp.exp(log_w - jax.lax.stop_gradient(jnp.max(jnp.where(ok, log_w, -1e30))))
+    return jnp.sum(jnp.where(ok, w * values, 0.0)) / jnp.sum(w)
+
+
 def _degree_weighted_variance(s: _View):
     g = _observed_metric(s) if s.params.weights.startswith("metric") else None
     w = weights_on_graph(s.new.tess, s.params.weights, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
@@ -94,6 +137,7 @@ def _degree_weighted_variance(s: _View):
 class Observable(NamedTuple):
     fn: Callable  # _View -> scalar
     geometric: bool = False  # needs Voronoi cells: NaN on a k-NN graph
+    opt_in: bool = False  # recorded only when named in `observe` (not in the default OBSERVABLES)
 
 
 OBSERVABLE_TABLE: dict[str, Observable] = {
@@ -110,8 +154,11 @@ OBSERVABLE_TABLE: dict[str, Observable] = {
     "n_clones": Observable(lambda s: jnp.sum(s.new.cloned).astype(s.new.fitness.dtype)),
     "nu": Observable(lambda s: current_nu(s.params, s.progress)),
     "eps_sigma": Observable(lambda s: s.params.eps_sigma * s.new.eps_factor),
+    # the exact curvature the Regge proxy "mean_ricci" approximates; any graph, any d
+    "mean_metric_curvature": Observable(_mean_metric_curvature, opt_in=True),
 }
-OBSERVABLES = tuple(OBSERVABLE_TABLE)
+OBSERVABLES = tuple(name for name, row in OBSERVABLE_TABLE.items() if not row.opt_in)  # the default set
+ALL_OBSERVABLES = tuple(OBSERVABLE_TABLE)
 
 
 def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, observe: tuple[str, ...]):

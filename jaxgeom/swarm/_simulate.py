@@ -41,7 +41,7 @@ from ..base._sharding import check_mesh, over_batch
 from ..tessellation._cellclip import describe_graph, rebuilds_on_device
 from ._drivers import _simulate_callback, _simulate_host, _simulate_split, _split_walkers
 from ._dynamics import SwarmParams, SwarmState
-from ._observables import OBSERVABLES
+from ._observables import ALL_OBSERVABLES, OBSERVABLES
 from ._steps import _is_traced
 from ._swarm_init import check_callable_fitness, check_traceable_fitness
 
@@ -59,7 +59,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
         if not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"`{name}` must be an integer >= 1; got {value!r}.")
     for name in observe:
-        check_choice(name, "observable", OBSERVABLES)
+        check_choice(name, "observable", ALL_OBSERVABLES)
     check_choice(rebuild, "rebuild", REBUILD_MODES)
     check_integer(spectral_gap_every, "spectral_gap_every")
     if not _is_traced(state, params):
@@ -92,8 +92,10 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     - `n_steps`: number of steps; `rebuild_every`: steps between graph rebuilds
       (between rebuilds the graph keeps its topology and follows the walkers;
       cloning happens on the last step before each rebuild).
-    - `observe`: names from `OBSERVABLES`, recorded for the state entering every
-      step and for the final state (n_steps + 1 values, times 0, dt, ...).
+    - `observe`: names from `OBSERVABLES` (the default: all of them) or `ALL_OBSERVABLES`
+      (adds the opt-in "mean_metric_curvature", the exact Ricci scalar of the Hessian metric
+      from `metric_curvature`, O(d^4) per walker up to d = 16, stochastic above), recorded
+      for the state entering every step and for the final state (n_steps + 1 values).
     - `rebuild`: "host" (default: fastest on CPU), "callback" (jittable and differentiable
       end to end, vmap runs the lanes' Qhull calls one after another) or "device" (the
       same, with the 2D graph rebuilt in JAX and Qhull only on the steps the device rebuild

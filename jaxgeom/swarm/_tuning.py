@@ -35,7 +35,7 @@ from jaxtyping import Array, Float
 from ..base._checks import check_choice
 from ..base._sharding import check_mesh, over_batch
 from ._dynamics import SwarmParams, SwarmState
-from ._observables import OBSERVABLES
+from ._observables import ALL_OBSERVABLES
 from ._simulate import REBUILD_MODES, simulate
 
 TUNABLE = ("nu", "eps_sigma", "dt", "gamma", "temperature", "alpha", "clone_rate", "clone_jitter", "nu_initial")
@@ -260,7 +260,7 @@ def _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets,
         raise ValueError("objective='match' needs `targets` ({observable: value}), and `targets` needs "
                          f"objective='match'; got objective={objective!r}, targets={targets!r}.")
     for name, value in (targets or {}).items():
-        check_choice(name, "target observable", OBSERVABLES)
+        check_choice(name, "target observable", ALL_OBSERVABLES)
         if not np.isfinite(value):
             raise ValueError(f"target {name!r} must be a finite number; got {value!r}.")
     if not (0.0 < window <= 1.0):
@@ -311,7 +311,7 @@ def _observables_for(objective, targets: tuple, observe) -> tuple:
         return tuple(name for name, _ in targets)
     observe = DEFAULT_OBSERVE if observe is None else (observe,) if isinstance(observe, str) else tuple(observe)
     for name in observe:
-        check_choice(name, "observable", OBSERVABLES)
+        check_choice(name, "observable", ALL_OBSERVABLES)
     return observe
 
 

@@ -36,6 +36,9 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert estimation["tier2_gradient_norm_median"] > 0 and -1 <= estimation["agreement_eigenvalue_correlation"] <= 1
     assert estimation["agreement_method_preference"] in ("excellent", "good", "poor")
     assert (tmp_path / "estimation.png").stat().st_size > 20_000
+    exact = report["metric_curvature"]  # the exact curvature beside the Regge proxy, same walkers and weights
+    assert exact["method"] == "hessian" and exact["flagged_nan_walkers"] == 0
+    assert np.isfinite(exact["exact_same_walkers"]) and np.isfinite(exact["regge_same_walkers"])
 
 
 def test_analyze_flat_metric_has_zero_curvature(tmp_path):
@@ -82,6 +85,27 @@ def test_analyze_knn_in_high_dimension(tmp_path):
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["graph"]["degree_min"] == report["graph"]["degree_max"] == 8
     assert "skipped" in report["volumes"] and "skipped" in report["curvature"]
+    exact = report["metric_curvature"]  # the exact curvature of the Hessian metric needs no graph
+    assert exact["method"] == "hessian" and np.isfinite(exact["tier2_riemannian_mean_exact_ricci"])
+    assert exact["weights"].startswith("r_k^d") and exact["tier2_walkers_used"] > 0
+
+
+def test_analyze_reports_the_stochastic_exact_curvature_from_d_17():
+    """The report section alone (the whole command at d = 20 spends minutes in the estimation
+    section's 231-coefficient quadratic fits)."""
+    import argparse
+
+    from jaxgeom.apps._landscapes import double_well
+    from jaxgeom.cli._analyze import Analysis, section_metric_curvature
+
+    x = np.random.default_rng(0).normal(scale=0.6, size=(300, 20))
+    args = argparse.Namespace(metric="hessian", eps_sigma=0.1, seed=0, landscape="double_well")
+    analysis = Analysis(args, x, None, "test", fitness=double_well, tess=jaxgeom.knn_graph(x, 8))
+    exact = section_metric_curvature(analysis)
+    assert exact["method"] == "hessian-stochastic" and exact["probes"] == 64
+    # double well: the floor is active near x_0 = 0, and above d = 10 those walkers are flagged
+    assert exact["flagged_nan_walkers"] == exact["floor_active_walkers"] > 0
+    assert np.isfinite(exact["tier2_riemannian_mean_exact_ricci"]) and exact["standard_error_of_the_mean"] > 0
 
 
 def test_analyze_rejects_negative_eps_sigma(capsys):

@@ -294,3 +294,42 @@ def test_bad_swarm_input(rng):
         jaxgeom.simulate(bowl, state, params, n_steps=5, rebuild="gpu")
     with pytest.raises(ValueError, match="rebuild='device'.* 2D Delaunay swarms"):
         jaxgeom.simulate(bowl, knn, params, n_steps=2, rebuild="device")
+
+
+def convex(x):
+    """A curved Hessian metric with a positive definite Hessian everywhere (no floor)."""
+    return jnp.log1p(jnp.sum(jnp.exp(x))) + 0.25 * jnp.sum(x * x)
+
+
+def test_mean_metric_curvature_is_opt_in_and_is_the_riemannian_mean_of_the_exact_curvature(rng):
+    assert "mean_metric_curvature" not in jaxgeom.OBSERVABLES
+    assert "mean_metric_curvature" in jaxgeom.ALL_OBSERVABLES
+    params = jaxgeom.SwarmParams(dt=0.05, eps_sigma=0.2)
+    state = swarm(rng, fitness=convex, lo=-2.0, hi=2.0)
+    _, history = jaxgeom.simulate(convex, state, params, n_steps=2, observe=("mean_metric_curvature", "mean_ricci"))
+    metric = jaxgeom.hessian_metric(convex, 0.2)
+    exact = jaxgeom.metric_curvature(metric, state.positions)
+    weights = jaxgeom.riemannian_volumes(state.tess, metric=metric)
+    expected = jaxgeom.riemannian_mean(exact, weights, state.tess.interior)
+    np.testing.assert_allclose(history["mean_metric_curvature"][0], expected, rtol=1e-9)
+    assert np.isfinite(history["mean_metric_curvature"]).all() and history["mean_metric_curvature"][0] > 0
+
+
+def test_mean_metric_curvature_on_a_knn_swarm_in_high_dimension(rng):
+    d, k = 18, 10  # above EXACT_HESSIAN_MAX_DIM: the stochastic form
+    x = rng.normal(scale=0.5, size=(200, d))
+    state = jaxgeom.init_swarm(convex, x, key=3, graph="knn", k=k)
+    _, history = jaxgeom.simulate(convex, state, jaxgeom.SwarmParams(dt=0.01, eps_sigma=0.2), n_steps=1,
+                                  observe=("mean_metric_curvature",))
+    # independent: the exact Hessian form, weights r_k^d sqrt(det g) computed in numpy (logs)
+    metric = jaxgeom.hessian_metric(convex, 0.2)
+    exact = np.asarray(jaxgeom.metric_curvature(metric, jnp.asarray(x)))
+    r_k = np.sort(np.linalg.norm(x[:, None] - x[None], axis=-1), axis=1)[:, k]
+    log_w = d * np.log(r_k) + 0.5 * np.linalg.slogdet(np.asarray(jax.vmap(metric)(jnp.asarray(x))))[1]
+    w = np.exp(log_w - log_w.max())
+    expected = w @ exact / w.sum()
+    # its standard error from the stochastic form's own per-walker errors (64 probe pairs)
+    _, info = jaxgeom.metric_curvature(metric, jnp.asarray(x), probes=64, key=jax.random.key(0), with_info=True)
+    error = np.sqrt(np.sum((w * np.asarray(info.standard_error)) ** 2)) / w.sum()
+    assert 0 < error < 0.1 * abs(expected)
+    assert abs(history["mean_metric_curvature"][0] - expected) < 4 * error
