@@ -53,7 +53,8 @@ class CurvatureInfo(eqx.Module):
     - `not_positive_definite`: (N,) the metric is not symmetric positive definite (S is NaN).
     - `floor_active`: (N,) a Hessian metric whose floor changes Hess V + eps_Sigma I there: g
       is not a Hessian metric at that walker. S comes from the Christoffel form where d <=
-      `CHRISTOFFEL_FALLBACK_MAX_DIM` and `method="auto"`; else it is NaN.
+      `CHRISTOFFEL_FALLBACK_MAX_DIM` and `method="auto"`; else it is NaN. (All False with
+      method="christoffel", which needs no Hessian structure.)
     - `ricci`: (N, d, d) Ricci tensor (with `ricci=True`), else None.
     - `method`: the form used ("christoffel", "hessian" or "hessian-stochastic").
     """
@@ -104,14 +105,13 @@ def _positive_definite(g) -> Bool[Array, ""]:
     return symmetric & jnp.all(pivots > 0)  # NaN pivots compare False
 
 
-def _hessian_of(parts: HessianParts, x):
-    """(H, g, floor active): the Hessian of V, the metric and whether the floor changes
-    H + eps_Sigma I near x (always for softabs; for clip where H is not positive definite)."""
-    h = jax.hessian(parts.fitness)(x)
+def _metric_of(parts: HessianParts, h):
+    """(g, floor active): g = H + eps_Sigma I from the Hessian H of V, and whether the floor
+    changes it near x (always for softabs; for clip where H is not positive definite)."""
     h = 0.5 * (h + h.T)
-    g = h + parts.eps_sigma * jnp.eye(x.shape[0], dtype=h.dtype)
+    g = h + parts.eps_sigma * jnp.eye(h.shape[0], dtype=h.dtype)
     active = jnp.asarray(parts.floor == "softabs") | ~jnp.all(jnp.diagonal(jnp.linalg.cholesky(h)) > 0)
-    return h, g, active
+    return g, active
 
 
 def _safe_cholesky(g):
@@ -133,9 +133,12 @@ def _in_frame(t, low):
 
 def _hessian_exact_walker(parts: HessianParts, x):
     """(S, not positive definite, floor active) from T = D^3 V in a g-orthonormal frame."""
-    hess = jax.hessian(parts.fitness)
-    t = jax.jacfwd(hess)(x)  # T_ijk, symmetric
-    _, g, active = _hessian_of(parts, x)
+    def hessian_twice(y):
+        h = jax.hessian(parts.fitness)(y)
+        return h, h
+
+    t, h = jax.jacfwd(hessian_twice, has_aux=True)(x)  # T_ijk = d_k H_ij, and H
+    g, active = _metric_of(parts, h)
     low, failed = _safe_cholesky(g)
     not_pd = failed & ~active  # where active, g is not H + eps_Sigma I
     tt = _in_frame(t, low)
@@ -160,7 +163,7 @@ def _hessian_stochastic_walker(parts: HessianParts, x, key, probes: int):
     sample (|L^-1 v|^2 - (L^-1 u).(L^-1 u')) / 4 is an unbiased estimate of S. Contracting the
     third slot exactly (a gradient instead of a third probe) lowers the variance of the
     nested-jvp form E[T(z1, z2, z3)^2] at the cost of one reverse pass."""
-    _, g, active = _hessian_of(parts, x)
+    g, active = _metric_of(parts, jax.hessian(parts.fitness)(x))
     d = x.shape[0]
     low, failed = _safe_cholesky(g)
     not_pd = failed & ~active
