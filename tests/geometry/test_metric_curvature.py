@@ -112,6 +112,7 @@ def test_invariant_under_a_linear_change_of_coordinates_and_scales_as_one_over_l
 def test_gradients_in_eps_sigma_and_a_landscape_parameter_match_central_differences():
     x = points(6, 3, scale=1.5) + 2.0  # double well's convex region: the Hessian form
 
+    @jax.jit  # eps and a traced: one compilation serves the values and the differences
     def mean_curvature(eps, a):
         def fitness(y):
             return double_well(y) + a * jnp.sum(y**3) / 3
