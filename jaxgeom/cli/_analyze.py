@@ -21,7 +21,7 @@ import jaxgeom
 from ..apps._landscapes import LANDSCAPES, sample_boltzmann
 from ..apps._plots import pyplot, save_figure
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM
-from ..swarm._observables import riemannian_log_weights
+from ..swarm._observables import riemannian_log_weights, weighted_mean_from_logs
 from ._simulate import HelpFormatter, load_landscape
 
 
@@ -162,29 +162,27 @@ def section_metric_curvature(a: Analysis) -> dict:
     d = a.points.shape[1]
     probes = None if d <= EXACT_HESSIAN_MAX_DIM else DEFAULT_PROBES
     key = jax.random.key(a.args.seed) if probes else None
-    x = jax.numpy.asarray(a.points)
-    s, info = timed_warm(a, "metric_curvature", jaxgeom.metric_curvature, analysis_metric(a), x, probes=probes,
+    s, info = timed_warm(a, "metric_curvature", jaxgeom.metric_curvature, analysis_metric(a), a.points, probes=probes,
                          key=key, with_info=True)
     g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
     log_w, ok = riemannian_log_weights(a.tess, g)
     ok = np.asarray(ok & a.tess.interior)
     values, se = np.asarray(s), np.asarray(info.standard_error)
     usable = ok & np.isfinite(values)
-    w = np.exp(np.asarray(log_w)[usable] - np.asarray(log_w)[usable].max()) if usable.any() else np.zeros(0)
     out = {"method": info.method, "probes": probes, "tier2_walkers_used": int(usable.sum()),
            "floor_active_walkers": int(np.asarray(info.floor_active).sum()),
            "not_positive_definite_walkers": int(np.asarray(info.not_positive_definite).sum()),
            "flagged_nan_walkers": int(np.isnan(values).sum()),
            "weights": "Voronoi volume x sqrt(det g)" if a.tess.simplices is not None else "r_k^d x sqrt(det g) (k-NN)"}
-    out["tier2_riemannian_mean_exact_ricci"] = float(w @ values[usable] / w.sum()) if w.size else np.nan
-    if probes:
+    out["tier2_riemannian_mean_exact_ricci"] = float(weighted_mean_from_logs(s, log_w, usable))
+    if probes:  # sqrt(sum w^2 se^2) / sum w
+        log_used = np.asarray(log_w)[usable]
+        w = np.exp(log_used - log_used.max()) if log_used.size else log_used
         out["standard_error_of_the_mean"] = float(np.sqrt(np.sum((w * se[usable]) ** 2)) / w.sum()) if w.size else np.nan
     if "ricci" in a.cache:  # the Regge proxy on the same walkers with the same weights
-        regge = a.cache["ricci"]
-        both = usable & np.isfinite(regge)
-        wb = np.exp(np.asarray(log_w)[both] - np.asarray(log_w)[both].max()) if both.any() else np.zeros(0)
-        out["regge_same_walkers"] = float(wb @ regge[both] / wb.sum()) if wb.size else np.nan
-        out["exact_same_walkers"] = float(wb @ values[both] / wb.sum()) if wb.size else np.nan
+        both = usable & np.isfinite(a.cache["ricci"])
+        out["regge_same_walkers"] = float(weighted_mean_from_logs(a.cache["ricci"], log_w, both))
+        out["exact_same_walkers"] = float(weighted_mean_from_logs(s, log_w, both))
     out.update(_stats(values[ok], "tier2_exact_ricci"))
     return out
 

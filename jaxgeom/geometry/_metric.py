@@ -78,9 +78,10 @@ def _call_metric(metric: Callable, x):
                         f"numpy calls or Python branches on x); tracing it failed: {type(err).__name__}: "
                         f"{str(err).splitlines()[0]}") from None
     if jnp.issubdtype(g.dtype, jnp.complexfloating):
-        raise TypeError(f"the metric callable must return a real matrix; it returned dtype {g.dtype}.")
+        raise TypeError(f"the metric callable must return a real floating-point matrix; it returned dtype {g.dtype}.")
     if g.shape[1:] != (x.shape[-1],) * 2:
-        raise ValueError(f"the metric callable must map x (d,) to g (d, d); it returned shape {g.shape[1:]}.")
+        raise ValueError(f"the metric callable must map x (d,) to g (d, d) = {(x.shape[-1],) * 2}; it returned "
+                         f"shape {g.shape[1:]}.")
     return g.reshape(x.shape + (x.shape[-1],))
 
 

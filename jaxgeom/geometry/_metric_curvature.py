@@ -27,11 +27,10 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ..base._checks import check_choice, check_integer, real_array
-from ._metric import HessianParts, _hessian_metric, hessian_parts
+from ..base._checks import check_choice, check_integer, host_points, metric_defect_masks
+from ._metric import HessianParts, _call_metric, _hessian_metric, hessian_parts
 
 CURVATURE_METHODS = ("auto", "christoffel", "hessian")
 # "auto" recomputes walkers where a Hessian metric's floor is active with the Christoffel form
@@ -91,18 +90,16 @@ def ricci_tensor(metric: Callable, x: Float[Array, " d"]) -> Float[Array, "d d"]
 def _christoffel_walker(metric: Callable, x, want_ricci: bool):
     """(S, not positive definite, Ricci tensor or None) at one walker by the Christoffel form."""
     g = metric(x)
-    not_pd = ~_positive_definite(g)
+    asymmetric, indefinite = metric_defect_masks(g[None], jnp)  # as `metric_defects`
+    not_pd = asymmetric[0] | indefinite[0] | ~jnp.all(jnp.isfinite(g))
     ric = ricci_tensor(metric, x)
     scalar = jnp.trace(jnp.linalg.solve(g, ric))
     return jnp.where(not_pd, jnp.nan, scalar), not_pd, (ric if want_ricci else None)
 
 
-def _positive_definite(g) -> Bool[Array, ""]:
-    """Symmetric (to 100 eps of its scale) and every Cholesky pivot > 0."""
-    scale = jnp.max(jnp.abs(g))
-    symmetric = jnp.max(jnp.abs(g - g.T)) <= 100 * jnp.finfo(g.dtype).eps * scale
-    pivots = jnp.diagonal(jnp.linalg.cholesky(0.5 * (g + g.T)))
-    return symmetric & jnp.all(pivots > 0)  # NaN pivots compare False
+def _cholesky_fails(m) -> Bool[Array, ""]:
+    """Whether symmetric m is not positive definite: a Cholesky pivot is NaN or <= 0."""
+    return ~jnp.all(jnp.diagonal(jnp.linalg.cholesky(m)) > 0)
 
 
 def _metric_of(parts: HessianParts, h):
@@ -110,7 +107,7 @@ def _metric_of(parts: HessianParts, h):
     changes it near x (always for softabs; for clip where H is not positive definite)."""
     h = 0.5 * (h + h.T)
     g = h + parts.eps_sigma * jnp.eye(h.shape[0], dtype=h.dtype)
-    active = jnp.asarray(parts.floor == "softabs") | ~jnp.all(jnp.diagonal(jnp.linalg.cholesky(h)) > 0)
+    active = jnp.asarray(parts.floor == "softabs") | _cholesky_fails(h)
     return g, active
 
 
@@ -118,7 +115,7 @@ def _safe_cholesky(g):
     """(L, failed): the Cholesky factor of g, the identity where g is not positive definite
     (a finite stand-in, so that gradients through the masked value stay finite)."""
     eye = jnp.eye(g.shape[0], dtype=g.dtype)
-    failed = ~jnp.all(jnp.diagonal(jnp.linalg.cholesky(jax.lax.stop_gradient(g))) > 0)
+    failed = _cholesky_fails(jax.lax.stop_gradient(g))
     return jnp.linalg.cholesky(jnp.where(failed, eye, g)), failed
 
 
@@ -254,35 +251,24 @@ def _check_arguments(metric, points, probes, key, method, ricci, chunk):
 
 
 def _checked_points(points):
-    if isinstance(points, jax.core.Tracer):
-        dtype = points.dtype
-    else:
-        arr = real_array(points, "points")
-        dtype = arr.dtype
-        if arr.ndim == 2 and np.issubdtype(dtype, np.floating) and not np.isfinite(arr).all():
-            rows = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-            raise ValueError(f"`points` has NaN or inf coordinates in {rows.size} row(s), first rows "
-                             f"{rows[:5].tolist()}: the metric has no curvature there. Remove or repair those walkers.")
-    if jnp.ndim(points) != 2:
-        raise ValueError(f"`points` must have shape (N, d), one row per walker; got shape {jnp.shape(points)}.")
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"`points` must be a float array (float32 or float64); got dtype {dtype}. "
-                        "Convert with points.astype(float).")
-    return jnp.asarray(points)
+    """(N, d) float points: checked on the host (`host_points`) when concrete, by shape and
+    dtype when traced."""
+    if not isinstance(points, jax.core.Tracer):
+        return jnp.asarray(host_points(points))
+    if points.ndim != 2:
+        raise ValueError(f"`points` must have shape (N, d), one row per walker; got shape {points.shape}.")
+    if not jnp.issubdtype(points.dtype, jnp.floating):
+        raise TypeError(f"`points` must be a float array (float32 or float64); got dtype {points.dtype}.")
+    return points
 
 
 def _check_metric_output(metric, points):
+    """Traceable, (d, d), real (`_call_metric`, traced only) and floating."""
     d = points.shape[1]
-    try:
-        out = jax.eval_shape(metric, jax.ShapeDtypeStruct((d,), points.dtype))
-    except jax.errors.JAXTypeError as err:
-        raise TypeError(f"the metric callable must be JAX-traceable, x (d,) -> g (d, d) with jax.numpy; tracing it "
-                        f"failed: {type(err).__name__}: {str(err).splitlines()[0]}") from None
-    if getattr(out, "shape", None) != (d, d):
-        raise ValueError(f"the metric callable must map x (d,) to g (d, d) = {(d, d)}; it returned "
-                         f"shape {getattr(out, 'shape', None)}.")
+    out = jax.eval_shape(lambda x: _call_metric(metric, x), jax.ShapeDtypeStruct((1, d), points.dtype))
     if not jnp.issubdtype(out.dtype, jnp.floating):
-        raise TypeError(f"the metric callable must return a real floating matrix; it returned dtype {out.dtype}.")
+        raise TypeError(f"the metric callable must return a real floating-point matrix; it returned dtype "
+                        f"{out.dtype}.")
 
 
 def _default_chunk(d: int, method: str, probes, parts) -> int:
