@@ -36,6 +36,8 @@ from .geometry._metric import riemannian_mean as riemannian_mean
 from .geometry._metric import riemannian_volumes as riemannian_volumes
 from .geometry._metric_curvature import CurvatureInfo as CurvatureInfo
 from .geometry._metric_curvature import metric_curvature as metric_curvature
+from .geometry._ollivier import OllivierRicci as OllivierRicci
+from .geometry._ollivier import ollivier_ricci as ollivier_ricci
 from .geometry._spectral import GraphLaplacian as GraphLaplacian
 from .geometry._spectral import graph_laplacian as graph_laplacian
 from .geometry._spectral import spectral_gap as spectral_gap
