@@ -74,7 +74,7 @@ def _shortest_paths(cost, plan, sources):
     decrease, so they form a tree (the residual graph of an optimal plan has no negative cycle)."""
     m = cost.shape[0]
     tol = mass_tolerance(cost.dtype)
-    slack = 1e3 * float(jnp.finfo(cost.dtype).eps) * (1.0 + jnp.max(cost))
+    slack = 16.0 * float(jnp.finfo(cost.dtype).eps) * jnp.max(cost)  # ties within rounding are not improvements
     has_flow = plan > tol
 
     def sweep(state):

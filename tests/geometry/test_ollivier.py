@@ -135,3 +135,173 @@ def test_delaunay_graph_and_kernel_scale_match_the_definition(rng):
     tess = jaxgeom.delaunay(rng.random((45, 3)))
     orc = jaxgeom.ollivier_ricci(tess, alpha=0.0, measure="kernel", kernel_scale=0.2)
     _assert_matches(orc, _reference_curvature(tess, 0.0, "kernel", "graph", kernel_scale=0.2), 1e-7)
+
+
+def _grc_curvature(tess, weighted):
+    import networkx as nx
+    from GraphRicciCurvature.OllivierRicci import OllivierRicci
+
+    x, nbrs = np.asarray(tess.points), np.asarray(tess.neighbors)
+    graph = nx.Graph()
+    graph.add_nodes_from(range(len(x)))
+    for i, row in enumerate(nbrs):
+        for j in row[row < len(x)]:
+            graph.add_edge(i, int(j), **({"weight": float(np.linalg.norm(x[i] - x[j]))} if weighted else {}))
+    orc = OllivierRicci(graph, alpha=0.5, method="OTD", proc=1, verbose="ERROR")
+    orc.compute_ricci_curvature()
+    return orc.G
+
+
+def _two_clusters(rng, n, d):
+    x = rng.standard_normal((n, d)) * 0.1
+    x[: n // 2, 0] += 5.0  # far apart: the k-NN graph has two components
+    return x
+
+
+@pytest.mark.skipif(not HAS_GRC, reason="GraphRicciCurvature is not installed (test-only reference)")
+@pytest.mark.parametrize("n,d,clusters", [(2000, 2, True), (1000, 3, False), (500, 5, True)])
+def test_matches_graph_ricci_curvature_exact_transport(rng, n, d, clusters):
+    x = _two_clusters(rng, n, d) if clusters else rng.random((n, d))
+    tess = jaxgeom.knn_graph(x, 6)
+    if clusters:
+        adjacency = scipy.sparse.csr_matrix((np.ones(n * 6), (np.repeat(np.arange(n), 6), np.asarray(tess.neighbors).ravel())))
+        assert scipy.sparse.csgraph.connected_components(adjacency, directed=False)[0] == 2
+    orc = jaxgeom.ollivier_ricci(tess, alpha=0.5, cost="hops")  # GRC's default: unweighted, uniform
+    reference = _grc_curvature(tess, weighted=False)
+    ref = {i: {j: reference[i][j]["ricciCurvature"] for j in reference[i]} for i in reference}
+    assert _assert_matches(orc, ref, 1e-6) == 2 * reference.number_of_edges()
+
+
+@pytest.mark.skipif(not HAS_GRC, reason="GraphRicciCurvature is not installed (test-only reference)")
+def test_matches_graph_ricci_curvature_on_a_weighted_graph(rng):
+    """GRC weights by e^{-w^2} and costs by full shortest paths; ours limits paths to 3 edges.
+    Where every ground distance of the two neighbourhoods has a shortest path of <= 3 edges the
+    two agree to 1e-6; elsewhere the definition test covers ours."""
+    tess = jaxgeom.knn_graph(rng.random((600, 2)), 6)
+    orc = jaxgeom.ollivier_ricci(tess, alpha=0.5, measure="grc", cost="graph")
+    reference = _grc_curvature(tess, weighted=True)
+    w = _undirected_lengths(tess)
+    exact = scipy.sparse.csgraph.shortest_path(np.where(np.isfinite(w), w, 0.0), directed=False)
+    limited = _min_plus(_min_plus(w, w), w)
+    nbrs, kappa = np.asarray(orc.neighbors), np.asarray(orc.edge_curvature)
+    closed = [np.concatenate([[i], row[row < len(w)]]) for i, row in enumerate(nbrs)]
+    agree = total = 0
+    for i, row in enumerate(nbrs):
+        for slot, j in enumerate(row[row < len(w)]):
+            total += 1
+            if np.allclose(exact[np.ix_(closed[i], closed[j])], limited[np.ix_(closed[i], closed[j])], rtol=0, atol=1e-12):
+                agree += 1
+                assert abs(kappa[i, slot] - reference[i][j]["ricciCurvature"]) <= 1e-6
+    assert agree > 0.75 * total  # measured 82% (600 points, k = 6)
+
+
+def _with_points(tess, points):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda t: t.points, tess, points)
+
+
+@pytest.mark.parametrize("cost,measure", [("direct", "kernel"), ("graph", "grc")])
+def test_gradient_wrt_positions_matches_central_differences(rng, cost, measure):
+    tess = jaxgeom.knn_graph(rng.random((40, 2)), 5)
+    weights = jnp.asarray(rng.random((40, 16)))
+
+    def loss(points):
+        orc = jaxgeom.ollivier_ricci(_with_points(tess, points), alpha=0.25, cost=cost, measure=measure, capacity=16)
+        return jnp.sum(jnp.where(orc.edge_mask, weights * orc.edge_curvature, 0.0))
+
+    x0 = tess.points
+    grad = jax.grad(loss)(x0)
+    assert np.all(np.isfinite(grad))
+    direction = jnp.asarray(rng.standard_normal(x0.shape))
+    step = 1e-6
+    fd = (loss(x0 + step * direction) - loss(x0 - step * direction)) / (2 * step)
+    np.testing.assert_allclose(jnp.sum(grad * direction), fd, rtol=1e-5)
+
+
+def test_gradient_wrt_a_metric_parameter_matches_central_differences(rng):
+    tess = jaxgeom.knn_graph(rng.random((40, 3)) - 0.5, 6)
+
+    def mean_kappa(s):
+        metric = lambda x: (1.0 + s * jnp.sum(x * x)) ** 2 * jnp.eye(3)  # noqa: E731
+        return jaxgeom.ollivier_ricci(tess, metric=metric, cost="direct", capacity=16).mean_curvature
+
+    s0, step = 0.7, 1e-6
+    fd = (mean_kappa(s0 + step) - mean_kappa(s0 - step)) / (2 * step)
+    np.testing.assert_allclose(jax.grad(mean_kappa)(s0), fd, rtol=1e-5)
+
+
+def test_jit_with_a_traced_graph_equals_the_host_graph(rng):
+    x = rng.random((60, 3))
+
+    @jax.jit
+    def traced(points):
+        return jaxgeom.ollivier_ricci(jaxgeom.knn_graph(points, 5, method="brute"), capacity=16)
+
+    host = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(x, 5), capacity=16)
+    inside = traced(x)
+    np.testing.assert_array_equal(inside.neighbors, host.neighbors)
+    np.testing.assert_allclose(inside.edge_curvature, host.edge_curvature, rtol=1e-12)
+    np.testing.assert_allclose(inside.scalar_curvature, host.scalar_curvature, rtol=1e-12)
+
+
+def test_isolated_walkers_are_flagged_and_left_out_of_the_summaries(rng):
+    x = rng.random((30, 2))
+    x[7] = np.nan  # under a trace a NaN walker gets no neighbours and is nobody's neighbour
+
+    @jax.jit
+    def curvature(points):
+        return jaxgeom.ollivier_ricci(jaxgeom.knn_graph(points, 4, method="brute"), capacity=16)
+
+    orc = curvature(x)
+    assert np.flatnonzero(orc.isolated).tolist() == [7]
+    assert np.isnan(orc.walker_curvature[7]) and np.isnan(orc.scalar_curvature[7])
+    assert np.all(np.isfinite(np.delete(np.asarray(orc.walker_curvature), 7)))
+    assert np.isfinite(orc.mean_curvature) and np.isfinite(orc.mean_scalar_curvature)
+
+
+def test_periodic_knn_graph_equals_the_graph_of_explicit_images(rng):
+    """A periodic graph in the unit box against the plain graph of the walkers and their eight
+    images: kappa of the original walkers agrees. (The periodic graph's shortest paths run on
+    the torus, to the nearest image; with 150 walkers three edges span ~0.3 of the box, so
+    they are the plain graph's paths.)"""
+    n = 150
+    x = rng.random((n, 2))
+    periodic = jaxgeom.knn_graph(x, 5, box=([0, 0], [1, 1]), periodic=True)
+    images = np.concatenate([x + np.array([i, j]) for i in (0, -1, 1) for j in (0, -1, 1)])
+    plain = jaxgeom.knn_graph(images, 5)
+    for cost in ("graph", "direct"):
+        a = jaxgeom.ollivier_ricci(periodic, cost=cost)
+        b = jaxgeom.ollivier_ricci(plain, cost=cost)
+        na, nb = np.asarray(a.neighbors)[:n], np.asarray(b.neighbors)[:n]
+        ka, kb = np.asarray(a.edge_curvature)[:n], np.asarray(b.edge_curvature)[:n]
+        for i in range(n):
+            mine = dict(zip(na[i][na[i] < n].tolist(), ka[i][na[i] < n]))
+            theirs = {j % n: v for j, v in zip(nb[i][nb[i] < len(images)].tolist(), kb[i])}
+            assert mine.keys() == theirs.keys()
+            np.testing.assert_allclose([mine[j] for j in mine], [theirs[j] for j in mine], rtol=1e-10)
+
+
+def test_float32_runs_and_agrees_with_float64(rng):
+    x = rng.random((80, 2))
+    ref = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(x, 6), cost="direct")
+    single = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(x.astype(np.float32), 6), cost="direct")
+    assert single.edge_curvature.dtype == jnp.float32
+    np.testing.assert_allclose(single.edge_curvature, ref.edge_curvature, atol=2e-5)
+
+
+@pytest.mark.parametrize("kwargs,error,match", [
+    ({"alpha": 1.5}, ValueError, "alpha"), ({"alpha": -0.1}, ValueError, "alpha"),
+    ({"measure": "gauss"}, ValueError, "unknown measure 'gauss'; valid values are 'uniform', 'kernel', 'grc'"),
+    ({"cost": "geodesic"}, ValueError, "unknown cost"), ({"solver": "sinkhorn"}, ValueError, "unknown solver 'sinkhorn'"),
+    ({"kernel_scale": 0.0}, ValueError, "kernel_scale"), ({"capacity": 0}, ValueError, "capacity"),
+])
+def test_bad_arguments(rng, kwargs, error, match):
+    tess = jaxgeom.knn_graph(rng.random((20, 2)), 3)
+    with pytest.raises(error, match=match):
+        jaxgeom.ollivier_ricci(tess, **kwargs)
+
+
+def test_too_small_capacity_is_reported_not_truncated_silently(rng):
+    orc = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(rng.random((60, 2)), 6), capacity=6)
+    assert bool(orc.overflow)
