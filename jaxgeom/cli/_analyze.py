@@ -187,6 +187,39 @@ def section_metric_curvature(a: Analysis) -> dict:
     return out
 
 
+def section_ollivier_ricci(a: Analysis) -> dict:
+    """Ollivier-Ricci curvature of every edge of the (undirected) k-NN graph, any d: exact transport,
+    alpha = 0.5, uniform measure, ground cost = shortest path of <= 3 edges in the analysis metric.
+    Delaunay graphs have the Regge curvature (section `curvature`)."""
+    if a.tess.simplices is not None:
+        return {"skipped": "reported for k-NN graphs (--graph knn); a Delaunay graph has the Regge curvature "
+                           "(section curvature); jaxgeom.ollivier_ricci computes it on either"}
+    tess = a.tess
+    if tess.neighbors.shape[1] > ORC_K:  # the analysis k (a Hessian fit's) would cost O(k^3) per edge
+        periodic = bool(getattr(a.args, "periodic", False))
+        box = a.box if periodic or getattr(a.args, "box", None) is not None else None
+        tess = timed(a, "knn_graph_orc", jaxgeom.knn_graph, a.points, ORC_K, box=box, periodic=periodic)
+    orc = timed(a, "ollivier_ricci", jaxgeom.ollivier_ricci, tess, alpha=0.5, metric=analysis_metric(a))
+    edges = np.asarray(orc.edge_mask)
+    kappa = np.asarray(orc.edge_curvature)[edges]
+    tier2 = np.asarray(orc.interior & ~orc.isolated)
+    out = {"k": tess.neighbors.shape[1], "alpha": 0.5, "measure": "uniform", "cost": "graph (<= 3 edges, metric lengths)",
+           "edges": int(edges.sum()) // 2, "undirected_degree_max": int(edges.sum(axis=1).max()),
+           "isolated_walkers": int(np.asarray(orc.isolated).sum()),
+           "not_converged_walkers": int(np.asarray(orc.not_converged).sum()), "overflow": bool(orc.overflow),
+           "mean_edge_curvature": float(kappa.mean()) if kappa.size else float("nan")}
+    out.update(_stats(np.asarray(orc.walker_curvature)[tier2], "tier2_walker_curvature"))
+    out["tier2_mean_orc_scalar_estimate"] = float(orc.mean_scalar_curvature)
+    out["scalar_estimate_note"] = ORC_SCALE_NOTE
+    return out
+
+
+ORC_K = 10  # the k-NN graph of the Ollivier-Ricci section (a larger analysis k is rebuilt at this k)
+ORC_SCALE_NOTE = ("2 n^2 kappa / ((1 - alpha) E|w|^2) (Ollivier's expansion) holds at a mesoscopic scale; at the "
+                  "k-NN scale the discrete measures dominate kappa and the estimate does not converge to the "
+                  "scalar curvature (bench/README.md, 'Ollivier-Ricci curvature')")
+
+
 @needs_simplices
 def section_cells(a: Analysis) -> dict:
     shape = np.asarray(timed_warm(a, "shape_distortion", jaxgeom.shape_distortion, a.tess))
@@ -260,6 +293,7 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
     ("metric", section_metric),
     ("curvature", section_curvature),
     ("metric_curvature", section_metric_curvature),
+    ("ollivier_ricci", section_ollivier_ricci),
     ("cells", section_cells),
     ("graph_proxies", section_graph_proxies),
     ("estimation", section_estimation),

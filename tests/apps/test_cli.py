@@ -1,3 +1,4 @@
+import argparse
 import json
 import re
 
@@ -282,3 +283,18 @@ def test_analyze_box_is_validated_and_not_ignored(argv, message, capsys):
     """Once: a sampled swarm ignored --box without a word."""
     assert main(["analyze", "--n", "100", *argv]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_analyze_reports_ollivier_ricci_on_knn_graphs():
+    from jaxgeom.cli._analyze import Analysis, section_ollivier_ricci
+
+    x = np.random.default_rng(0).random((120, 5))
+    args = argparse.Namespace(metric="none", eps_sigma=0.1, seed=0, landscape=None)
+    tess = jaxgeom.knn_graph(x, 6)
+    out = section_ollivier_ricci(Analysis(args, x, None, "test", tess=tess))
+    reference = jaxgeom.ollivier_ricci(tess)
+    assert out["edges"] == int(reference.edge_mask.sum()) // 2 > 300
+    assert out["tier2_walker_curvature_mean"] == pytest.approx(np.nanmean(np.asarray(reference.walker_curvature)))
+    assert out["isolated_walkers"] == 0 and not out["overflow"]
+    delaunay = section_ollivier_ricci(Analysis(args, x[:, :2], None, "test", tess=jaxgeom.delaunay(x[:, :2])))
+    assert "skipped" in delaunay

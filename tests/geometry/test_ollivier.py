@@ -65,6 +65,32 @@ def test_transport_gradient_is_the_plan_and_the_duals(rng):
     np.testing.assert_allclose(grad_a @ direction, fd, rtol=1e-5, atol=1e-8)
 
 
+def test_transport_cancels_a_residual_cycle_that_float32_rounding_made_negative():
+    """An edge of a float32 GRC-weighted 1e4-point k-NN graph: after flows of ~1e-6 the residual
+    graph held a cycle negative beyond the tie slack, the predecessors formed it, and every
+    later augmentation carried nothing (4 M of them: kappa 0.55 instead of -0.05, flagged)."""
+    from jaxgeom.geometry import _ollivier as orc
+
+    x = np.random.default_rng(0).random((10000, 2)).astype(np.float32)
+    graph = orc.undirected_graph(jaxgeom.knn_graph(x, 10))
+    n, w = graph.n_points, orc._edge_weights(graph, None, "full", "graph")
+    ids, dist = orc.two_hop_tables(graph, w)
+    masses, _ = orc._walker_measures(graph, w, w, 0.5, "grc", None)
+    ctx = orc._EdgeContext(orc._pad_rows(orc._closed_rows(graph.neighbors), n), orc._pad_rows(orc._closed_rows(w, 0.0), 0.0),
+                           orc._pad_rows(ids, n), orc._pad_rows(dist, jnp.inf), orc._pad_rows(masses, 0.0), None, graph,
+                           None, "full", "graph")
+    i, slot = jnp.asarray(7149), jnp.asarray(8)
+    j = ctx.closed_ids[i, slot + 1]
+    support_i, support_j = ctx.closed_ids[i], ctx.closed_ids[j]
+    real = (support_i[:, None] < n) & (support_j[None, :] < n)
+    cost = jnp.where(real, orc._ground_cost(ctx, i, j, slot, support_i, support_j), 0.0)
+    a, b = ctx.masses[i], ctx.masses[j]
+    w1, converged = transport_cost(cost, a, b, real & (support_i[:, None] == support_j[None, :]))
+    assert cost.dtype == jnp.float32 and bool(converged)
+    a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    np.testing.assert_allclose(w1, _linprog_w1(np.asarray(cost, np.float64), a64, b64 * a64.sum() / b64.sum()), rtol=1e-5)
+
+
 def _undirected_lengths(tess, hops=False):
     """Dense (N, N) edge lengths of the undirected graph (inf off the graph, 0 on the diagonal)."""
     x, nbrs = np.asarray(tess.points), np.asarray(tess.neighbors)
@@ -290,6 +316,17 @@ def test_float32_runs_and_agrees_with_float64(rng):
     np.testing.assert_allclose(single.edge_curvature, ref.edge_curvature, atol=2e-5)
 
 
+def test_float32_nearly_equal_measures_are_transported_not_dropped(rng):
+    """GRC's e^{-w^2} on short edges gives shared points masses that differ by ~1e-6: real
+    mass in float32. With 64 ulps of tolerance it fell off the residual graph (kappa 8e-4 off,
+    650 of 2000 walkers flagged, and a float32 N = 1e4 run did not finish)."""
+    x = rng.random((600, 2)).astype(np.float32)
+    ref = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(x.astype(np.float64), 8), cost="graph", measure="grc")
+    single = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(x, 8), cost="graph", measure="grc")
+    assert not np.any(single.not_converged)
+    np.testing.assert_allclose(single.edge_curvature, ref.edge_curvature, atol=5e-5)
+
+
 @pytest.mark.parametrize("kwargs,error,match", [
     ({"alpha": 1.5}, ValueError, "alpha"), ({"alpha": -0.1}, ValueError, "alpha"),
     ({"measure": "gauss"}, ValueError, "unknown measure 'gauss'; valid values are 'uniform', 'kernel', 'grc'"),
@@ -305,3 +342,19 @@ def test_bad_arguments(rng, kwargs, error, match):
 def test_too_small_capacity_is_reported_not_truncated_silently(rng):
     orc = jaxgeom.ollivier_ricci(jaxgeom.knn_graph(rng.random((60, 2)), 6), capacity=6)
     assert bool(orc.overflow)
+
+
+def test_closed_forms_cycle_and_complete_graph():
+    """Hop costs. The cycle C_n (n >= 6, alpha = 0) is flat: kappa = 0. On the complete graph K_n,
+    m_x and m_y differ only at x and y, by alpha - (1 - alpha) / (n - 1), moved one hop:
+    kappa = 1 - |alpha - (1 - alpha) / (n - 1)| ((n - 2) / (n - 1) at alpha = 0)."""
+    angles = 2 * np.pi * np.arange(12) / 12
+    cycle = jaxgeom.knn_graph(np.c_[np.cos(angles), np.sin(angles)] * (1 + 1e-3 * np.arange(12))[:, None], 2)
+    kappa = jaxgeom.ollivier_ricci(cycle, alpha=0.0, cost="hops")
+    np.testing.assert_allclose(kappa.edge_curvature[kappa.edge_mask], 0.0, atol=1e-14)
+    n = 7
+    complete = jaxgeom.knn_graph(np.random.default_rng(0).random((n, 3)), n - 1)
+    for alpha in (0.0, 0.5, 0.9):
+        kappa = jaxgeom.ollivier_ricci(complete, alpha=alpha, cost="hops")
+        expected = 1 - abs(alpha - (1 - alpha) / (n - 1))
+        np.testing.assert_allclose(kappa.edge_curvature[kappa.edge_mask], expected, atol=1e-14)
