@@ -23,10 +23,11 @@ LAYERS = {
         ("_cellclip",),  # the Delaunay rebuild on the device (per-cell Voronoi clipping, certified)
     ],
     "geometry": [
-        ("_boxclip",),  # Voronoi cells clipped to the box (volumes of tier-0 cells)
+        ("_boxclip", "_transport"),  # Voronoi cells clipped to the box; exact small transport problems
         ("_volumes",),
         ("_metric",),
-        ("_cells", "_curvature", "_heat", "_metric_curvature"),  # ..., the curvature of a callable metric
+        ("_cells", "_curvature", "_heat", "_metric_curvature", "_ollivier"),  # ..., the curvature of a callable
+        # metric, Ollivier-Ricci curvature of the graph
         ("_geodesic",),  # heat method, Dijkstra, Bellman-Ford behind one entry point
         ("_weights",),  # edge weight rules
         ("_forces", "_spectral", "_estimation"),
