@@ -218,14 +218,11 @@ def two_hop_tables(graph: Tessellation, weights):
 
 @eqx.filter_jit
 def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale):
-    n = graph.n_points
     metric = check_metric(graph, metric, mode)
     lengths = jnp.sqrt(edge_sq_lengths(graph, metric, mode=mode))
     weights = _edge_weights(graph, metric, mode, cost)
     masses, moment = _walker_measures(graph, lengths, weights, alpha, measure, kernel_scale)
-    ctx = _EdgeContext(_pad_rows(_closed_rows(graph.neighbors), n), _pad_rows(_closed_rows(weights, 0.0), 0.0),
-                       _pad_rows(ids2, n), _pad_rows(dist2, jnp.inf), _pad_rows(masses, 0.0),
-                       _displacement_table(graph) if cost == "direct" else None, graph, metric, mode, cost)
+    ctx = _edge_context(graph, ids2, dist2, weights, masses, metric, mode, cost)
     solved = [jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=EDGE_BATCH)
               for ends, slots, width in groups]
     ends, slots = (jnp.concatenate([g[i] for g in groups]) for i in (0, 1))
@@ -246,6 +243,14 @@ class _EdgeContext(eqx.Module):
     metric: object
     mode: str = eqx.field(static=True)
     cost: str = eqx.field(static=True)
+
+
+def _edge_context(graph: Tessellation, ids2, dist2, weights, masses, metric, mode: str, cost: str) -> _EdgeContext:
+    """The per-walker tables every edge reads, each padded with a row for the sentinel N."""
+    n = graph.n_points
+    return _EdgeContext(_pad_rows(_closed_rows(graph.neighbors), n), _pad_rows(_closed_rows(weights, 0.0), 0.0),
+                        _pad_rows(ids2, n), _pad_rows(dist2, jnp.inf), _pad_rows(masses, 0.0),
+                        _displacement_table(graph) if cost == "direct" else None, graph, metric, mode, cost)
 
 
 def _closed_rows(values, self_value=None):
@@ -329,19 +334,25 @@ def _edge_values_to_slots(neighbors, ends, slots, values, fill):
 
 
 def _edge_curvature(ctx: _EdgeContext, x, slot, width: int):
-    """kappa of edge (x, neighbors[x, slot]) and whether its transport converged; both closed
-    rows fit in their first `width` columns."""
-    n = ctx.graph.n_points
-    y = ctx.closed_ids[x, slot + 1]
-    support_x, support_y = ctx.closed_ids[x, :width], ctx.closed_ids[y, :width]
-    cost = _ground_cost(ctx, x, y, slot, support_x, support_y)
-    real = (support_x[:, None] < n) & (support_y[None, :] < n)
-    cost = jnp.where(real, cost, 0.0)
-    same = real & (support_x[:, None] == support_y[None, :])
-    w1, converged = transport_cost(cost, ctx.masses[x, :width], ctx.masses[y, :width], same)
+    """kappa of edge (x, neighbors[x, slot]) and whether its transport converged."""
+    cost, a, b, same = _edge_problem(ctx, x, slot, width)
+    w1, converged = transport_cost(cost, a, b, same)
     distance = cost[0, 0]
     ok = distance > 0
     return jnp.where(ok, 1.0 - w1 / jnp.where(ok, distance, 1.0), jnp.nan), converged
+
+
+def _edge_problem(ctx: _EdgeContext, x, slot, width: int):
+    """The transport problem of edge (x, neighbors[x, slot]): (width, width) ground costs from
+    x's closed row to y's (0 on padding), the two measures, and where both hold the same
+    walker. Both closed rows fit in their first `width` columns."""
+    n = ctx.graph.n_points
+    y = ctx.closed_ids[x, slot + 1]
+    support_x, support_y = ctx.closed_ids[x, :width], ctx.closed_ids[y, :width]
+    real = (support_x[:, None] < n) & (support_y[None, :] < n)
+    cost = jnp.where(real, _ground_cost(ctx, x, y, slot, support_x, support_y), 0.0)
+    same = real & (support_x[:, None] == support_y[None, :])
+    return cost, ctx.masses[x, :width], ctx.masses[y, :width], same
 
 
 def _ground_cost(ctx: _EdgeContext, x, y, slot, support_x, support_y):

@@ -73,19 +73,12 @@ def test_transport_cancels_a_residual_cycle_that_float32_rounding_made_negative(
 
     x = np.random.default_rng(0).random((10000, 2)).astype(np.float32)
     graph = orc.undirected_graph(jaxgeom.knn_graph(x, 10))
-    n, w = graph.n_points, orc._edge_weights(graph, None, "full", "graph")
+    w = orc._edge_weights(graph, None, "full", "graph")
     ids, dist = orc.two_hop_tables(graph, w)
     masses, _ = orc._walker_measures(graph, w, w, 0.5, "grc", None)
-    ctx = orc._EdgeContext(orc._pad_rows(orc._closed_rows(graph.neighbors), n), orc._pad_rows(orc._closed_rows(w, 0.0), 0.0),
-                           orc._pad_rows(ids, n), orc._pad_rows(dist, jnp.inf), orc._pad_rows(masses, 0.0), None, graph,
-                           None, "full", "graph")
-    i, slot = jnp.asarray(7149), jnp.asarray(8)
-    j = ctx.closed_ids[i, slot + 1]
-    support_i, support_j = ctx.closed_ids[i], ctx.closed_ids[j]
-    real = (support_i[:, None] < n) & (support_j[None, :] < n)
-    cost = jnp.where(real, orc._ground_cost(ctx, i, j, slot, support_i, support_j), 0.0)
-    a, b = ctx.masses[i], ctx.masses[j]
-    w1, converged = transport_cost(cost, a, b, real & (support_i[:, None] == support_j[None, :]))
+    ctx = orc._edge_context(graph, ids, dist, w, masses, None, "full", "graph")
+    cost, a, b, same = orc._edge_problem(ctx, jnp.asarray(7149), jnp.asarray(8), graph.neighbors.shape[1] + 1)
+    w1, converged = transport_cost(cost, a, b, same)
     assert cost.dtype == jnp.float32 and bool(converged)
     a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
     np.testing.assert_allclose(w1, _linprog_w1(np.asarray(cost, np.float64), a64, b64 * a64.sum() / b64.sum()), rtol=1e-5)
