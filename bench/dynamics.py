@@ -17,13 +17,20 @@ All in float32 (the library default), 2D rastrigin swarm, default SwarmParams
   a `jax.pure_callback` inside the scan (both rebuild every step);
 - `jaxgeom.viscous_force` alone at N = --force-n (1e6) against a vectorized numpy
   gather implementation of the same formula (target >= 5x).
+
+`--rebuild-modes host callback device` (issue 31's accelerator figures): only `simulate` with a
+rebuild every step at each of --sizes, fitness observables, one rebuild mode per child process
+(its own compilation, a timeout from --budget), the device named; results/dynamics_modes.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -194,6 +201,54 @@ MATRIX = [("2D N=1e4 fitness observables", 2, 10_000, 20, OBS_FITNESS, "host"),
           ("3D N=1e4 fitness observables", 3, 10_000, 10, OBS_FITNESS, "host")]
 
 
+def one_mode(n: int, mode: str, n_steps: int, repeats: int) -> dict:
+    """Seconds per step of `simulate` (rebuild every step, fitness observables) in `mode`: the
+    first run (compilation included) apart, then `repeats` timed runs; median, min, max, and
+    the time inside the host triangulator and the device rebuild's fallbacks per run."""
+    x = np.random.default_rng(0).uniform(-5.12, 5.12, (n, 2)).astype(np.float32)
+    state = jaxgeom.init_swarm(rastrigin, x, key=0)
+    params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
+    per_step, inside, fallbacks = [], [], []
+    for _ in range(1 + repeats):
+        with TriangulatorClock() as clock:
+            start = time.perf_counter()
+            _, history = jaxgeom.simulate(rastrigin, state, params, n_steps=n_steps, rebuild=mode, observe=OBS_FITNESS)
+            jax.block_until_ready(history["mean_fitness"])
+            per_step.append((time.perf_counter() - start) / n_steps)
+        inside.append(clock.seconds / n_steps)
+        fallbacks.append(int(history["n_fallbacks"]))
+    device = jax.devices()[0]
+    return {"n": n, "rebuild": mode, "n_steps": n_steps, "triangulator": state.triangulator, "device": str(device),
+            "device_kind": device.device_kind, "first_run_seconds": per_step[0] * n_steps,
+            "seconds_per_step": float(np.median(per_step[1:])), "min": min(per_step[1:]), "max": max(per_step[1:]),
+            "steps_per_second": 1.0 / float(np.median(per_step[1:])),
+            "triangulating_seconds_per_step": float(np.median(inside[1:])),
+            "device_fallbacks_per_run": fallbacks[1:]}
+
+
+def rebuild_modes(sizes, steps, modes, budget: float) -> list:
+    """Each (size, mode) in a child process under what is left of `budget` seconds; a child
+    that runs out is reported as timed out, not dropped."""
+    rows, deadline = [], time.perf_counter() + budget
+    for n, n_steps in zip(sizes, steps):
+        for mode in modes:
+            left = deadline - time.perf_counter()
+            if left <= 1.0:
+                rows.append({"n": n, "rebuild": mode, "n_steps": n_steps, "skipped": "budget spent"})
+                print(json.dumps(rows[-1]), flush=True)
+                continue
+            cmd = [sys.executable, __file__, "--one", str(n), mode, str(n_steps)]
+            try:
+                out = subprocess.run(cmd, capture_output=True, text=True, timeout=left)
+                lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+                row = json.loads(lines[-1]) if lines else {"n": n, "rebuild": mode, "failed": out.stderr[-2000:]}
+            except subprocess.TimeoutExpired:
+                row = {"n": n, "rebuild": mode, "n_steps": n_steps, "timed_out_after_s": round(left, 1)}
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
 def numpy_viscous_force(x, v, nbrs, nu, ell):
     """Vectorized numpy gathers of the same formula (kernel mode), sentinel row appended."""
     n = len(x)
@@ -232,7 +287,23 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--triangulators", nargs="+", help="only the step matrix (MATRIX), with these backends "
                         "side by side (e.g. qhull cdt shull auto), into results/dynamics_triangulators.json")
+    parser.add_argument("--rebuild-modes", nargs="+", choices=("host", "callback", "device"),
+                        help="only simulate at --sizes/--steps in these rebuild modes, into results/dynamics_modes.json")
+    parser.add_argument("--budget", type=float, default=600.0, help="seconds for all of --rebuild-modes")
+    parser.add_argument("--one", nargs=3, metavar=("N", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.one:
+        print(json.dumps(one_mode(int(args.one[0]), args.one[1], int(args.one[2]), repeats=2)), flush=True)
+        return
+    if args.rebuild_modes:
+        result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
+                              "device": jax.devices()[0].device_kind, "dtype": "float32"},
+                  "modes": rebuild_modes(args.sizes, args.steps, args.rebuild_modes, args.budget)}
+        out = args.out or Path(__file__).parent / "results" / "dynamics_modes.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2))
+        print(f"wrote {out}")
+        return
     if args.triangulators:
         configs = [c[:4] + (jaxgeom.OBSERVABLES if c[4] is None else c[4],) + c[5:] for c in MATRIX]
         result = {"machine": {"platform": platform.platform(), "cpus": jax.device_count("cpu"),

@@ -6,14 +6,19 @@ Run:
   python bench/ollivier.py convergence [--sizes 1000,10000] [--dims 2,3,4,6]
       [--out bench/results/ollivier_convergence.json]
   python bench/ollivier.py table   (the convergence JSON as the markdown table of bench/README.md)
+  python bench/ollivier.py batch [--batches 512,4096,32768,131072] [--out ...]
 
 speed: uniform points in the unit square, N = 1e4, k = 10 (the undirected k-NN graph), in one
 process: GraphRicciCurvature 0.6 (its defaults: OTD = exact transport with POT, all-pairs
-shortest paths with networkit, proc = 2 = this machine's cores) on the unweighted graph against
+shortest paths with networkit, proc = --proc, default 2 = this machine's cores) on the unweighted graph against
 `ollivier_ricci(cost="hops")` (the same definition; per-edge max difference reported), and
 GRC on the Euclidean-weighted graph against cost="graph", measure="grc"; ours warm, median of 3
 (2 for the weighted graph; min, max), float64 and float32. Then N = 1e5, cost="hops", float32: the
 first call (with compilation), one warm call and the peak resident memory, in a fresh subprocess.
+
+batch: `ollivier_ricci(cost="hops", batch_size=b)` on the speed graph in float32 for each b: the
+first call and the median of 3 warm calls (min, max), and the largest difference from the first b's
+curvature (the batch changes only the order of the float32 reductions).
 
 convergence: Riemannian-uniform samples of the unit round sphere S^d (southern hemisphere in
 stereographic coordinates, g = 4 / (1 + |u|^2)^2 I, S = d (d - 1)) and of hyperbolic space H^d
@@ -31,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -183,7 +189,7 @@ def speed(args):
     out = {"n": 10**4, "k": 10, "configurations": []}
     for label, weighted, repeats, kwargs in (("unweighted, uniform", False, 3, {"cost": "hops"}),
                                              ("Euclidean-weighted, GRC's e^{-w^2}", True, 2, {"cost": "graph", "measure": "grc"})):
-        grc_s, graph = grc_curvature(jaxgeom.knn_graph(x, 10), weighted)
+        grc_s, graph = grc_curvature(jaxgeom.knn_graph(x, 10), weighted, proc=args.proc)
         entry = {"graph": label, "grc_seconds": grc_s, "ours": {}}
         for dtype in ("float64", "float32"):
             jax.config.update("jax_enable_x64", dtype == "float64")
@@ -199,6 +205,22 @@ def speed(args):
     return out
 
 
+def batch_sweep(args):
+    tess = jaxgeom.knn_graph(np.random.default_rng(0).random((10**4, 2)).astype(np.float32), 10)
+    rows, first_kappa = [], None
+    for b in args.batches:
+        start = time.perf_counter()
+        jax.block_until_ready(jaxgeom.ollivier_ricci(tess, cost="hops", batch_size=b).edge_curvature)
+        first = time.perf_counter() - start
+        orc, timing = ours_timed(tess, cost="hops", batch_size=b)
+        kappa = np.asarray(orc.edge_curvature)
+        first_kappa = kappa if first_kappa is None else first_kappa
+        rows.append({"batch": b, "first_s": first, **timing,
+                     "max_diff_vs_first_batch": float(np.nanmax(np.abs(kappa - first_kappa)))})
+        print(json.dumps(rows[-1]), flush=True)
+    return {"n": 10**4, "k": 10, "dtype": "float32", "cost": "hops", "rows": rows}
+
+
 def large_run(cost):
     code = ("import time, resource, numpy as np, jax, jaxgeom\n"
             "x = np.random.default_rng(1).random((100000, 2)).astype(np.float32)\n"
@@ -206,32 +228,40 @@ def large_run(cost):
             "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=%r); jax.block_until_ready(o.edge_curvature)\n"
             "first = time.perf_counter() - s\n"
             "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=%r); jax.block_until_ready(o.edge_curvature)\n"
-            "print(first, time.perf_counter() - s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, int(o.edge_mask.sum()) // 2)\n"
+            "stats = jax.devices()[0].memory_stats() or {}\n"
+            "print(first, time.perf_counter() - s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, int(o.edge_mask.sum()) // 2,"
+            " stats.get('peak_bytes_in_use', -1))\n"
             ) % (cost, cost)
-    first, warm, rss_kb, edges = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                                check=True).stdout.split()
+    first, warm, rss_kb, edges, device_peak = subprocess.run([sys.executable, "-c", code], capture_output=True,
+                                                             text=True, check=True).stdout.split()
     row = {"n": 10**5, "k": 10, "dtype": "float32", "cost": cost, "first_call_s": float(first), "warm_s": float(warm),
            "peak_rss_mb": int(rss_kb) / 1024, "edges": int(edges)}
+    if int(device_peak) >= 0:  # an accelerator's allocator reports its peak; the CPU's does not
+        row["device_peak_mb"] = int(device_peak) / 2**20
     print(json.dumps(row), flush=True)
     return row
 
 
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("what", choices=("speed", "convergence", "table"))
+    parser.add_argument("what", choices=("speed", "convergence", "table", "batch"))
     parser.add_argument("--sizes", default="1000,10000")
     parser.add_argument("--dims", default="2,3,4,6")
     parser.add_argument("--k", type=int, default=10)
+    parser.add_argument("--batches", default="512,4096,32768,131072")
+    parser.add_argument("--proc", type=int, default=2, help="GraphRicciCurvature's processes (speed)")
     parser.add_argument("--out")
     args = parser.parse_args()
     args.sizes = [int(v) for v in args.sizes.split(",")]
     args.dims = [int(v) for v in args.dims.split(",")]
+    args.batches = [int(v) for v in args.batches.split(",")]
     if args.what == "table":
         print(markdown_table(json.loads(Path(args.out or "bench/results/ollivier_convergence.json").read_text())))
         return
-    jax.config.update("jax_enable_x64", True)
-    result = speed(args) if args.what == "speed" else convergence(args)
-    result["machine"] = {"cores": 2, "jax": jax.__version__, "peak_rss_mb_this_process":
+    jax.config.update("jax_enable_x64", args.what != "batch")
+    result = {"speed": speed, "convergence": convergence, "batch": batch_sweep}[args.what](args)
+    result["machine"] = {"cores": os.cpu_count(), "grc_processes": args.proc, "device": jax.devices()[0].device_kind,
+                         "jax": jax.__version__, "peak_rss_mb_this_process":
                          resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     out = Path(args.out or f"bench/results/ollivier_{args.what}.json")
     out.write_text(json.dumps(result, indent=1) + "\n")

@@ -41,8 +41,15 @@ ORC_COSTS = ("graph", "hops", "direct")
 ORC_SOLVERS = ("exact",)
 HOP_RADIUS = 3
 # Edges solved together (one vmapped batch of `lax.map`); with the edges grouped by support
-# width, 512 measured fastest of 32/128/512/2048 at N = 1e4 (k = 10, 2D).
-EDGE_BATCH = 512
+# width, 512 measured fastest of 32/128/512/2048 at N = 1e4 (k = 10, 2D) on a 2-core CPU. An
+# accelerator runs each while-loop iteration as a few launches whatever the batch, so there
+# fewer, wider batches win (bench/README.md, "Ollivier-Ricci curvature").
+EDGE_BATCH = {"cpu": 512}
+EDGE_BATCH_ACCELERATOR = 32768
+
+
+def default_edge_batch() -> int:
+    return EDGE_BATCH.get(jax.default_backend(), EDGE_BATCH_ACCELERATOR)
 WIDTH_STEP = 4  # edge groups' support widths are multiples of this (or K + 1)
 
 
@@ -96,8 +103,8 @@ class OllivierRicci(eqx.Module):
 
 @takes_tessellation
 def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "full", measure: str = "uniform",
-                   cost: str = "graph", kernel_scale=None, solver: str = "exact", capacity: int | None = None
-                   ) -> OllivierRicci:
+                   cost: str = "graph", kernel_scale=None, solver: str = "exact", capacity: int | None = None,
+                   batch_size: int | None = None) -> OllivierRicci:
     """Ollivier-Ricci curvature kappa = 1 - W1(m_x, m_y) / d(x, y) of every graph edge.
 
     **Arguments:**
@@ -117,6 +124,8 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     - `solver`: "exact" (successive shortest paths; exact up to rounding).
     - `capacity`: neighbour columns of the undirected k-NN graph (default: its largest degree
       rounded up to a multiple of 8 for a concrete graph, 2k under a trace).
+    - `batch_size`: edges whose transports run side by side (vmapped); memory grows with it,
+      the result does not change. Default 512 on the CPU, 32768 on an accelerator.
 
     **Returns:**
 
@@ -128,6 +137,8 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     check_choice(cost, "cost", ORC_COSTS)
     check_choice(solver, "solver", ORC_SOLVERS)
     check_positive(kernel_scale, "kernel_scale")
+    if batch_size is not None:
+        check_integer(batch_size, "batch_size", low=1)
     check_metric(tess, metric, mode)
     graph = undirected_graph(tess, capacity)
     ids, dist = two_hop_tables(graph, _edge_weights(graph, metric, mode, cost))
@@ -135,7 +146,8 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
         width = bucket_neighbors(int(jnp.max(jnp.sum(ids < graph.n_points, axis=1))))
         ids, dist = ids[:, :width], dist[:, :width]
     groups = edge_groups(graph.neighbors)
-    return _ollivier_ricci(graph, ids, dist, groups, alpha, metric, mode, measure, cost, kernel_scale)
+    return _ollivier_ricci(graph, ids, dist, groups, alpha, metric, mode, measure, cost, kernel_scale,
+                           batch_size or default_edge_batch())
 
 
 def undirected_graph(tess: Tessellation, capacity: int | None = None) -> Tessellation:
@@ -217,13 +229,14 @@ def two_hop_tables(graph: Tessellation, weights):
 
 
 @eqx.filter_jit
-def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale):
+def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale,
+                    batch_size: int):
     metric = check_metric(graph, metric, mode)
     lengths = jnp.sqrt(edge_sq_lengths(graph, metric, mode=mode))
     weights = _edge_weights(graph, metric, mode, cost)
     masses, moment = _walker_measures(graph, lengths, weights, alpha, measure, kernel_scale)
     ctx = _edge_context(graph, ids2, dist2, weights, masses, metric, mode, cost)
-    solved = [jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=EDGE_BATCH)
+    solved = [jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=batch_size)
               for ends, slots, width in groups]
     ends, slots = (jnp.concatenate([g[i] for g in groups]) for i in (0, 1))
     kappa, converged = (jnp.concatenate([r[i] for r in solved]) for i in (0, 1))

@@ -325,11 +325,21 @@ def test_float32_nearly_equal_measures_are_transported_not_dropped(rng):
     ({"measure": "gauss"}, ValueError, "unknown measure 'gauss'; valid values are 'uniform', 'kernel', 'grc'"),
     ({"cost": "geodesic"}, ValueError, "unknown cost"), ({"solver": "sinkhorn"}, ValueError, "unknown solver 'sinkhorn'"),
     ({"kernel_scale": 0.0}, ValueError, "kernel_scale"), ({"capacity": 0}, ValueError, "capacity"),
+    ({"batch_size": 0}, ValueError, "`batch_size` must be an int >= 1"), ({"batch_size": 2.5}, TypeError, "batch_size"),
 ])
 def test_bad_arguments(rng, kwargs, error, match):
     tess = jaxgeom.knn_graph(rng.random((20, 2)), 3)
     with pytest.raises(error, match=match):
         jaxgeom.ollivier_ricci(tess, **kwargs)
+
+
+def test_batch_size_changes_the_schedule_not_the_curvature(rng):
+    """Batches of 1 and 7 edges (remainders in every support-width group) and one batch per
+    group (the accelerator default is wider than this graph) give the reference curvature."""
+    tess = jaxgeom.knn_graph(rng.random((60, 2)), 5)
+    ref = _reference_curvature(tess, 0.5, "uniform", "hops")
+    for batch in (1, 7, 32768):
+        _assert_matches(jaxgeom.ollivier_ricci(tess, cost="hops", batch_size=batch), ref, 1e-7)
 
 
 def test_too_small_capacity_is_reported_not_truncated_silently(rng):
