@@ -46,11 +46,12 @@ HOP_RADIUS = 3
 # fewer, wider batches win (bench/README.md, "Ollivier-Ricci curvature").
 EDGE_BATCH = {"cpu": 512}
 EDGE_BATCH_ACCELERATOR = 32768
+WIDTH_STEP = 4  # edge groups' support widths are multiples of this (or K + 1)
 
 
 def default_edge_batch() -> int:
+    """Edges per vmapped batch on the default backend (module notes above)."""
     return EDGE_BATCH.get(jax.default_backend(), EDGE_BATCH_ACCELERATOR)
-WIDTH_STEP = 4  # edge groups' support widths are multiples of this (or K + 1)
 
 
 class OllivierRicci(eqx.Module):
@@ -125,7 +126,7 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     - `capacity`: neighbour columns of the undirected k-NN graph (default: its largest degree
       rounded up to a multiple of 8 for a concrete graph, 2k under a trace).
     - `batch_size`: edges whose transports run side by side (vmapped); memory grows with it,
-      the result does not change. Default 512 on the CPU, 32768 on an accelerator.
+      the result changes only by rounding. Default 512 on the CPU, 32768 on an accelerator.
 
     **Returns:**
 
