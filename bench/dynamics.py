@@ -155,21 +155,25 @@ def rebuild_strategy(n: int, n_steps: int) -> dict:
 
 
 def timed_steps(state, params, n_steps, observe, rebuild, repeats=3) -> dict:
-    """Seconds per step (rebuild every step): a warm-up, then `repeats` runs; median, min,
-    max, and the median time inside the triangulator per step."""
+    """Seconds per step (rebuild every step): a first run (compilation included, timed apart),
+    then `repeats` runs; median, min, max, the median time inside the triangulator per step,
+    and the fallbacks (host triangulator failures; device rebuilds not certified)."""
     kwargs = dict(n_steps=n_steps, rebuild_every=1, observe=observe, rebuild=rebuild)
-    jaxgeom.simulate(rastrigin, state, params, **kwargs)
-    per_step, inside, fallbacks = [], [], 0
-    for _ in range(repeats):
+    per_step, inside, fallbacks, device_fallbacks = [], [], [], []
+    for _ in range(1 + repeats):
         with TriangulatorClock() as clock:
             start = time.perf_counter()
             final, history = jaxgeom.simulate(rastrigin, state, params, **kwargs)
             jax.block_until_ready(final.positions)
             per_step.append((time.perf_counter() - start) / n_steps)
         inside.append(clock.seconds / n_steps)
-        fallbacks += int(history["n_triangulator_fallbacks"])
-    return {"seconds_per_step": float(np.median(per_step)), "min": min(per_step), "max": max(per_step),
-            "triangulating_seconds_per_step": float(np.median(inside)), "n_triangulator_fallbacks": fallbacks}
+        fallbacks.append(int(history["n_triangulator_fallbacks"]))
+        device_fallbacks.append(int(history["n_fallbacks"]))
+    timed = per_step[1:]
+    return {"seconds_per_step": float(np.median(timed)), "min": min(timed), "max": max(timed),
+            "first_run_seconds": per_step[0] * n_steps, "triangulating_seconds_per_step": float(np.median(inside[1:])),
+            "n_triangulator_fallbacks": sum(fallbacks[1:]),
+            "device_fallbacks_per_run": device_fallbacks[1:]}
 
 
 def triangulator_matrix(triangulators, configs) -> list:
@@ -202,28 +206,15 @@ MATRIX = [("2D N=1e4 fitness observables", 2, 10_000, 20, OBS_FITNESS, "host"),
 
 
 def one_mode(n: int, mode: str, n_steps: int, repeats: int) -> dict:
-    """Seconds per step of `simulate` (rebuild every step, fitness observables) in `mode`: the
-    first run (compilation included) apart, then `repeats` timed runs; median, min, max, and
-    the time inside the host triangulator and the device rebuild's fallbacks per run."""
+    """`timed_steps` of `simulate` (rebuild every step, fitness observables) in `mode`, with the
+    device named."""
     x = np.random.default_rng(0).uniform(-5.12, 5.12, (n, 2)).astype(np.float32)
     state = jaxgeom.init_swarm(rastrigin, x, key=0)
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
-    per_step, inside, fallbacks = [], [], []
-    for _ in range(1 + repeats):
-        with TriangulatorClock() as clock:
-            start = time.perf_counter()
-            _, history = jaxgeom.simulate(rastrigin, state, params, n_steps=n_steps, rebuild=mode, observe=OBS_FITNESS)
-            jax.block_until_ready(history["mean_fitness"])
-            per_step.append((time.perf_counter() - start) / n_steps)
-        inside.append(clock.seconds / n_steps)
-        fallbacks.append(int(history["n_fallbacks"]))
+    timed = timed_steps(state, params, n_steps, OBS_FITNESS, mode, repeats=repeats)
     device = jax.devices()[0]
     return {"n": n, "rebuild": mode, "n_steps": n_steps, "triangulator": state.triangulator, "device": str(device),
-            "device_kind": device.device_kind, "first_run_seconds": per_step[0] * n_steps,
-            "seconds_per_step": float(np.median(per_step[1:])), "min": min(per_step[1:]), "max": max(per_step[1:]),
-            "steps_per_second": 1.0 / float(np.median(per_step[1:])),
-            "triangulating_seconds_per_step": float(np.median(inside[1:])),
-            "device_fallbacks_per_run": fallbacks[1:]}
+            "device_kind": device.device_kind, **timed, "steps_per_second": 1.0 / timed["seconds_per_step"]}
 
 
 def rebuild_modes(sizes, steps, modes, budget: float) -> list:
