@@ -49,15 +49,15 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             raise_if_interrupted()
             t0 = time.perf_counter()
             entering = state
-            moved, obs, cells = _run_chunk(fitness, params, entering, opening, jnp.asarray(start, jnp.int32),
-                                           n_total, rebuild_every, observe)
+            moved, obs, cells, moved_health = _run_chunk(fitness, params, entering, opening,
+                                                         jnp.asarray(start, jnp.int32), n_total, rebuild_every, observe)
             # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
             state, opening = _finish_and_begin(fitness, params, moved)
             end = min(start + rebuild_every, n_steps)
             first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
             pending.append((obs, first, end - start))
             jax.block_until_ready(moved.positions)
-            codes = [*np.asarray(obs["_health"])[: end - start], int(_health(moved))]
+            codes = [*np.asarray(obs["_health"])[: end - start], int(moved_health)]
             if any(codes):  # let the dispatched graph-free work finish before raising (XLA aborted otherwise)
                 jax.block_until_ready((state, opening, first))
             check_health(fitness, params, codes, start, entering)

@@ -26,7 +26,9 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
     computed ahead. Two pieces of work need no new graph and are left to the host loop, for
     XLA to run while Qhull runs: the first state's observables (NaN here, `_measure_first`)
     and the last step's closing kick (`_finish_and_begin`).
-    Returns `(state, observables, cells)`, `cells` the first state's refreshed `cell_fields`."""
+    Returns `(state, observables, cells, health)`, `cells` the first state's refreshed
+    `cell_fields`, `health` the final state's: computed here, not in a call of its own after
+    the graph-free work is queued, which XLA would run first and so delay the host rebuild."""
     dtype = state.positions.dtype
     entering = refresh_cells(params, state, observe)
     nan = {name: jnp.asarray(jnp.nan, dtype) for name in observe}
@@ -47,7 +49,7 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
         return jax.lax.cond(s < n_total, advance, lambda q: q, st), dict(obs, _health=health(st))
 
     final, obs = jax.lax.scan(body, entering, jnp.arange(length, dtype=jnp.int32))
-    return final, obs, cell_fields(entering)
+    return final, obs, cell_fields(entering), health(final)
 
 
 def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,

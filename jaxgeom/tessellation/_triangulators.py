@@ -204,9 +204,12 @@ def raise_duplicates(x: np.ndarray, rows: np.ndarray, partners: np.ndarray) -> N
 class _Triangulation:
     """scipy's layout for a backend that gives only simplices and their adjacency."""
 
-    def __init__(self, simplices: np.ndarray, neighbors: np.ndarray):
+    def __init__(self, simplices: np.ndarray, neighbors: np.ndarray, oriented: bool = False):
         self.simplices, self.neighbors = simplices, neighbors
         self.coplanar = np.zeros((0, 3), np.int32)
+        # True where the builder already dropped every simplex that `_flat` flags (the check's
+        # own orientation test, on these very simplices): the check skips repeating it.
+        self.oriented = oriented
 
     @functools.cached_property
     def convex_hull(self) -> np.ndarray:
@@ -251,7 +254,7 @@ def _cdt(x: np.ndarray) -> _Triangulation:
     # CDT's neighbour k lies across the edge (v_k, v_k+1), i.e. opposite vertex k + 2.
     across = raw["neighbors"][keep][:, [1, 2, 0]].astype(np.int64)
     neighbors = np.where(across == pythoncdt.NO_NEIGHBOR, -1, renumber[np.minimum(across, len(keep) - 1)])
-    return _Triangulation(vertices[keep], neighbors.astype(np.int32))
+    return _Triangulation(vertices[keep], neighbors.astype(np.int32), oriented=True)
 
 
 def _raise_exact_duplicates(x: np.ndarray) -> None:
@@ -283,7 +286,7 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
         return f"simplices of shape {s.shape}, adjacency {adj.shape}"
     if s.min() < 0 or s.max() >= n or np.bincount(s.ravel(), minlength=n).min() == 0:
         return "a vertex index out of range or a walker left out"
-    flat = _flat(x, s)
+    flat = np.zeros(0, bool) if getattr(tri, "oriented", False) else _flat(x, s)
     if flat.any():
         return f"{int(flat.sum())} simplices flat or negatively oriented"
     if adj.max() >= len(s) or not _symmetric(adj):
@@ -300,11 +303,10 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
 
 def _symmetric(adj: np.ndarray) -> bool:
     """Whether every simplex lists, among its own neighbours, each simplex that lists it."""
-    flat = adj.ravel()
-    listed = flat >= 0
-    owner = np.repeat(np.arange(len(adj), dtype=adj.dtype), adj.shape[1])[listed]
-    back = adj[flat[listed]]
-    return bool(np.logical_or.reduce([back[:, k] == owner for k in range(adj.shape[1])]).all())
+    flat, width = adj.ravel(), adj.shape[1]
+    listed = np.flatnonzero(flat >= 0)
+    owner, first = (listed // width).astype(adj.dtype), flat[listed] * width  # row-major: flat indices
+    return bool(np.logical_or.reduce([flat[first + k] == owner for k in range(width)]).all())
 
 
 def _flat(x: np.ndarray, s: np.ndarray) -> np.ndarray:

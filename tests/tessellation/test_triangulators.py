@@ -228,6 +228,20 @@ def test_the_check_accepts_delaunay_and_names_each_defect(rng):
     assert check_triangulation(hollow, x3) is not None
 
 
+def test_cdt_marks_its_triangles_oriented_only_where_the_check_would_pass(rng):
+    """The check skips its orientation test for CDT's output (`oriented`): that holds only if
+    `_cdt` kept exactly the triangles the test passes, here also on a sheared lattice whose
+    collinear hull side gives CDT zero-area triangles."""
+    i, j = np.meshgrid(np.arange(12.0), np.arange(9.0))
+    lattice = np.column_stack([i.ravel() + 0.5 * j.ravel(), j.ravel()])
+    for x in (rng.random((500, 2)), lattice):
+        tri = backends._cdt(x)
+        assert tri.oriented and not backends._flat(x, tri.simplices).any()
+        assert check_triangulation(backends._Triangulation(tri.simplices, tri.neighbors), x) is None
+    assert "flat or negatively oriented" in check_triangulation(
+        backends._Triangulation(tri.simplices[:, [0, 2, 1]], tri.neighbors[:, [0, 2, 1]], oriented=False), x)
+
+
 def test_a_backend_that_fails_is_replaced_by_qhull_with_a_warning(rng, monkeypatch):
     x = rng.random((300, 2))
     monkeypatch.setitem(backends.BUILDERS, "cdt", lambda pts: (_ for _ in ()).throw(RuntimeError("boom")))
