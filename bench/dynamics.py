@@ -21,6 +21,10 @@ All in float32 (the library default), 2D rastrigin swarm, default SwarmParams
 `--rebuild-modes host callback device` (issue 31's accelerator figures): only `simulate` with a
 rebuild every step at each of --sizes, fitness observables, one rebuild mode per child process
 (its own compilation, a timeout from --budget), the device named; results/dynamics_modes.json.
+
+`--against REV [REV ...] [--rounds 3]`: the 2D N = 1e4 step configurations (fitness observables,
+every observable, rebuild="callback") of this working tree against earlier commits, each tree in
+its own child process, the trees alternating within each round; results/dynamics_against.json.
 """
 
 from __future__ import annotations
@@ -270,6 +274,74 @@ def force_versus_numpy(n: int) -> dict:
     return out
 
 
+# Child of `--against`: one config's seconds per step with whatever jaxgeom is on PYTHONPATH,
+# using only the public API and its own Rastrigin, so that any commit of the library runs it.
+AGAINST_CHILD = """
+import json, sys, time
+import numpy as np, jax, jax.numpy as jnp
+import jaxgeom
+def rastrigin(x):
+    return 10.0 * x.shape[0] + jnp.sum(x * x - 10.0 * jnp.cos(2.0 * jnp.pi * x))
+n, steps, observe, rebuild, repeats = json.loads(sys.argv[1])
+observe = jaxgeom.OBSERVABLES if observe is None else tuple(observe)
+x = np.random.default_rng(0).uniform(-5.12, 5.12, (n, 2)).astype(np.float32)
+state = jaxgeom.init_swarm(rastrigin, x, key=0)
+params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
+times = []
+for _ in range(1 + repeats):
+    start = time.perf_counter()
+    final, _ = jaxgeom.simulate(rastrigin, state, params, n_steps=steps, rebuild_every=1, observe=observe,
+                                rebuild=rebuild)
+    jax.block_until_ready(final.positions)
+    times.append((time.perf_counter() - start) / steps)
+print(json.dumps({"seconds_per_step": times[1:], "jaxgeom": jaxgeom.__file__}))
+"""
+
+AGAINST_CONFIGS = [("2D N=1e4 fitness observables", 10_000, 20, list(OBS_FITNESS), "host"),
+                   ("2D N=1e4 every observable", 10_000, 20, None, "host"),
+                   ("2D N=1e4 callback", 10_000, 20, list(OBS_FITNESS), "callback")]
+
+
+def against(revs, rounds: int, repeats: int = 3) -> dict:
+    """The 2D N = 1e4 step configurations for this working tree and each commit in `revs`
+    (checked out into temporary git worktrees), each run in its own child process with that
+    tree's jaxgeom; the trees alternate within each of `rounds` rounds, so that a drift of the
+    machine's speed reaches all of them alike. Per tree and config: every timed run's seconds
+    per step, their median, min and max, and the median's ratio to each tree's."""
+    import tempfile
+    root = Path(__file__).resolve().parent.parent
+    with tempfile.TemporaryDirectory() as tmp:
+        trees = {"working tree": root}
+        for rev in revs:
+            trees[rev] = Path(tmp) / rev
+            subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", "-f", str(trees[rev]), rev],
+                           check=True, capture_output=True)
+        try:
+            runs = {label: {tree: [] for tree in trees} for label, *_ in AGAINST_CONFIGS}
+            for _ in range(rounds):
+                for label, n, steps, observe, rebuild in AGAINST_CONFIGS:
+                    for tree, path in trees.items():
+                        env = dict(os.environ, PYTHONPATH=str(path))
+                        out = subprocess.run([sys.executable, "-c", AGAINST_CHILD,
+                                              json.dumps([n, steps, observe, rebuild, repeats])],
+                                             env=env, capture_output=True, text=True, check=True, cwd=tmp)
+                        row = json.loads(out.stdout.splitlines()[-1])
+                        assert Path(row["jaxgeom"]).resolve().is_relative_to(path.resolve()), row["jaxgeom"]
+                        runs[label][tree] += row["seconds_per_step"]
+                        print(json.dumps({"config": label, "tree": tree,
+                                          "ms": [round(1e3 * t, 2) for t in row["seconds_per_step"]]}), flush=True)
+        finally:
+            for rev in revs:
+                subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(trees[rev])],
+                               capture_output=True)
+    return {label: {tree: {"median_ms": 1e3 * float(np.median(t)), "min_ms": 1e3 * min(t), "max_ms": 1e3 * max(t),
+                           "runs_ms": [1e3 * v for v in t],
+                           "speedup_over": {other: float(np.median(runs[label][other]) / np.median(t))
+                                            for other in trees if other != tree}}
+                    for tree, t in runs[label].items()}
+            for label in runs}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000])
@@ -281,10 +353,22 @@ def main() -> None:
     parser.add_argument("--rebuild-modes", nargs="+", choices=("host", "callback", "device"),
                         help="only simulate at --sizes/--steps in these rebuild modes, into results/dynamics_modes.json")
     parser.add_argument("--budget", type=float, default=600.0, help="seconds for all of --rebuild-modes")
+    parser.add_argument("--against", nargs="+", metavar="REV",
+                        help="only the 2D N=1e4 step configurations, this working tree against these commits "
+                        "(each in a child process, alternating over --rounds), into results/dynamics_against.json")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of --against")
     parser.add_argument("--one", nargs=3, metavar=("N", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         print(json.dumps(one_mode(int(args.one[0]), args.one[1], int(args.one[2]), repeats=2)), flush=True)
+        return
+    if args.against:
+        result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
+                              "dtype": "float32", "date": time.strftime("%Y-%m-%d")},
+                  "against": against(args.against, args.rounds)}
+        out = args.out or Path(__file__).parent / "results" / "dynamics_against.json"
+        out.write_text(json.dumps(result, indent=2))
+        print(f"wrote {out}")
         return
     if args.rebuild_modes:
         result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
