@@ -279,7 +279,9 @@ BUILDERS = {"cdt": _cdt, "shull": _shull}
 def check_triangulation(tri, x: np.ndarray) -> str | None:
     """None if `tri` is a valid triangulation of the convex hull of `x`, else what is wrong:
     indices in range, every walker a vertex, every simplex positively oriented, adjacency
-    symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1)."""
+    symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1).
+    The orientation test is skipped for a triangulation marked `oriented` (CDT's builder ran
+    the same `_flat` test on the same simplices)."""
     s, adj = np.asarray(tri.simplices), np.asarray(tri.neighbors)
     n, d = x.shape
     if s.ndim != 2 or s.shape[1] != d + 1 or adj.shape != s.shape or len(s) == 0:
