@@ -108,6 +108,13 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
 # --- Qhull ------------------------------------------------------------------------------
 
 
+# Masks that spread 16 bits of a coordinate to every d-th bit (d = 2, 3): shift, then mask.
+_SPREAD = {2: ((8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
+               (1, 0x5555555555555555)),
+           3: ((32, 0x001F00000000FFFF), (16, 0x001F0000FF0000FF), (8, 0x100F00F00F00F00F),
+               (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))}
+
+
 def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
     """Z-order (Morton) codes of points quantised on their bounding box, and the
     number of code bits (bits per coordinate x d); bit b * d + k is bit b of coordinate k."""
@@ -115,17 +122,29 @@ def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
     bits = max(1, min(16, 60 // d))
     cols = columns(x)
     lo, hi = cols.min(axis=1), cols.max(axis=1)
-    q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * (2**bits - 1)).astype(np.uint64)
+    q = ((cols - lo[:, None]) / np.where(hi > lo, hi - lo, 1.0)[:, None] * (2**bits - 1)).astype(np.uint64)
     code = np.zeros(n, np.uint64)
-    for b in range(bits):
-        for k in range(d):
-            code |= ((q[:, k] >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d + k)
+    for k in range(d):
+        code |= _spread_bits(q[k], d, bits) << np.uint64(k)
     return code, bits * d
 
 
-def morton_order(x: np.ndarray) -> np.ndarray:
-    """Permutation sorting points along a Z-order (Morton) curve."""
-    return np.argsort(morton_codes(x)[0], kind="stable")
+def _spread_bits(v: np.ndarray, d: int, bits: int) -> np.ndarray:
+    """Bit b of `v` moved to bit b * d, for its low `bits` bits."""
+    if d in _SPREAD:
+        for shift, mask in _SPREAD[d]:
+            v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+        return v
+    out = np.zeros_like(v)
+    for b in range(bits):
+        out |= ((v >> np.uint64(b)) & np.uint64(1)) << np.uint64(b * d)
+    return out
+
+
+def morton_order(x: np.ndarray, stable: bool = True) -> np.ndarray:
+    """Permutation sorting points along a Z-order (Morton) curve; ties (points in one
+    quantisation cell) keep their input order where `stable`, else in no set order."""
+    return np.argsort(morton_codes(x)[0], kind="stable" if stable else None)
 
 
 def qhull_input(x: np.ndarray) -> np.ndarray:
@@ -233,10 +252,14 @@ class _Triangulation:
 def _cdt(x: np.ndarray) -> _Triangulation:
     import pythoncdt
 
+    # Large inputs go in Morton order: CDT's own KD-tree ordering then touches memory
+    # in order (N = 1e6: 1.38 s -> 0.85 s for the insertion, the sort ~0.15 s).
+    perm = morton_order(x, stable=False) if len(x) >= MORTON_MIN_POINTS else None
+    points = np.ascontiguousarray(x if perm is None else x[perm], dtype=np.float64)
     tri = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
                                   pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
     try:
-        tri.insert_vertices(np.ascontiguousarray(x, dtype=np.float64))
+        tri.insert_vertices(points)
     except RuntimeError as err:
         if "Duplicate vertex" in str(err):
             _raise_exact_duplicates(x)
@@ -247,14 +270,16 @@ def _cdt(x: np.ndarray) -> _Triangulation:
     # along an exactly collinear hull side (a sheared lattice's bottom row), which Qhull does
     # not have; they go too, leaving the middle walkers on the hull (`check_triangulation`
     # then verifies the result).
-    vertices = raw["vertices"].astype(np.int32) - 3
-    keep = (vertices >= 0).all(axis=1)
-    keep[keep] = ~_flat(x, vertices[keep])
-    renumber = np.where(keep, np.cumsum(keep) - 1, -1).astype(np.int32)
+    vertices = raw["vertices"].astype(np.int32)
+    keep = vertices.min(axis=1) >= 3
+    vertices = vertices[keep] - 3
+    keep[keep] = thick = ~_flat(points, vertices)
+    renumber = np.where(keep, np.cumsum(keep, dtype=np.int32) - 1, -1)
     # CDT's neighbour k lies across the edge (v_k, v_k+1), i.e. opposite vertex k + 2.
-    across = raw["neighbors"][keep][:, [1, 2, 0]].astype(np.int64)
+    across = raw["neighbors"][keep][:, [1, 2, 0]]
     neighbors = np.where(across == pythoncdt.NO_NEIGHBOR, -1, renumber[np.minimum(across, len(keep) - 1)])
-    return _Triangulation(vertices[keep], neighbors.astype(np.int32), oriented=True)
+    simplices = vertices[thick] if perm is None else perm.astype(np.int32)[vertices[thick]]
+    return _Triangulation(simplices, neighbors, oriented=True)
 
 
 def _raise_exact_duplicates(x: np.ndarray) -> None:

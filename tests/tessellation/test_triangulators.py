@@ -201,6 +201,50 @@ def test_duplicates_take_the_coincident_points_path(rng, name, d):
     assert {int(err.value.rows[0]), int(err.value.partners[0])} == {17, 40}
 
 
+def test_cdt_on_morton_sorted_points_returns_the_callers_order(rng, monkeypatch):
+    """Above MORTON_MIN_POINTS CDT sees its points sorted along a Z curve; here the threshold
+    is lowered so small inputs take that path: the same triangles and adjacency as unsorted,
+    in the caller's numbering, oriented, and duplicates still named by the caller's rows."""
+    i, j = np.meshgrid(np.arange(12.0), np.arange(9.0))
+    lattice = np.column_stack([i.ravel() + 0.5 * j.ravel(), j.ravel()])
+    cases = [rng.random((600, 2)), clustered(rng, 600, 2), lattice, 1e15 + 1e4 * rng.random((300, 2))]
+    for x in cases:
+        plain = backends._cdt(x)
+        monkeypatch.setattr(backends, "MORTON_MIN_POINTS", 1)
+        tri = backends._cdt(x)
+        monkeypatch.undo()
+        assert not np.array_equal(backends.morton_order(x), np.arange(len(x)))
+        assert check_triangulation(tri, x) is None and not backends._flat(x, tri.simplices).any()
+        key = {tuple(sorted(t)): k for k, t in enumerate(tri.simplices.tolist())}
+        match = [key[tuple(sorted(t))] for t in plain.simplices.tolist()]
+        assert sorted(match) == list(range(len(tri.simplices)))  # the same triangles
+        assert (tri.neighbors < 0).sum() == (plain.neighbors < 0).sum()  # the same hull edges
+        for k in range(3):  # neighbour k lies across the edge opposite vertex k
+            m = tri.neighbors[:, k] >= 0
+            edge, other = np.delete(tri.simplices[m], k, axis=1), tri.simplices[tri.neighbors[m, k]]
+            assert (edge[:, :, None] == other[:, None, :]).any(-1).all()
+    x = rng.random((100, 2))
+    x[17] = x[40]
+    monkeypatch.setattr(backends, "MORTON_MIN_POINTS", 1)
+    with pytest.raises(CoincidentPointsError, match="duplicates") as err:
+        jaxgeom.delaunay(x, triangulator="cdt")
+    assert {int(err.value.rows[0]), int(err.value.partners[0])} == {17, 40}
+
+
+def test_morton_codes_interleave_the_quantised_coordinates_bit_by_bit(rng):
+    """Bit b * d + k of a code is bit b of coordinate k quantised to `bits` bits on the
+    bounding box: the d = 2, 3 bit-spreading masks and the loop for d > 3 against a
+    Python-integer reference."""
+    for d in (1, 2, 3, 4, 6):
+        x = rng.random((200, d)) * np.arange(1, d + 1) * 1e3 - 7.0
+        code, n_bits = backends.morton_codes(x)
+        bits = n_bits // d
+        lo, hi = x.min(axis=0), x.max(axis=0)
+        q = ((x - lo) / (hi - lo) * (2**bits - 1)).astype(np.uint64).tolist()
+        ref = [sum(((row[k] >> b) & 1) << (b * d + k) for b in range(bits) for k in range(d)) for row in q]
+        assert bits == min(16, 60 // d) and code.tolist() == ref, d
+
+
 # --- the check and the fallback -------------------------------------------------------------
 
 
