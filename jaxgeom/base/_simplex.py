@@ -14,6 +14,7 @@ import functools
 import itertools
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -275,18 +276,23 @@ def small_eigh(m):
     """Eigenvalues (ascending) and eigenvectors (columns) of symmetric (..., d, d) arrays,
     d <= 4, by cyclic Jacobi rotations in plain elementwise arithmetic.
 
-    XLA fuses it (batched LAPACK `syevd` is ~35x slower on millions of 3 x 3 matrices),
-    and it makes no LAPACK call: two batched LAPACK calls running at once on XLA's CPU
-    thread pool deadlocked (jaxlib 0.10, 2 cores), which hung `ricci_scalar` with a
-    Hessian metric.
+    XLA fuses each sweep (batched LAPACK `syevd` is slower, bench/small_eigh.py), and it
+    makes no LAPACK call: two batched LAPACK calls running at once on XLA's CPU thread
+    pool deadlocked (jaxlib 0.10, 2 cores), which hung `ricci_scalar` with a Hessian
+    metric. The sweeps run in a `fori_loop`, so one sweep is traced and compiled, not
+    `JACOBI_SWEEPS[d]` copies of it.
     """
     d = m.shape[-1]
     a = _entries(m)
     zero, one = jnp.zeros_like(a[0][0]), jnp.ones_like(a[0][0])
     v = [[one if i == j else zero for j in range(d)] for i in range(d)]
-    for _ in range(JACOBI_SWEEPS[d]):
+
+    def sweep(_, av):
         for p, q in itertools.combinations(range(d), 2):
-            a, v = _jacobi_rotation(a, v, p, q)
+            av = _jacobi_rotation(*av, p, q)
+        return av
+
+    a, v = jax.lax.fori_loop(0, JACOBI_SWEEPS[d], sweep, (a, v))
     values = jnp.stack([a[i][i] for i in range(d)], axis=-1)
     vectors = jnp.stack([jnp.stack(row, axis=-1) for row in v], axis=-2)
     order = jnp.argsort(values, axis=-1)

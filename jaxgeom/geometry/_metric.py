@@ -362,8 +362,8 @@ def _cached_hessian_metric(fitness: Callable, eps_sigma: float, floor: str) -> C
 
 def _hessian_metric(fitness: Callable, eps_sigma, floor: str, eigh: Callable = eigh) -> Callable:
     """The metric callable; `eigh` is the eigensolver of the floor (`metric_curvature` passes
-    LAPACK's: differentiated twice, the unrolled Jacobi sweeps of `small_eigh` take minutes
-    to compile)."""
+    LAPACK's: differentiated twice, the Jacobi sweeps of `small_eigh` take ~10x longer to
+    compile, bench/README.md)."""
     hess = jax.hessian(fitness)
 
     def clip(x):
