@@ -204,7 +204,8 @@ def metric_curvature(metric: Callable, points, *, probes: int | None = None, key
 
     A `hessian_metric` callable is recognised by its `hessian_parts` attribute; wrapped in
     another function it is a general metric to this function (the Christoffel form, which in
-    d <= 4 differentiates the floor's unrolled Jacobi sweeps: minutes to compile).
+    d <= 4 differentiates the floor's Jacobi sweeps twice: ~10x LAPACK's compile time, 12.5 s
+    in 3D, bench/README.md).
 
     **Returns:**
 
