@@ -30,21 +30,6 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
-def pytest_xdist_make_scheduler(config, log):
-    """The whole default suite (no paths, no -m given) runs file by file: a module's tests in
-    one worker share the kernels they compile (conftest drops compiled programs after each
-    module); on 2026-11-27 the suite's CPU time went 23.6-24.1 -> 21.9 min and its wall time
-    12:36-12:46 -> 11:40 against work stealing. Other runs (a file, a marker's tier) keep
-    `--dist worksteal`, which spreads the tests of a single file over both workers."""
-    given_paths = config.args_source != pytest.Config.ArgsSource.TESTPATHS
-    addopts = config.getini("addopts")
-    default_markers = "-m" in addopts and config.option.markexpr == addopts[addopts.index("-m") + 1]
-    if given_paths or not default_markers or config.option.dist != "worksteal":
-        return None
-    from xdist.scheduler import LoadFileScheduling
-    return LoadFileScheduling(config, log)
-
-
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
