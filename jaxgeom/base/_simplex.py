@@ -292,7 +292,13 @@ def small_eigh(m):
             av = _jacobi_rotation(*av, p, q)
         return av
 
-    a, v = jax.lax.fori_loop(0, JACOBI_SWEEPS[d], sweep, (a, v))
+    return eigenpairs_ascending(*jax.lax.fori_loop(0, JACOBI_SWEEPS[d], sweep, (a, v)))
+
+
+def eigenpairs_ascending(a, v):
+    """(eigenvalues ascending, eigenvectors as columns) from the entries `a` of a matrix the
+    Jacobi rotations diagonalised and the entries `v` of their accumulated product."""
+    d = len(a)
     values = jnp.stack([a[i][i] for i in range(d)], axis=-1)
     vectors = jnp.stack([jnp.stack(row, axis=-1) for row in v], axis=-2)
     order = jnp.argsort(values, axis=-1)
