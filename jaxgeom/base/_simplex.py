@@ -264,7 +264,7 @@ def simplex_circumcenter_and_flat(coords):
 def simplex_circumradius(coords):
     """Circumradius of one coordinate-major simplex (0 where degenerate)."""
     _, offset = _first_vertex_and_offset(coords)
-    return jnp.sqrt(_vdot(offset, offset))
+    return safe_sqrt(_vdot(offset, offset))
 
 
 # Cyclic Jacobi sweeps that take a symmetric d x d matrix to machine-precision diagonal form
@@ -309,14 +309,7 @@ def _jacobi_rotation(a, v, p: int, q: int):
     """Rotate rows/columns p, q of the symmetric entries `a` so that a[p][q] = 0; accumulate
     the rotation in the eigenvector entries `v` (Golub & Van Loan, Algorithm 8.5.1)."""
     apq = a[p][q]
-    off = apq != 0
-    theta = (a[q][q] - a[p][p]) / (2.0 * jnp.where(off, apq, 1.0))
-    # tan of the angle is 1 / (2 theta) to rounding where theta^2 would overflow
-    big = jnp.abs(theta) > 0.25 * float(np.sqrt(jnp.finfo(theta.dtype).max))
-    tame = jnp.where(big, 1.0, theta)
-    t = jnp.where(big, 0.5 / jnp.where(big, theta, 1.0),
-                  jnp.where(tame >= 0, 1.0, -1.0) / (jnp.abs(tame) + jnp.sqrt(tame * tame + 1.0)))
-    t = jnp.where(off, t, 0.0)
+    t = _jacobi_tangent(a[q][q] - a[p][p], apq)
     c = 1.0 / jnp.sqrt(t * t + 1.0)
     s = t * c
     a = [row[:] for row in a]
@@ -332,6 +325,23 @@ def _jacobi_rotation(a, v, p: int, q: int):
         vkp, vkq = v[k][p], v[k][q]
         v[k][p], v[k][q] = c * vkp - s * vkq, s * vkp + c * vkq
     return a, v
+
+
+def _jacobi_tangent(delta, apq):
+    """tan of the Jacobi angle that zeroes a_pq, with delta = a_qq - a_pp.
+
+    Golub & Van Loan's t = sign(theta) / (|theta| + sqrt(theta^2 + 1)), theta = delta / (2 a_pq),
+    multiplied through by |2 a_pq| / m with m = max(|delta|, |2 a_pq|):
+    t = s (2 a_pq / m) / (|delta| / m + hypot(delta / m, 2 a_pq / m)), s = sign(delta) (+1 at 0).
+    No division by a_pq: after convergence a_pq is tiny, theta overflowed, and the derivative
+    of theta (~1 / a_pq^2) times the derivative of its tangent (~0) was inf x 0 = NaN.
+    """
+    off = apq != 0
+    m = jnp.maximum(jnp.abs(delta), 2.0 * jnp.abs(apq))
+    m = jnp.where(off, m, 1.0)
+    u, w = 2.0 * apq / m, delta / m
+    sign = jnp.where(delta >= 0, 1.0, -1.0)
+    return jnp.where(off, sign * u / (jnp.abs(w) + jnp.sqrt(w * w + u * u)), 0.0)
 
 
 def small_cholesky(m):
@@ -355,3 +365,107 @@ def small_positive_definite(m):
     low = small_cholesky(m)
     pivots = jnp.diagonal(low, axis1=-2, axis2=-1)
     return jnp.all(pivots > 0, axis=-1)  # NaN pivots compare False
+
+
+def spectral_function(fn, eigh, h, p):
+    """F(h) = Q diag(fn(lambda, p)) Q^T for a symmetric (d, d) `h` = Q diag(lambda) Q^T, with
+    derivatives of every order that stay finite and right at repeated eigenvalues.
+
+    **Arguments:**
+
+    - `fn`: elementwise scalar function (lambda, p) -> value, differentiable in both.
+    - `eigh`: the eigensolver, (d, d) -> (eigenvalues, eigenvectors as columns).
+    - `h`: the symmetric matrix.
+    - `p`: the scalar parameter of `fn` (may be traced).
+
+    Derivatives never go through `eigh`. The k-th derivative in directions E_1..E_k is
+    Q M Q^T with M_ij = sum over orders s of the E's and indices m of
+    fn[lambda_i, lambda_m1, ..., lambda_m(k-1), lambda_j] (E^_s1)_{i m1} ... (E^_sk)_{m(k-1) j},
+    E^ = Q^T E Q and fn[...] the divided differences of fn (Daleckii and Krein for k = 1);
+    a derivative in p replaces fn by its p-derivative. Each derivative is itself a custom JVP
+    whose tangent is the next order, so `jax.hessian` of a metric, and its gradient, are
+    exact too. Differentiating the eigenvectors instead is 0/0 at a repeated eigenvalue: an
+    exact repeat gave a derivative that missed the off-diagonal part of the direction, a
+    near repeat cancelling ~1/gap terms, and second derivatives NaN.
+    """
+    return _spectral_derivative(fn, eigh, 0, 0, h, jnp.asarray(p, h.dtype), (), ())
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2, 3))
+def _spectral_derivative(fn, eigh, n_p: int, n_h: int, h, p, dps: tuple, dhs: tuple):
+    """The derivative of `spectral_function` of order `n_p` in p (directions `dps`) and
+    `n_h` in h (directions `dhs`)."""
+    lam, q = eigh(h)
+    value_of = _lambda_derivatives(fn, n_p, p)
+    qt = jnp.swapaxes(q, -1, -2)
+    scale = functools.reduce(lambda a, b: a * b, dps, jnp.ones((), h.dtype))
+    if n_h == 0:
+        return (q * (value_of(0)(lam) * scale)) @ qt
+    table = _divided_difference_table(value_of, lam, n_h)
+    hats = [qt @ e @ q for e in dhs]
+    letters = "abcdefgh"[: n_h - 1]
+    indices = ["i"] + list(letters) + ["j"]
+    spec = "".join(indices) + "," + ",".join(indices[t] + indices[t + 1] for t in range(n_h)) + "->ij"
+    inner = sum(jnp.einsum(spec, table, *[hats[s] for s in order]) for order in itertools.permutations(range(n_h)))
+    return q @ (inner * scale) @ qt
+
+
+@_spectral_derivative.defjvp
+def _spectral_derivative_jvp(fn, eigh, n_p, n_h, primals, tangents):
+    h, p, dps, dhs = primals
+    t_h, t_p, t_dps, t_dhs = tangents
+    out = _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps, dhs)
+    # multilinear in dps and dhs, so a tangent of one direction replaces it
+    tangent = (_spectral_derivative(fn, eigh, n_p, n_h + 1, h, p, dps, dhs + (t_h,))
+               + _spectral_derivative(fn, eigh, n_p + 1, n_h, h, p, dps + (t_p,), dhs))
+    for i in range(n_p):
+        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps[:i] + (t_dps[i],) + dps[i + 1:], dhs)
+    for i in range(n_h):
+        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps, dhs[:i] + (t_dhs[i],) + dhs[i + 1:])
+    return out, tangent
+
+
+def _lambda_derivatives(fn, n_p: int, p):
+    """j -> the elementwise function lambda -> d^j/dlambda^j d^n_p/dp^n_p fn(lambda, p)."""
+    def in_p(lam, p_, order):
+        if order == 0:
+            return fn(lam, p_)
+        return jax.jvp(lambda y: in_p(lam, y, order - 1), (p_,), (jnp.ones_like(p_),))[1]
+
+    def in_lambda(lam, order):
+        if order == 0:
+            return in_p(lam, p, n_p)
+        return jax.jvp(lambda x: in_lambda(x, order - 1), (lam,), (jnp.ones_like(lam),))[1]
+
+    return lambda order: (lambda lam: in_lambda(lam, order))
+
+
+def _divided_difference_table(value_of, lam, k: int):
+    """fn[lambda_i0, ..., lambda_ik] for every index tuple: a (d,) * (k + 1) array.
+
+    The points are sorted (divided differences are symmetric), so a tuple's spread is its
+    last minus its first point. Where the spread is below eps^(1 / (k + 2)) of the spectrum's
+    scale, the Taylor value fn^(k)(centroid) / k! (error O(spread^2)) replaces the recursion
+    (error O(eps / spread^k))."""
+    d = lam.shape[-1]
+    axes = [jnp.reshape(lam, [d if a == t else 1 for a in range(k + 1)]) for t in range(k + 1)]
+    points = jnp.sort(jnp.stack(jnp.broadcast_arrays(*axes)), axis=0)
+    scale = jnp.max(jnp.abs(lam))
+    eps = jnp.finfo(lam.dtype).eps
+    memo = {}
+
+    def divided(lo: int, hi: int):
+        if (lo, hi) not in memo:
+            if lo == hi:
+                memo[lo, hi] = value_of(0)(points[lo])
+            else:
+                order = hi - lo
+                spread = points[hi] - points[lo]
+                close = spread <= eps ** (1.0 / (order + 2)) * scale
+                centroid = jnp.mean(points[lo: hi + 1], axis=0)
+                taylor = value_of(order)(centroid) / math.factorial(order)
+                far = (divided(lo + 1, hi) - divided(lo, hi - 1)) / jnp.where(close, 1.0, spread)
+                memo[lo, hi] = jnp.where(close, taylor, far)
+        return memo[lo, hi]
+
+    return divided(0, k)

@@ -24,8 +24,9 @@ def volume_distortion(tess: Tessellation, volumes=None) -> Float[Array, ""]:
     """
     vol = voronoi_volumes(tess, clip=False) if volumes is None else volumes  # tier 2: inside any box
     ok = tess.interior & jnp.isfinite(vol)
+    vol = jnp.where(ok, vol, 0.0)  # NaN volumes out before they meet `mean`: its gradient would be NaN
     count = jnp.sum(ok).astype(vol.dtype)
-    mean = jnp.sum(jnp.where(ok, vol, 0.0)) / count
+    mean = jnp.sum(vol) / count
     ratio = jnp.where(ok, vol / mean, 0.0)
     return jnp.sum(jnp.where(ok, (ratio - 1.0) ** 2, 0.0)) / count
 

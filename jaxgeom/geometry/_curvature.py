@@ -16,7 +16,7 @@ from ..base._simplex import det_entries, safe_sqrt
 from ..tessellation._graph import Tessellation, edge_slots, takes_tessellation
 from ._metric import (
     check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths,
-    simplex_sq_lengths_with_references,
+    simplex_sq_lengths_with_references, warns_on_defective_metric,
 )
 from ._volumes import voronoi_volumes
 
@@ -120,6 +120,7 @@ def _hinge_vertex_ids(tess: Tessellation):
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def angle_sums(tess: Tessellation, *, metric=None, mode: str = "full"):
     """Total hinge angle around each hinge, in the metric.
@@ -158,6 +159,7 @@ def _per_hinge(tess: Tessellation, per_simplex):
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
     """Regge deficit angles 2 pi - sum of hinge angles, with metric edge lengths.
@@ -177,6 +179,7 @@ def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i.
@@ -210,6 +213,7 @@ def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def ricci_resolution(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """The smallest |R_i| that `ricci_scalar` resolves in the points' dtype (N,).

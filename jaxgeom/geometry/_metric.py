@@ -12,7 +12,9 @@ symmetric in i and j, so every edge has one length).
 from __future__ import annotations
 
 import functools
+import inspect
 import warnings
+import weakref
 import itertools
 from collections.abc import Callable
 from typing import NamedTuple
@@ -25,7 +27,7 @@ from jaxtyping import Array, Bool, Float
 from ..base._checks import (
     check_choice, check_nonnegative, check_walker_mask, metric_defect_masks, real_array, walker_values,
 )
-from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh
+from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh, spectral_function
 from ..tessellation._graph import (
     Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords,
     takes_tessellation,
@@ -123,19 +125,63 @@ def metric_defects(tess: Tessellation, metric) -> Bool[Array, " N"]:
 
     **Returns:**
 
-    (N,) bool, True where g at the walker is finite but not symmetric (to 100 eps) or
-    not positive definite. Rows with a NaN or inf entry are not flagged (they mark
-    walkers without a metric, e.g. isolated walkers of the emergent metric); all False
-    for the Euclidean metric.
+    (N,) bool, True where g at the walker has a NaN or inf entry, is not symmetric (to
+    100 eps) or is not positive definite; all False for the Euclidean metric.
     """
-    g = metric_at_walkers(tess, metric)
+    return _defects(tess, metric, "full")
+
+
+def _defects(tess: Tessellation, metric, mode: str):
+    g = metric_at_walkers(tess, metric, mode=mode)
     if g is None:
         return jnp.zeros(tess.points.shape[0], bool)
     asym, indefinite = metric_defect_masks(g, jnp)
-    return asym | indefinite
+    return asym | indefinite | ~jnp.all(jnp.isfinite(g), axis=(1, 2))
+
+
+_defect_count = eqx.filter_jit(lambda tess, metric, mode: jnp.sum(_defects(tess, metric, mode)))
+# (id of the callable, id of the points) already checked by `warns_on_defective_metric`
+_CHECKED_CALLABLES: dict[tuple[int, int], tuple] = {}
+
+
+def warns_on_defective_metric(kernel):
+    """Decorator for the public kernels that take `metric=`: a callable metric that is NaN, not
+    symmetric or not positive definite at some walkers gives a `RuntimeWarning` naming how many
+    and `jaxgeom.metric_defects`, once per callable and positions (a metric array is refused on
+    entry instead). It costs one evaluation of g at the walkers, 4-19% of `ricci_scalar` or
+    `viscous_force` with a Hessian metric (bench/README.md), nothing under a trace: there,
+    call `metric_defects` yourself."""
+    signature = inspect.signature(kernel)
+
+    @functools.wraps(kernel)
+    def call(tess, *args, **kwargs):
+        out = kernel(tess, *args, **kwargs)
+        bound = signature.bind_partial(tess, *args, **kwargs).arguments
+        metric, mode = bound.get("metric"), bound.get("mode", "full")
+        if not callable(metric) or mode == "none" or isinstance(tess.points, jax.core.Tracer):
+            return out
+        key = (id(metric), id(tess.points))
+        refs = _CHECKED_CALLABLES.get(key)
+        if refs is not None and refs[0]() is metric and refs[1]() is tess.points:
+            return out
+        count = int(_defect_count(tess, metric, mode))
+        if count:
+            warnings.warn(f"{kernel.__name__}: the metric callable is NaN, not symmetric or not positive definite "
+                          f"at {count} of {tess.n_points} walkers, so results there are NaN or meaningless; "
+                          "jaxgeom.metric_defects(tess, metric) flags them.", RuntimeWarning, stacklevel=2)
+        if len(_CHECKED_CALLABLES) > 64:
+            _CHECKED_CALLABLES.clear()
+        try:  # weak references: the cache keeps neither the callable nor the positions alive
+            _CHECKED_CALLABLES[key] = (weakref.ref(metric), weakref.ref(tess.points))
+        except TypeError:
+            pass
+        return out
+
+    return call
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def edge_lengths(tess: Tessellation, *, metric=None, mode: str = "full") -> Float[Array, "N K"]:
     """Metric length sqrt(dx^T g_edge dx) of every neighbour edge, aligned with `tess.neighbors`.
@@ -270,6 +316,7 @@ def sqrt_det_metric(tess: Tessellation, metric=None, *, mode: str = "full") -> F
 
 
 @takes_tessellation
+@warns_on_defective_metric
 @eqx.filter_jit
 def riemannian_volumes(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
     """Riemannian cell volumes V_i sqrt(det g(x_i)).
@@ -340,7 +387,12 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
 
     **Returns:**
 
-    A callable x (d,) -> g (d, d), usable as `metric=` everywhere.
+    A callable x (d,) -> g (d, d), usable as `metric=` everywhere. Its derivatives in x and in
+    eps_Sigma, of every order, are those of the floor as a function of the matrix (Daleckii and
+    Krein's divided differences, `base._simplex.spectral_function`): finite and right where H
+    is indefinite or has repeated eigenvalues. At an eigenvalue exactly 0 the clip floor has
+    a kink; its derivative there is the mean of the two one-sided ones (what central
+    differences give).
     """
     if not callable(fitness):
         raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar V(x); got {type(fitness).__name__}.")
@@ -361,32 +413,37 @@ def _cached_hessian_metric(fitness: Callable, eps_sigma: float, floor: str) -> C
 
 
 def _hessian_metric(fitness: Callable, eps_sigma, floor: str, eigh: Callable = eigh) -> Callable:
-    """The metric callable; `eigh` is the eigensolver of the floor (`metric_curvature` passes
-    LAPACK's: differentiated twice, the Jacobi sweeps of `small_eigh` take ~10x longer to
-    compile, bench/README.md)."""
+    """The metric callable; `eigh` is the eigensolver of the floor (`small_eigh` up to d = 4;
+    `metric_curvature` passes LAPACK's). The floor is a `spectral_function`: its derivatives of
+    every order come from divided differences of the floor, never from the eigensolver's."""
     hess = jax.hessian(fitness)
 
     def clip(x):
         h = hess(x)
         eye = jnp.eye(h.shape[-1], dtype=h.dtype)
-        # eigh only where H has a negative eigenvalue: elsewhere its derivative is not
-        # needed and can be NaN for repeated eigenvalues, so it sees a safe matrix.
-        psd = jax.lax.stop_gradient(eigh(h)[0][0] >= 0)
-        lam, q = eigh(jnp.where(psd, jnp.diag(jnp.arange(1.0, h.shape[-1] + 1, dtype=h.dtype)), h))
-        correction = (q * jnp.maximum(-lam, 0.0)) @ q.T
-        return h + eps_sigma * eye + jnp.where(psd, 0.0, correction)
+        # exactly 0 where H is positive semi-definite, so g = H + eps_Sigma I there
+        return h + eps_sigma * eye + spectral_function(_clip_correction, eigh, h, jnp.zeros((), h.dtype))
 
     def softabs(x):
-        lam, q = eigh(hess(x))
-        small = jnp.abs(lam) < 1e-3 * eps_sigma
-        safe = jnp.where(small, 1.0, lam)
-        value = jnp.where(small, eps_sigma + lam**2 / (3.0 * eps_sigma), safe / jnp.tanh(safe / eps_sigma))
-        return (q * value) @ q.T
+        h = hess(x)
+        return spectral_function(_softabs, eigh, h, jnp.asarray(eps_sigma, h.dtype))
 
     metric = clip if floor == "clip" else softabs
     # what `metric_curvature` reads to use the Hessian-geometry formulas (g = Hess(V + eps |x|^2 / 2))
     metric.hessian_parts = HessianParts(fitness, eps_sigma, floor)
     return metric
+
+
+def _clip_correction(lam, _):
+    """What the clip floor adds to an eigenvalue: max(-lambda, 0) (slope 1/2 at the kink)."""
+    return jnp.maximum(-lam, 0.0)
+
+
+def _softabs(lam, eps_sigma):
+    """lambda coth(lambda / eps_Sigma), its Taylor series eps_Sigma + lambda^2 / (3 eps_Sigma) near 0."""
+    small = jnp.abs(lam) < 1e-3 * eps_sigma
+    safe = jnp.where(small, 1.0, lam)
+    return jnp.where(small, eps_sigma + lam**2 / (3.0 * eps_sigma), safe / jnp.tanh(safe / eps_sigma))
 
 
 @takes_tessellation

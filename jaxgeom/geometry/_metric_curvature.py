@@ -203,9 +203,10 @@ def metric_curvature(metric: Callable, points, *, probes: int | None = None, key
     - `with_info`: return `(scalar, info)`, info a [`jaxgeom.CurvatureInfo`][].
 
     A `hessian_metric` callable is recognised by its `hessian_parts` attribute; wrapped in
-    another function it is a general metric to this function (the Christoffel form, which in
-    d <= 4 differentiates the floor's Jacobi sweeps twice: ~10x LAPACK's compile time, 12.5 s
-    in 3D, bench/README.md).
+    another function it is a general metric to this function (the Christoffel form). Either
+    way the floor's second derivatives come from its spectral function's own rules (divided
+    differences; `jaxgeom.hessian_metric`), finite at repeated eigenvalues, and never from
+    differentiating an eigensolver.
 
     **Returns:**
 

@@ -24,6 +24,8 @@ S ~ 2 n^2 mean(kappa) / ((1 - alpha) E|w|^2).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -31,9 +33,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..base._checks import check_choice, check_integer, check_number, check_positive
+from ..base._simplex import safe_sqrt
 from ..tessellation._graph import (Tessellation, bucket_neighbors, bucket_simplices, neighbor_displacements,
                                    takes_tessellation)
-from ._metric import _call_metric, _quad, _with_mode, _wrap, check_metric, edge_sq_lengths
+from ._metric import (
+    _call_metric, _quad, _with_mode, _wrap, check_metric, edge_sq_lengths, warns_on_defective_metric,
+)
 from ._transport import transport_cost
 
 ORC_MEASURES = ("uniform", "kernel", "grc")
@@ -103,6 +108,7 @@ class OllivierRicci(eqx.Module):
 
 
 @takes_tessellation
+@warns_on_defective_metric
 def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "full", measure: str = "uniform",
                    cost: str = "graph", kernel_scale=None, solver: str = "exact", capacity: int | None = None,
                    batch_size: int | None = None) -> OllivierRicci:
@@ -138,17 +144,31 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     check_choice(cost, "cost", ORC_COSTS)
     check_choice(solver, "solver", ORC_SOLVERS)
     check_positive(kernel_scale, "kernel_scale")
+    if kernel_scale is not None and measure != "kernel":
+        raise ValueError(f"`kernel_scale` is the width of measure='kernel'; measure={measure!r} does not use it. "
+                         "Leave it None, or use measure='kernel'.")
     if batch_size is not None:
         check_integer(batch_size, "batch_size", low=1)
     check_metric(tess, metric, mode)
     graph = undirected_graph(tess, capacity)
-    ids, dist = two_hop_tables(graph, _edge_weights(graph, metric, mode, cost))
+    ids, dist, used = _two_hop_of(graph, metric, mode, cost)
     if not isinstance(ids, jax.core.Tracer):
-        width = bucket_neighbors(int(jnp.max(jnp.sum(ids < graph.n_points, axis=1))))
-        ids, dist = ids[:, :width], dist[:, :width]
+        ids, dist = _first_columns(ids, dist, bucket_neighbors(int(used)))
     groups = edge_groups(graph.neighbors)
     return _ollivier_ricci(graph, ids, dist, groups, alpha, metric, mode, measure, cost, kernel_scale,
                            batch_size or default_edge_batch())
+
+
+@eqx.filter_jit
+def _two_hop_of(graph: Tessellation, metric, mode: str, cost: str):
+    """`two_hop_tables` of the ground cost's edge weights, and the widest row's used columns."""
+    ids, dist = two_hop_tables(graph, _edge_weights(graph, metric, mode, cost))
+    return ids, dist, jnp.max(jnp.sum(ids < graph.n_points, axis=1))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _first_columns(ids, dist, width: int):
+    return ids[:, :width], dist[:, :width]
 
 
 def undirected_graph(tess: Tessellation, capacity: int | None = None) -> Tessellation:
@@ -159,7 +179,11 @@ def undirected_graph(tess: Tessellation, capacity: int | None = None) -> Tessell
     n, k = tess.neighbors.shape
     if capacity is None:
         traced = isinstance(tess.neighbors, jax.core.Tracer)
-        capacity = 2 * k if traced else bucket_neighbors(int(jnp.max(_undirected_degree(tess.neighbors))))
+        if traced:
+            capacity = 2 * k
+        else:  # concrete rows inside an outer jit too (ops there are staged unless told otherwise)
+            with jax.ensure_compile_time_eval():
+                capacity = bucket_neighbors(int(jnp.max(_undirected_degree(tess.neighbors))))
     check_integer(capacity, "capacity", low=1)
     rows, shifts, overflow = _symmetrize(tess.neighbors, tess.neighbor_shifts, capacity)
     return Tessellation(tess.points, rows, tess.tier, tess.hull, None, shifts, None, tess.box,
@@ -209,7 +233,7 @@ def _edge_weights(graph: Tessellation, metric, mode: str, cost: str):
     """Edge lengths of the ground cost: metric lengths, or 1 for hop counts (0 on padding)."""
     if cost == "hops":
         return graph.neighbor_mask.astype(graph.points.dtype)
-    return jnp.sqrt(edge_sq_lengths(graph, metric, mode=mode))
+    return safe_sqrt(edge_sq_lengths(graph, metric, mode=mode))
 
 
 @jax.jit
@@ -233,7 +257,7 @@ def two_hop_tables(graph: Tessellation, weights):
 def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale,
                     batch_size: int):
     metric = check_metric(graph, metric, mode)
-    lengths = jnp.sqrt(edge_sq_lengths(graph, metric, mode=mode))
+    lengths = safe_sqrt(edge_sq_lengths(graph, metric, mode=mode))
     weights = _edge_weights(graph, metric, mode, cost)
     masses, moment = _walker_measures(graph, lengths, weights, alpha, measure, kernel_scale)
     ctx = _edge_context(graph, ids2, dist2, weights, masses, metric, mode, cost)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import scipy.sparse.linalg
 
@@ -17,13 +18,15 @@ def _history(series: dict, gaps: list, reallocations, seconds: dict, state, dive
     arrays and NaN)."""
     dtype = state.positions.dtype
     history = {name: jnp.asarray(values, dtype) for name, values in series.items()}
+    with jax.debug_nans(False):  # the callback mode's NaN times are meant: not a NaN to report
+        seconds = {name: jnp.asarray(value, dtype) for name, value in seconds.items()}
     history.update(
         spectral_gap_step=jnp.asarray([g[0] for g in gaps], jnp.int32).reshape(-1),
         spectral_gap=jnp.asarray([g[1] for g in gaps], dtype).reshape(-1),
         spectral_components=jnp.asarray([g[2] for g in gaps], jnp.int32).reshape(-1),
         spectral_gap_rounding=jnp.asarray([g[3] for g in gaps], bool).reshape(-1),
         n_reallocations=jnp.asarray(reallocations, jnp.int32), n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
-        seconds_rebuild=jnp.asarray(seconds["rebuild"], dtype), seconds_steps=jnp.asarray(seconds["steps"], dtype),
+        seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"],
         n_separated=jnp.asarray(state.n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32),
         n_triangulator_fallbacks=jnp.asarray(state.n_triangulator_fallbacks, jnp.int32))
     return history

@@ -10,7 +10,7 @@ from ..base._checks import check_choice, check_min_points, host_points, real_arr
 from ..geometry._weights import mean_nearest_neighbor_distance
 from ..tessellation._delaunay import build_delaunay
 from ..tessellation._triangulators import resolve_triangulator
-from ._dynamics import SwarmState, fitness_and_force
+from ._dynamics import SwarmState, empty_scutoid_trace, fitness_and_force
 from ._rebuild import GRAPHS, allocate_graph
 
 
@@ -109,9 +109,9 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     values, force = fitness_and_force(fitness, xj)
     n = len(x)
     zero = jnp.asarray(0, jnp.int32)
-    unmeasured = jnp.full(n, jnp.nan, dtype)
+    unmeasured = jnp.full(n, jnp.inf, dtype)  # no finite volume known (`SwarmState`)
     return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
                       unmeasured, jnp.zeros(n, bool), unmeasured, jnp.zeros(n, bool), jnp.asarray(-1, jnp.int32),
                       key, tess, zero,
                       jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,
-                      jnp.asarray(fallbacks, jnp.int32), triangulator=backend)
+                      jnp.asarray(fallbacks, jnp.int32), empty_scutoid_trace(n), triangulator=backend)
