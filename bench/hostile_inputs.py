@@ -11,6 +11,8 @@ declares what it should give:
 - "value": a result (NaN allowed) or, for the CLI, exit status 0: *handled*.
 - "either": a result or a clear refusal (nearly degenerate input that may or may not be
   resolvable), both fine.
+- "warn": a result together with a warning that names `metric_defects` (a callable metric
+  that is NaN or indefinite at the walkers): *handled*; without the warning, *silent NaN*.
 
 Outcomes also count *hang* (over the time limit) and *out of memory* (killed under the cap).
 Writes bench/results/hostile_inputs.json; `--list` prints the cases.
@@ -40,10 +42,13 @@ X = rng.random((200, 2)); T = jg.delaunay(X); VOL = np.asarray(jg.voronoi_volume
 V = lambda p: jnp.sum(p ** 2)
 S = jg.init_swarm(V, rng.random((40, 2))); P = jg.SwarmParams()
 L = jg.simulation_loss(V, S, n_steps=2, params=P)
+R = lambda p: 100.0 * (p[1] - p[0] ** 2) ** 2 + (1.0 - p[0]) ** 2 + jnp.sum(p[2:] ** 2)  # Rosenbrock (+ a bowl)
+PD = jg.SwarmParams(dt=0.05, gamma=0.5, temperature=1.0, nu=0.3, weights="metric_full", anisotropic=True)
+SD = lambda d=2, graph="delaunay": jg.init_swarm(R, rng.uniform(-2, 2, (80, d)), graph=graph)  # diverges under PD
 """
 
 
-E, OK, EITHER = "error", "value", "either"  # either: a result, or a clear refusal
+E, OK, EITHER, WARN = "error", "value", "either", "warn"  # either: a result, or a clear refusal
 CASES: list[tuple[str, str, str]] = [
     # (label, snippet or "cli: args", expectation)
     ("positions NaN", "jg.delaunay(np.r_[X[:-1], [[np.nan, 0.0]]])", E),
@@ -166,6 +171,41 @@ CASES: list[tuple[str, str, str]] = [
     ("cli: simulate --dim 5", "cli: simulate --dim 5 --steps 2", E),
     ("cli: simulate --triangulator fast", "cli: simulate --triangulator fast --steps 2", E),
     ("cli: tune --tune speed", "cli: tune --tune speed", E),
+    # issue 47: diverging swarms under every driver (the rebuilds meet inf coordinates), NaN metrics
+    ("cli: tune rosenbrock 2D", "cli: tune --tune nu eps_sigma --dim 2 --weights metric_full --landscape rosenbrock "
+     "--max-steps 3 --no-progress", E),
+    ("cli: tune rosenbrock 3D", "cli: tune --tune nu eps_sigma --dim 3 --weights metric_full --landscape rosenbrock "
+     "--max-steps 3 --no-progress", E),
+    ("cli: simulate rosenbrock dt 0.05", "cli: simulate --landscape rosenbrock --weights metric_full --dt 0.05 "
+     "--n 200 --steps 30 --anisotropic", E),
+    ("diverging swarm host", "jg.simulate(R, SD(), PD, n_steps=30)", E),
+    ("diverging swarm callback", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))(SD()); "
+     "assert int(h['diverged_step']) >= 0", OK),
+    ("diverging swarm callback k-NN", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
+     "SD(graph='knn')); assert int(h['diverged_step']) >= 0", OK),
+    ("diverging swarm callback 3D", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
+     "SD(3)); assert int(h['diverged_step']) >= 0", OK),
+    ("diverging swarm device", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='device'))(SD()); "
+     "assert int(h['diverged_step']) >= 0", OK),
+    ("diverging swarm vmapped seeds", "loss = jg.simulation_loss(R, SD(), n_steps=30, params=PD, n_seeds=4); "
+     "assert np.isposinf(float(jax.jit(lambda t: loss(t))(loss.to_theta()))); "
+     "assert 'diverged by step' in loss.divergence(loss.to_theta())", OK),
+    ("diverging swarm tune", "jg.tune(jg.simulation_loss(R, SD(), n_steps=30, params=PD, n_seeds=2), max_steps=2)", E),
+    ("delaunay coordinate 1e200", "jg.delaunay(np.r_[X[:-1], [[1e200, 0.0]]])", E),
+    ("metric array NaN", "jg.ricci_scalar(T, metric=np.full((N, 2, 2), np.nan))", E),
+    ("metric array one NaN row", "g = np.broadcast_to(np.eye(2), (N, 2, 2)).copy(); g[7] = np.nan; "
+     "jg.ricci_scalar(T, metric=g)", E),
+    ("metric_defects NaN callable", "assert np.asarray(jg.metric_defects(T, lambda p: jnp.full((2, 2), jnp.nan))).all()",
+     OK),
+    ("ricci NaN callable", "jg.ricci_scalar(T, metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
+    ("ricci indefinite callable", "jg.ricci_scalar(T, metric=lambda p: jnp.diag(jnp.array([1.0, -1.0])))", WARN),
+    ("viscous_force NaN callable", "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
+     "metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
+    ("viscous_force indefinite callable", "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
+     "metric=lambda p: jnp.diag(jnp.array([1.0, -1.0])))", WARN),
+    ("edge_lengths NaN callable", "jg.edge_lengths(T, metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
+    ("simulation_loss numpy objective", "jg.simulation_loss(V, S, lambda h: float(np.asarray(h['mean_fitness'])[-1]), "
+     "n_steps=2, params=P)", E),
 ]
 LANDSCAPE_FILES = {  # analyze --landscape FILE.py: each must be refused clearly
     "vector": "import jax.numpy as jnp\ndef V(x):\n    return 2.0 * x\n",
@@ -186,6 +226,10 @@ def run_case(label: str, code: str, expect: str, timeout: float, workdir: Path) 
     else:
         body = (PREAMBLE + f"try:\n    out = {code}\n" if "assert" not in code and ";" not in code
                 else PREAMBLE + "try:\n    " + code.replace("; ", "\n    ") + "\n    out = None\n")
+        if expect == WARN:  # the warnings the preamble silences, recorded for this call
+            body = body.replace("try:\n", "W = warnings.catch_warnings(record=True); caught = W.__enter__(); "
+                                "warnings.simplefilter('always')\ntry:\n", 1)
+            body += "print('WARNED' if any('metric_defects' in str(w.message) for w in caught) else 'NO WARNING')\n"
         body += ("except Exception as err:\n    import sys; print('EXC', type(err).__name__, '|', str(err)[:400]);"
                  " sys.exit(3)\nprint('OK', repr(out)[:200])\n")
         cmd = [sys.executable, "-c", body]
@@ -209,13 +253,15 @@ def classify(code: str, expect: str, status: int, text: str) -> str:
         if expect == OK:
             return "handled" if status == 0 and "Traceback" not in text else ("clear error" if clear else "raw traceback")
         return "clear error" if clear else ("accepted silently" if status == 0 else "raw traceback")
+    if status == 0 and expect == WARN:
+        return "handled" if "WARNED" in text else "silent NaN"
     if status == 0:
         return "handled" if expect in (OK, EITHER) else "accepted silently"
     line = next((l for l in text.splitlines() if l.startswith("EXC ")), "")
     kind, _, message = line[4:].partition(" | ")
     named = any(w in message for w in ("`", "--", "must", "valid values", "Likely cause", "eps_sigma"))
     clear = kind.strip() in CLEAR_TYPES and named
-    if expect == OK:
+    if expect in (OK, WARN):
         return "raw traceback" if not clear else "clear error"
     return "clear error" if clear else "raw traceback"  # an error, or a clear refusal of EITHER
 
@@ -241,7 +287,7 @@ def main() -> None:
     counts = {}
     for r in results:
         counts[r["outcome"]] = counts.get(r["outcome"], 0) + 1
-        if r["outcome"] not in ("handled", "clear error") or (r["expect"] == OK and r["outcome"] != "handled"):
+        if r["outcome"] not in ("handled", "clear error") or (r["expect"] in (OK, WARN) and r["outcome"] != "handled"):
             print(f"{r['outcome']:18} {r['label']}: {r.get('tail', '')}")
     print(json.dumps(counts))
     args.out.write_text(json.dumps({"cases": len(results), "counts": counts, "results": results,

@@ -120,14 +120,6 @@ def test_metric_arrays_must_be_symmetric_positive_definite_and_real(tess, call):
         metric_calls(tess, eye.astype(complex))[call]()
 
 
-def test_a_metric_with_nan_rows_of_isolated_walkers_is_accepted(tess):
-    g = np.tile(np.eye(2), (200, 1, 1))
-    g[5] = np.nan  # the emergent metric of a walker without neighbours
-    volumes = np.asarray(jaxgeom.riemannian_volumes(tess, metric=g))
-    others = np.asarray(tess.interior) & (np.arange(200) != 5)
-    assert np.isnan(volumes[5]) and np.isfinite(volumes[others]).all()
-
-
 @pytest.mark.parametrize("d", [2, 4])
 def test_metric_defects_flags_the_walkers_where_a_callable_is_not_a_metric(d):
     x = np.random.default_rng(1).random((120, d))

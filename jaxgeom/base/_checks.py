@@ -151,13 +151,18 @@ def walker_values(value, name: str, *, nonnegative: bool = False):
 
 
 def check_metric_array(metric, n: int, d: int) -> None:
-    """A concrete (N, d, d) metric: real, symmetric to rounding and positive definite where it
-    is finite (NaN rows, e.g. the emergent metric of an isolated walker, are left alone)."""
+    """A concrete (N, d, d) metric: real, finite, symmetric to rounding and positive definite."""
     if not _concrete(metric) or _already_checked(metric):
         return
     g = real_array(metric, "metric")
     if g.shape != (n, d, d):
         return  # the kernel's own shape message follows
+    nonfinite = ~np.isfinite(g).all(axis=(1, 2))
+    if nonfinite.any():
+        rows = np.flatnonzero(nonfinite)
+        raise ValueError(f"`metric` must be finite; {rows.size} walker(s) have NaN or inf entries, first rows "
+                         f"{rows[:5].tolist()}. (The emergent metric of a walker without neighbours is NaN: give it "
+                         "neighbours, e.g. a larger k, or a metric of its own.)")
     asym, indefinite = metric_defect_masks(g, np)
     if asym.any():
         rows = np.flatnonzero(asym)

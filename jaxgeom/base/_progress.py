@@ -85,6 +85,11 @@ def deferred_interrupt():
 
 def raise_if_interrupted() -> None:
     """KeyboardInterrupt here if a deferred Ctrl-C is pending (once)."""
-    if _INTERRUPT["requested"]:
-        _INTERRUPT["requested"] = False
+    if take_interrupt():
         raise KeyboardInterrupt
+
+
+def take_interrupt() -> bool:
+    """Whether a deferred Ctrl-C is pending; it is then consumed."""
+    pending, _INTERRUPT["requested"] = _INTERRUPT["requested"], False
+    return pending

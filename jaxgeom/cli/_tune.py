@@ -33,8 +33,10 @@ import jaxgeom
 from ..apps._landscapes import LANDSCAPES
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..geometry._metric import HESSIAN_FLOORS
+from ..swarm._divergence import likely_cause
 from ..swarm._tune import SOLVERS
 from ..swarm._tuning import OBJECTIVES
+from ..base._progress import raise_if_interrupted, take_interrupt
 from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice, say_interrupted
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
@@ -126,6 +128,12 @@ def build_loss(args, target_key=None):
     record = jaxgeom.simulation_loss(fitness, state, lambda h: h["mean_fitness"][-1], params=_params(args, **truth),
                                      observe=MATCHED, key=target_key, **common)
     _, history = eqx.filter_jit(lambda loss, t: loss.histories(t))(record, record.to_theta())
+    diverged = np.asarray(history["diverged_step"])
+    if (diverged >= 0).any():
+        cause = likely_cause(fitness, record.to_params(record.to_theta()), state).replace("reduce dt", "reduce --dt")
+        raise ValueError(f"the simulation at the true values diverged by step {int(diverged[diverged >= 0].min())} "
+                         f"in {int((diverged >= 0).sum())} of {diverged.size} runs, so it gives no targets to match. "
+                         f"{cause}")
     late = args.steps // 2
     targets = {name: float(np.mean(np.asarray(history[name])[:, late:])) for name in MATCHED}
     held = {name: value for name, value in truth.items() if name not in args.tune}  # the loss is 0 at the truth
@@ -169,9 +177,13 @@ def iteration_table(result, truth) -> str:
 
 
 def tune_main(args) -> int:
+    """Every Ctrl-C ends in the same way, whenever it comes (while the targets compile, in any
+    iteration, in the last one, while the grid is computed): the iterations that ran, the
+    one-line message and exit status 130 (`take_interrupt` reads a Ctrl-C no loop consumed)."""
     began, interrupted = time.perf_counter(), None
     try:
         loss, start, truth = build_loss(args)
+        raise_if_interrupted()  # a Ctrl-C while the targets were simulated (and compiled)
         result = jaxgeom.tune(loss, start, solver=args.solver, max_steps=args.max_steps, target_seeds=args.seeds,
                               progress=progress_choice(args))
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
@@ -179,13 +191,16 @@ def tune_main(args) -> int:
         return 2
     except KeyboardInterrupt as stop:  # Ctrl-C: report and write the iterations accepted so far
         result = getattr(stop, "result", None)
-        interrupted = 0 if result is None else len(result.iterations) - 1
         if result is None:
             return say_interrupted("tune", "iteration", 0, args.max_steps, None)
+        interrupted = len(result.iterations) - 1
+    grid = None
+    if interrupted is None and args.out is not None and args.grid >= 2 and len(loss.tuned) >= 2:
+        grid = loss_grid(loss, result, truth, args.grid)
+    if interrupted is None and take_interrupt():  # after the last iteration: every iteration ran
+        interrupted, grid = len(result.iterations) - 1, None
     print(iteration_table(result, truth))
     if args.out is not None:
-        ready = interrupted is None and args.grid >= 2 and len(loss.tuned) >= 2  # no grid after Ctrl-C
-        grid = loss_grid(loss, result, truth, args.grid) if ready else None
         for name, path in write_outputs(args, result, truth, grid, time.perf_counter() - began).items():
             print(f"wrote {name}: {path}")
     if interrupted is not None:

@@ -46,10 +46,12 @@ def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: i
     if code & REBUILD_FAILED:
         what.append("Qhull could not triangulate the walkers (degenerate or non-finite positions)")
     return (f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
-            f"{'; '.join(what)}. {_likely_cause(fitness, params, before)}")
+            f"{'; '.join(what)}. {likely_cause(fitness, params, before)}")
 
 
-def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
+def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
+    """One sentence: why a swarm diverged from `state`, judged there (a singular metric, dt
+    against the landscape's stiffness, or forces that outgrew the step)."""
     x = np.asarray(state.positions)
     x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
     if params.needs_metric:
@@ -65,10 +67,13 @@ def _likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
                     f"{uses} undefined; raise eps_sigma or use floor='softabs'.")
     curvature = np.asarray(jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x))  # no batched LAPACK
     curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
+    slope = np.linalg.norm(np.asarray(jax.vmap(jax.grad(fitness))(x)), axis=1)
+    slope = float(np.max(slope[np.isfinite(slope)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
     if omega_dt > 2.0:
-        return (f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape: dt * sqrt(largest "
-                f"Hessian eigenvalue) = {omega_dt:.3g} at step {int(state.step)}, and the kicks are stable only "
+        return (f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape (|grad V| reaches "
+                f"{slope:.1e} and the largest Hessian eigenvalue {curvature:.1e} at the walkers of step "
+                f"{int(state.step)}): dt * sqrt(largest eigenvalue) = {omega_dt:.3g}, and the kicks are stable only "
                 f"below 2; reduce dt below {2.0 / np.sqrt(curvature):.3g}.")
     return ("Likely cause: the forces grew faster than the step resolves (the landscape is steep or unbounded "
             f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape.")

@@ -18,6 +18,7 @@ from ..base._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, shard_walkers
 from ._divergence import _health, check_health
 from ._dynamics import SwarmState, health
 from ._history import _bulk_gap, _history
+from ._observables import prepare_scutoid_trace
 from ._rebuild import grown, update_host
 from ._steps import (
     _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final, _progress,
@@ -67,6 +68,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
                 state, opening = _finish_and_begin(fitness, params, moved)
             state = eqx.tree_at(lambda s: (s.tess, s.n_triangulator_fallbacks), state,
                                 (moved.tess, moved.n_triangulator_fallbacks))
+            if grew:  # a wider graph: the scutoid trace's rows widen with it
+                state = prepare_scutoid_trace(state, observe)
             reallocations += grew
             seconds["steps"] += t1 - t0
             seconds["rebuild"] += time.perf_counter() - t1
@@ -129,6 +132,7 @@ def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, 
         done += ran
         if bool(stopped):
             state, grew, _ = update_host(state, k)
+            state = prepare_scutoid_trace(state, observe)
             state = shard_walkers(state, mesh, n)
             fallbacks, reallocations = fallbacks + 1, reallocations + grew
     state, last = _observe_final(fitness, params, state, observe)
@@ -145,7 +149,7 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
         final, last = _observe_final(fitness, params, final, observe)
         if traced or not bool(final.tess.overflow):  # traced: recorded in `diverged_step` (health)
             break
-        state = eqx.tree_at(lambda s: s.tess, state, grown(state.tess))
+        state = prepare_scutoid_trace(eqx.tree_at(lambda s: s.tess, state, grown(state.tess)), observe)
         reallocations += 1
     codes = jnp.concatenate([obs["_health"], health(final)[None]])
     if not traced:

@@ -105,7 +105,8 @@ def _start(loss: SimulationLoss, start):
 
 
 def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, rtol: float = 1e-4,
-         atol: float = 1e-6, bounds: dict | None = None, progress=False, target_seeds: int | None = None) -> TuneResult:
+         atol: float | None = None, bounds: dict | None = None, progress=False, target_seeds: int | None = None
+         ) -> TuneResult:
     """Minimise a [`jaxgeom.SimulationLoss`][] over its tuned parameters.
 
     **Arguments:**
@@ -117,8 +118,8 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
       `optimistix.AbstractMinimiser`, or "lbfgsb" (`jaxopt.ScipyBoundedMinimize`, the
       option for hard `bounds` {name: (lower, upper)} in physical units; optimistix's
       minimisers take no bounds, use `simulation_loss(bounds=...)` with them instead).
-    - `max_steps`: solver steps (optimistix) or iterations (L-BFGS-B); `rtol`, `atol`: the
-      optimistix Cauchy termination (L-BFGS-B: `rtol` is scipy's `tol`).
+    - `max_steps`: solver steps (optimistix) or iterations (L-BFGS-B); `rtol`, `atol` (None:
+      1e-6): the optimistix Cauchy termination (L-BFGS-B: `rtol` is scipy's `tol`; `atol` refused).
     - `progress`: a `tqdm.auto` bar over the iterations, showing the loss and the values:
       False (default), True, "auto" (shown in a terminal or a notebook) or a tqdm bar.
     - `target_seeds`: the number of independent runs that the targets of a "match" loss
@@ -135,6 +136,11 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"`max_steps` must be an integer >= 1; got {max_steps!r}.")
     check_positive(rtol, "rtol", " (the solver's relative tolerance)")
+    name, _ = _solver_of(solver, rtol, 0.0)
+    if atol is not None and name == "lbfgsb":
+        raise ValueError("`atol` is optimistix's absolute tolerance; solver='lbfgsb' (scipy) takes `rtol` only. "
+                         "Leave atol None.")
+    atol = 1e-6 if atol is None else atol
     check_nonnegative(atol, "atol")
     name, minimiser = _solver_of(solver, rtol, atol)
     if bounds is not None and name != "lbfgsb":
@@ -152,11 +158,13 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
             theta, n_steps, converged, message = _run_lbfgsb(loss, theta0, scale, max_steps, rtol, bounds, recorder)
         else:
             theta, n_steps, converged, message = _run_optimistix(loss, minimiser, theta0, scale, max_steps, recorder)
+        raise_if_interrupted()  # a Ctrl-C in the last iteration: no iterate is recorded after it
+        errors, covariance, note = parameter_errors(loss, theta, target_seeds)
+        raise_if_interrupted()
     except KeyboardInterrupt:
         raise TuningInterrupted(recorder.partial("interrupted", time.perf_counter() - began)) from None
     finally:
         close_bar(bar, owned)
-    errors, covariance, note = parameter_errors(loss, theta, target_seeds)
     best = recorder.iterations[-1]
     return TuneResult(np.asarray(theta), loss.values(theta), loss.to_params(jnp.asarray(theta)), best["loss"],
                       recorder.iterations, name, n_steps, converged, message, time.perf_counter() - began,
@@ -234,10 +242,12 @@ class _Recorder:
         if not (np.isfinite(record["loss"]) and np.isfinite(record["grad_norm"])):
             partial = self.partial("non-finite", float("nan"))
             what = "loss" if not np.isfinite(record["loss"]) else "gradient"
+            diverged = self.loss.divergence(theta)
+            why = diverged or "the swarm diverged or an observable is undefined there."
             raise TuningFailed(
-                f"tune: the {what} is not finite at iteration {record['iteration']} ({record['values']}): the swarm "
-                "diverged or an observable is undefined there. Start closer to sound values (a smaller dt, "
-                "a larger eps_sigma), bound the parameters, or use float64.", partial)
+                f"tune: the {what} is not finite at iteration {record['iteration']} ({record['values']}): {why} "
+                "Start closer to sound values (a smaller dt, a larger eps_sigma), bound the parameters, or use "
+                "float64.", partial)
 
 
     def partial(self, message: str, seconds: float) -> "TuneResult | None":
@@ -285,6 +295,7 @@ def _run_optimistix(loss, solver, theta0, scale, max_steps: int, recorder: _Reco
     theta, state = theta0, _init(solver, loss, scale, theta0)
     accepted, done, result, n_steps = 1, False, optx.RESULTS.successful, 0
     while n_steps < max_steps and not done:
+        raise_if_interrupted()  # every solver step: rejected line-search trials record no iterate
         theta, state, done, result = _step(solver, loss, scale, theta, state)
         n_steps, done = n_steps + 1, bool(done) or bool(result != optx.RESULTS.successful)
         info = getattr(state, "f_info", None)
@@ -307,6 +318,7 @@ def _run_lbfgsb(loss, theta0, scale, max_steps: int, tol: float, bounds, recorde
     seen = {}
 
     def fun(theta):
+        raise_if_interrupted()
         value, grad = _value_and_grad(loss, theta)
         seen[np.asarray(theta).tobytes()] = (value, grad)
         return value / scale, grad / scale

@@ -34,6 +34,7 @@ from jaxtyping import Array, Float
 
 from ..base._checks import check_choice
 from ..base._sharding import check_mesh, over_batch
+from ._divergence import likely_cause
 from ._dynamics import SwarmParams, SwarmState
 from ._observables import ALL_OBSERVABLES
 from ._simulate import REBUILD_MODES, simulate
@@ -124,11 +125,14 @@ class SimulationLoss(eqx.Module):
         return {name: float(getattr(params, name)) for name in self.tuned}
 
     def histories(self, theta):
-        """(final states, histories) of every seed, stacked on a leading (n_seeds,) axis."""
+        """(final states, histories) of every seed, stacked on a leading (n_seeds,) axis; the
+        histories without the wall-clock times, which a traced run does not measure (NaN)."""
         def run(key, params):
             state = eqx.tree_at(lambda s: s.key, self.state, key)
-            return simulate(self.fitness, state, params, n_steps=self.n_steps, rebuild=self.rebuild,
-                            rebuild_every=self.rebuild_every, observe=self.observe, checkpoint=self.checkpoint)
+            final, history = simulate(self.fitness, state, params, n_steps=self.n_steps, rebuild=self.rebuild,
+                                      rebuild_every=self.rebuild_every, observe=self.observe,
+                                      checkpoint=self.checkpoint)
+            return final, {name: value for name, value in history.items() if not name.startswith("seconds_")}
 
         return over_batch(run, self.mesh)(self.keys, self.to_params(theta))
 
@@ -150,6 +154,17 @@ class SimulationLoss(eqx.Module):
         scales = jnp.asarray(self.target_scales(), moments.dtype)
         value = jnp.sum(((jnp.mean(moments, axis=0) - targets) / scales) ** 2)
         return jnp.where(diverged | ~jnp.isfinite(value), jnp.inf, value)
+
+    def divergence(self, theta) -> str | None:
+        """Why the loss at theta is +inf, when a seed's run diverged: the first step at which one
+        did, in how many seeds, and the likely cause judged at the initial walkers; else None."""
+        _, history = eqx.filter_jit(lambda loss, t: loss.histories(t))(self, jnp.asarray(theta))
+        steps = np.asarray(history["diverged_step"]).reshape(-1)
+        if not (steps >= 0).any():
+            return None
+        cause = likely_cause(self.fitness, self.to_params(jnp.asarray(theta)), self.state)
+        return (f"the simulation diverged by step {int(steps[steps >= 0].min())} in {int((steps >= 0).sum())} of "
+                f"{steps.size} seed(s). {cause}")
 
     def seed_moments(self, theta) -> Float[Array, "n_seeds n_targets"]:
         """"match": each seed's average of every matched observable over the last `window`
@@ -193,7 +208,7 @@ def _check_inside(name: str, value: float, lower, upper) -> None:
 
 def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_steps: int, params: SwarmParams,
                     tuned=("nu", "eps_sigma"), n_seeds: int = 1, key=None, targets: dict | None = None,
-                    bounds: dict | None = None, window: float = 0.5, observe=None, rebuild: str = "callback",
+                    bounds: dict | None = None, window: float | None = None, observe=None, rebuild: str = "callback",
                     rebuild_every: int = 1, checkpoint: bool = True, mesh=None) -> SimulationLoss:
     """A differentiable loss of the swarm's parameters: theta -> objective of whole simulations.
 
@@ -206,7 +221,7 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
       (sum over `targets` of (A - target)^2 / target^2, or the plain square for a target 0,
       A the observable averaged over the last `window` of the run and over the seeds), or
       a callable `history -> scalar` (history: the dict `simulate` returns for one seed,
-      with the observables `observe`). The loss is the mean over seeds of the objective
+      with the observables `observe`, without the unmeasured `seconds_*`). The loss is the mean over seeds of the objective
       (for "match": of the seed-averaged observables).
     - `n_steps`, `params`: the run and the [`jaxgeom.SwarmParams`][] whose fields `tuned`
       (names in `TUNABLE`) are replaced by the map of theta.
@@ -215,7 +230,10 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     - `bounds`: {name: (lower, upper)} (either may be None): the parameter is `lower +
       (upper - lower) sigmoid(theta)`, or `lower + exp(theta)`; unbounded names are
       `exp(theta)` (log parameters).
-    - `window`: fraction of the run (at its end) that time averages cover, in (0, 1].
+    - `window`: fraction of the run (at its end) that the time averages of "mean_fitness" and
+      "match" cover, in (0, 1] (None: 0.5); refused with the other objectives, which have none.
+    - `observe`: the observables a callable objective reads (default: mean and best fitness and
+      velocity variance); refused with the named objectives, which record their own.
     - `rebuild`: "callback" (default) or "device" (2D Delaunay swarms); `rebuild_every`.
     - `checkpoint`: nested sqrt(n_steps) rematerialisation (memory ~ sqrt(n_steps)).
     - `mesh`: a `jax.sharding.Mesh` with a "batch" axis (`jaxgeom.batch_mesh()`): the seeds
@@ -225,6 +243,13 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     **Returns:** a [`jaxgeom.SimulationLoss`][] `loss`, with `loss(theta)` jittable and
     differentiable and `loss.to_theta({"nu": 0.1})` the theta of given values.
     """
+    if window is not None and objective not in ("mean_fitness", "match"):
+        raise ValueError(f"`window` sets the time average of objective 'mean_fitness' or 'match'; objective "
+                         f"{objective!r} has none. Leave window None.")
+    if observe is not None and not callable(objective):
+        raise ValueError(f"`observe` lists what a callable objective reads; objective {objective!r} records its own "
+                         "observables. Leave observe None.")
+    window = 0.5 if window is None else window
     _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets, window, rebuild)
     tuned = tuple(tuned)
     bounds = _bounds_of(tuned, bounds)
@@ -329,8 +354,16 @@ def _key_like(key, like):
 
 
 def _check_callable_objective(loss: SimulationLoss) -> None:
-    """A user objective must return one real scalar: checked on the shapes, without a run."""
-    shape = jax.eval_shape(lambda t: jax.vmap(loss.objective)(loss.histories(t)[1]), loss.to_theta())
+    """A user objective must be traceable and return one real scalar: checked on the shapes,
+    without a run."""
+    histories = jax.eval_shape(lambda t: loss.histories(t)[1], loss.to_theta())
+    try:
+        shape = jax.eval_shape(jax.vmap(loss.objective), histories)
+    except jax.errors.JAXTypeError as err:  # float(), numpy or a Python branch on a traced value
+        raise TypeError(f"the objective must be JAX-traceable: history -> scalar with jax.numpy (e.g. "
+                        f"h['mean_fitness'][-1], not float(np.asarray(...))), since the loss is jitted and "
+                        f"differentiated; tracing it failed: {type(err).__name__}: {str(err).splitlines()[0]}"
+                        ) from None
     if not (isinstance(shape, jax.ShapeDtypeStruct) and shape.shape == (loss.n_seeds,)
             and jnp.issubdtype(shape.dtype, jnp.floating)):
         got = jax.tree_util.tree_map(lambda s: (s.shape, str(s.dtype)), shape)

@@ -222,9 +222,10 @@ def test_analyze_at_beta_zero_samples_the_box_uniformly(tmp_path, landscape):
     assert "exp(-0.0 V)" in report["swarm"]["source"]
 
 
-def _interrupt_when(argv, pattern, tmp_path, timeout=240):
+def _interrupt_when(argv, pattern, tmp_path, timeout=240, after=None):
     """Run the CLI in its own process, send SIGINT once its stderr matches `pattern` (a regex
-    whose group 1 is an integer > 0), and return (exit status, stderr)."""
+    whose group 1 is an integer > 0; or `after` seconds from the start when `pattern` is None),
+    and return (exit status, stderr)."""
     import os
     import signal
     import subprocess
@@ -240,7 +241,10 @@ def _interrupt_when(argv, pattern, tmp_path, timeout=240):
                                                              "")), daemon=True)
     reader.start()
     deadline = time.monotonic() + timeout
-    while not re.search(pattern, "".join(err)):
+    if pattern is None:
+        time.sleep(after)
+        assert proc.poll() is None, "".join(err)
+    while pattern is not None and not re.search(pattern, "".join(err)):
         assert proc.poll() is None, "".join(err)
         assert time.monotonic() < deadline, "".join(err)
         time.sleep(0.2)
@@ -271,6 +275,61 @@ def test_ctrl_c_during_tune_writes_the_iterations_that_ran(tmp_path):
     report = json.loads((tmp_path / "tune.json").read_text())
     assert len(report["iterations"]) == done + 1 and report["message"] == "interrupted" and not report["converged"]
     assert (tmp_path / "tune.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("moment, pattern, after", [
+    ("while the targets compile", None, 4.0),
+    pytest.param("in the second iteration", r"\b(2)/3\b", None, marks=pytest.mark.slow),
+])
+def test_ctrl_c_in_tune_ends_with_the_message_and_130(moment, pattern, after, tmp_path):
+    """A real SIGINT at two moments: the message, the iterations that ran, exit status 130."""
+    status, err = _interrupt_when(["tune", "--n", "30", "--steps", "4", "--max-steps", "2", "--seeds", "2",
+                                   "--tune", "nu", "eps_sigma", "--grid", "3"], pattern, tmp_path, after=after)
+    assert status == 130 and "Traceback" not in err, (moment, err)
+    line = re.search(r"jaxgeom tune: interrupted at iteration (\d+) of 2(; the iterations that ran are written|"
+                     r"; nothing written)", err)
+    assert line, (moment, err)
+    if line.group(2).startswith("; the"):
+        report = json.loads((tmp_path / "tune.json").read_text())
+        assert len(report["iterations"]) == int(line.group(1)) + 1
+    if pattern is not None:
+        assert line.group(2).startswith("; the"), (moment, err)
+
+
+@pytest.mark.parametrize("moment", ["the last solver step", "the standard errors", "the loss grid"])
+def test_a_ctrl_c_no_iteration_reads_still_ends_tune_with_130(moment, monkeypatch, tmp_path, capsys):
+    """Once: a Ctrl-C in the last iteration of a solver that then stopped (or later) was never read,
+    and the command exited 0 with its full output. The deferred Ctrl-C is set at each moment."""
+    import jaxgeom.cli._tune as cli_tune
+    import jaxgeom.swarm._tune as lib_tune
+    from jaxgeom.base import _progress
+
+    def ctrl_c_after(fn, on_call=1):
+        calls = []
+
+        def wrapped(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            calls.append(1)
+            if len(calls) == on_call:
+                _progress._INTERRUPT["requested"] = True
+            return out
+        return wrapped
+
+    if moment == "the last solver step":
+        monkeypatch.setattr(lib_tune, "_step", ctrl_c_after(lib_tune._step, on_call=2))
+    elif moment == "the standard errors":
+        monkeypatch.setattr(lib_tune, "parameter_errors", ctrl_c_after(lib_tune.parameter_errors))
+    else:
+        monkeypatch.setattr(cli_tune, "loss_grid", ctrl_c_after(cli_tune.loss_grid))
+    status = main(["tune", "--n", "30", "--steps", "3", "--max-steps", "2", "--seeds", "2", "--tune", "nu",
+                   "eps_sigma", "--grid", "2", "--out", str(tmp_path), "--no-progress"])
+    err = capsys.readouterr().err
+    assert status == 130, err
+    line = re.search(r"jaxgeom tune: interrupted at iteration (\d+) of 2; the iterations that ran are written", err)
+    assert line, err
+    report = json.loads((tmp_path / "tune.json").read_text())
+    assert len(report["iterations"]) == int(line.group(1)) + 1 >= 2
+    assert not _progress._INTERRUPT["requested"]
 
 
 @pytest.mark.parametrize("argv, message", [
