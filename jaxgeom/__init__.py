@@ -41,6 +41,10 @@ from .geometry._ollivier import ollivier_ricci as ollivier_ricci
 from .geometry._spectral import GraphLaplacian as GraphLaplacian
 from .geometry._spectral import graph_laplacian as graph_laplacian
 from .geometry._spectral import spectral_gap as spectral_gap
+from .geometry._facets import VoronoiFacets as VoronoiFacets
+from .geometry._facets import voronoi_facets as voronoi_facets
+from .geometry._scutoids import Scutoids as Scutoids
+from .geometry._scutoids import scutoids as scutoids
 from .geometry._volumes import circumcenters as circumcenters
 from .geometry._volumes import voronoi_volumes as voronoi_volumes
 from .swarm._dynamics import SwarmParams as SwarmParams

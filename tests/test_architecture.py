@@ -16,6 +16,7 @@ LAYERS = {
         ("_checks", "_simplex", "_progress", "_sharding"),  # validation; dense algebra; bars; meshes
     ],
     "tessellation": [
+        ("_device_check",),  # the cheap check of a GPU backend's triangles, on the device
         ("_planar", "_graph", "_triangulators"),  # 2D fan rows; the Tessellation pytree; host backends
         ("_contacts",),
         ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
@@ -24,9 +25,9 @@ LAYERS = {
     ],
     "geometry": [
         ("_boxclip", "_transport"),  # Voronoi cells clipped to the box; exact small transport problems
-        ("_volumes",),
+        ("_volumes", "_facets"),  # cell volumes; the faces, centroids and vertex counts of the cells
         ("_metric",),
-        ("_cells", "_curvature", "_heat", "_metric_curvature", "_ollivier"),  # ..., the curvature of a callable
+        ("_cells", "_curvature", "_heat", "_metric_curvature", "_ollivier", "_scutoids"),  # ..., the curvature of a callable
         # metric, Ollivier-Ricci curvature of the graph
         ("_geodesic",),  # heat method, Dijkstra, Bellman-Ford behind one entry point
         ("_weights",),  # edge weight rules
@@ -121,7 +122,8 @@ def test_the_public_surface_imports_every_layer_but_cli():
 
 def architecture_section() -> str:
     readme = (PACKAGE.parent / "README.md").read_text()
-    return readme[readme.index("## Architecture"):readme.index("## The graph pytree")]
+    start = readme.index("## Architecture")
+    return readme[start:readme.index("\n## ", start + 1)]
 
 
 def test_the_readme_names_every_module_by_a_path_that_exists():

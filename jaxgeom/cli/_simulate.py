@@ -16,12 +16,12 @@ import numpy as np
 import jaxgeom
 from ..apps._landscapes import LANDSCAPES
 from ..apps._plots import plot_observables, plot_swarm_snapshots
-from ..base._progress import close_bar, open_bar
+from ..base._progress import close_bar, open_bar, take_interrupt
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..swarm._drivers import SimulationInterrupted
 from ..swarm._dynamics import metric_field
 from ..swarm._swarm_init import check_traceable_fitness
-from ..swarm._observables import OBSERVABLE_TABLE
+from ..swarm._observables import OBSERVABLE_TABLE, SCUTOID_OBSERVABLES
 from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
@@ -78,6 +78,10 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
                      help="host Delaunay backend (auto: the fastest installed; jaxgeom.delaunay)")
     sim.add_argument("--rebuild-every", type=int, default=1, help="steps between graph rebuilds")
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
+    sim.add_argument("--scutoids", action="store_true",
+                     help="also observe each step's scutoids (jaxgeom.scutoids): the fractions of prisms, simple "
+                          "and complex scutoids among the walkers tier 2 at both steps, and their mean neighbour "
+                          "change (Delaunay graphs)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
     add_progress_flag(sim)
@@ -127,6 +131,8 @@ def _validate(args) -> None:
         raise ValueError(f"--dim {args.dim} needs --graph knn (Delaunay simulations run in 2 or 3 dimensions).")
     if args.gap_every < 0:
         raise ValueError(f"--gap-every must be >= 0 (0: no spectral gap); got {args.gap_every}.")
+    if args.scutoids and args.graph != "delaunay":
+        raise ValueError("--scutoids needs --graph delaunay: scutoids join Voronoi cells, which a k-NN graph has not.")
     if args.gap_every % args.rebuild_every:
         raise ValueError("--gap-every must be a multiple of --rebuild-every.")
     if args.graph == "delaunay":
@@ -152,7 +158,7 @@ def run_simulation(args) -> dict:
         while done < args.steps:
             n = min(segment, args.steps - done)
             try:
-                state, history = jaxgeom.simulate(fitness, state, params, n_steps=n,
+                state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, observe=observed(args),
                                                   rebuild_every=args.rebuild_every, spectral_gap_every=args.gap_every,
                                                   progress=bar if bar is not None else False)
             except SimulationInterrupted as stop:  # Ctrl-C: keep the steps that ran
@@ -162,6 +168,7 @@ def run_simulation(args) -> dict:
             snapshots.append(_snapshot(fitness, params, state, done))
             if interrupted:
                 break
+        interrupted = interrupted or take_interrupt()  # a Ctrl-C in the last step or snapshot: all ran
     except KeyboardInterrupt:  # outside a simulate call (a snapshot): the segments so far
         interrupted = True
     finally:
@@ -187,9 +194,14 @@ def _snapshot(fitness, params, state, step: int) -> dict:
             "seconds": time.perf_counter() - start}
 
 
+def observed(args) -> tuple[str, ...]:
+    """The observables of the run: the default set, and the scutoids' with --scutoids."""
+    return jaxgeom.OBSERVABLES + (SCUTOID_OBSERVABLES if args.scutoids else ())
+
+
 def _merge(parts, dt: float) -> dict:
     """Concatenate segment histories (each segment's last entry is the next one's first)."""
-    names = [k for k in parts[0][1] if k in jaxgeom.OBSERVABLES]
+    names = [k for k in parts[0][1] if k in jaxgeom.ALL_OBSERVABLES]
     series = {name: np.concatenate([h[name][:-1] for _, h in parts] + [parts[-1][1][name][-1:]]) for name in names}
     series["time"] = dt * np.arange(len(series[names[0]]))
     gap_steps = np.concatenate([done + h["spectral_gap_step"] for done, h in parts])

@@ -44,16 +44,26 @@ def _bounded_interval(point, direction, normals, offsets, usable, size):
     """(length of {point + t direction : normals . (...) <= offsets for the usable rows}, the
     rows whose plane contains the line); `size` the cell's length scale. A row parallel to the
     line (normal . direction = 0, to rounding) either holds on the whole line or empties it."""
+    lower, upper, empty, _, contains = line_interval(point, direction, normals, offsets, usable, size)
+    return jnp.where(empty, 0.0, jnp.maximum(upper - lower, 0.0)), contains
+
+
+def line_interval(point, direction, normals, offsets, usable, size):
+    """(lower, upper, empty, unbounded, contains): the interval of t, whether it is empty,
+    whether an end is open (no usable row bounds it: an unbounded face), and the rows whose plane
+    contains the line (`_bounded_interval`)."""
     slope = normals @ direction
     room = offsets - normals @ point
     parallel, contains = _parallel(slope, room, size)
     safe = jnp.where(parallel, 1.0, slope)
     bound = room / safe
     big = jnp.asarray(0.25 * jnp.finfo(point.dtype).max, point.dtype)  # upper - lower stays finite
-    upper = jnp.min(jnp.where(usable & ~parallel & (slope > 0), bound, big))
-    lower = jnp.max(jnp.where(usable & ~parallel & (slope < 0), bound, -big))
+    above, below = usable & ~parallel & (slope > 0), usable & ~parallel & (slope < 0)
+    upper = jnp.min(jnp.where(above, bound, big))
+    lower = jnp.max(jnp.where(below, bound, -big))
     empty = jnp.any(usable & parallel & (room < -ROUNDING_ULPS * jnp.finfo(point.dtype).eps * size))
-    return jnp.where(empty, 0.0, jnp.maximum(upper - lower, 0.0)), contains
+    empty = empty | (upper <= lower)
+    return lower, upper, empty, ~jnp.any(above) | ~jnp.any(below), contains
 
 
 def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], active: Bool[Array, " F"]):
@@ -70,6 +80,22 @@ def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], acti
     return 0.5 * jnp.sum(offsets * lengths)
 
 
+def plane_line(nf, cf, ng, cg, g, row, active):
+    """The line where face plane f (nf . y = cf) meets plane g, seen from x_i (the origin):
+    (whether it exists: g active, not f, not parallel; its point nearest x_i; its unit
+    direction; its signed distance from the foot cf nf of x_i on plane f, in plane f; the
+    rows that bound it: every active plane but f and g)."""
+    cross = jnp.cross(nf, ng)
+    s2 = jnp.sum(cross * cross)
+    ok = active[g] & ~row[g] & (s2 > PARALLEL**2)
+    s_safe = jnp.sqrt(jnp.where(ok, s2, 1.0))
+    cos = nf @ ng
+    # the point of the line nearest x_i: alpha nf + beta ng with nf.p = cf, ng.p = cg
+    alpha, beta = (cf - cos * cg) / s_safe**2, (cg - cos * cf) / s_safe**2
+    usable = active & ~row & (jnp.arange(active.shape[0]) != g)
+    return ok, alpha * nf + beta * ng, cross / s_safe, (cg - cos * cf) / s_safe, usable
+
+
 def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"], active: Bool[Array, " F"]):
     """Volume of {y : normals . y <= offsets (active rows)}, bounded and containing 0."""
     f = normals.shape[0]
@@ -78,19 +104,11 @@ def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"],
 
     def face(nf, cf, row):
         def edge(ng, cg, g):
-            cross = jnp.cross(nf, ng)
-            s2 = jnp.sum(cross * cross)
-            ok = active[g] & ~row[g] & (s2 > PARALLEL**2)
-            s_safe = jnp.sqrt(jnp.where(ok, s2, 1.0))
-            cos = nf @ ng
-            # the point of the line nearest x_i: alpha nf + beta ng with nf.p = cf, ng.p = cg
-            alpha, beta = (cf - cos * cg) / s_safe**2, (cg - cos * cf) / s_safe**2
-            usable = active & ~row & (jnp.arange(f) != g)
-            point = alpha * nf + beta * ng
-            length, contains = _bounded_interval(point, cross / s_safe, normals, offsets, usable, size)
+            ok, point, direction, height, usable = plane_line(nf, cf, ng, cg, g, row, active)
+            length, contains = _bounded_interval(point, direction, normals, offsets, usable, size)
             # planes through the same edge (a lattice cell's corner): the lowest index counts it once
             first = ~jnp.any(usable & contains & (jnp.arange(f) < g))
-            return (cg - cos * cf) / s_safe * jnp.where(ok & first, length, 0.0)
+            return height * jnp.where(ok & first, length, 0.0)
 
         return 0.5 * jnp.sum(jax.vmap(edge)(normals, offsets, jnp.arange(f)))
 

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ..base._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
-from ..base._simplex import small_cholesky
+from ..base._simplex import safe_sqrt, small_cholesky
 from ..geometry._forces import (
     VISCOUS_WEIGHTS, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights,
 )
@@ -117,6 +117,28 @@ class SwarmParams(eqx.Module):
         return self.anisotropic or self.weights.startswith("metric") or self.adapt_eps_sigma
 
 
+class ScutoidTrace(eqx.Module):
+    """What the scutoid observables compare a state with (`SwarmState.scutoid_trace`).
+
+    **Fields:** `parents` (N,) int32, the clone parent of each walker in the latest step (the
+    walker itself where it did not clone); `neighbors` (N, K') int32, the neighbour rows of the
+    graph at step `step` (K' = 0 until a run observes scutoids, then the graph's width);
+    `interior` (N,) tier 2 then; `step` int32 (-1: none); `counts` (5,) int32 of the latest
+    comparison: walkers compared (tier 2 at both steps), prisms, simple and complex scutoids,
+    and their summed neighbour changes lost + gained (`jaxgeom.scutoids`)."""
+
+    parents: Int[Array, " N"]
+    neighbors: Int[Array, "N K"]
+    interior: Bool[Array, " N"]
+    step: Int[Array, ""]
+    counts: Int[Array, "5"]
+
+
+def empty_scutoid_trace(n: int) -> ScutoidTrace:
+    return ScutoidTrace(jnp.arange(n, dtype=jnp.int32), jnp.zeros((n, 0), jnp.int32), jnp.zeros(n, bool),
+                        jnp.asarray(-1, jnp.int32), jnp.zeros(5, jnp.int32))
+
+
 class SwarmState(eqx.Module):
     """Everything that evolves, as one pytree (carried through `jax.lax.scan`).
 
@@ -126,9 +148,11 @@ class SwarmState(eqx.Module):
       `force`: (N, d) -grad V there (reused by the next step's first kick).
     - `alive`: (N,) finite fitness; `cloned`: (N,) cloned in the latest step.
     - `volumes`: (N,) Voronoi volumes at the positions of step `volumes_step` (the
-      latest observation; NaN for unbounded cells, everywhere on a k-NN graph);
-      `interior`: (N,) tier 2 at that time. They serve the volume weighting.
-    - `previous_volumes`, `previous_interior`: the same one step earlier (NaN / False
+      latest observation; +inf where no finite volume is known: unbounded cells, every
+      walker of a k-NN graph, before the first observation); `interior`: (N,) tier 2 at
+      that time. They serve the volume weighting. (+inf, not the kernels' NaN: a state
+      carries no NaN unless the swarm diverged, so `jax.debug_nans` finds real ones.)
+    - `previous_volumes`, `previous_interior`: the same one step earlier (+inf / False
       when that step was not observed): the Raychaudhuri expansion compares them with
       `volumes`. They travel with the state, so a `simulate` call that continues another
       measures the expansion of its first step as one uninterrupted call does.
@@ -144,6 +168,8 @@ class SwarmState(eqx.Module):
       exact duplicates); each is moved by `SEPARATION` mean spacings or the dtype's resolution.
     - `n_triangulator_fallbacks`: host triangulations in which `triangulator` failed (raised,
       or its result failed the check) and Qhull built the graph instead.
+    - `scutoid_trace`: the graph the scutoid observables compare with and the latest step's
+      clone parents (`ScutoidTrace`).
     - `triangulator`: static, the host triangulator of the Delaunay rebuilds ("qhull",
       "cdt", "shull"; `init_swarm` resolves "auto").
     """
@@ -167,6 +193,7 @@ class SwarmState(eqx.Module):
     status: Int[Array, ""]
     n_separated: Int[Array, ""]
     n_triangulator_fallbacks: Int[Array, ""]
+    scutoid_trace: ScutoidTrace
     triangulator: str = eqx.field(static=True, default="qhull")
 
 
@@ -208,10 +235,17 @@ def metric_field(fitness, params: SwarmParams, eps_sigma, x):
 
 
 def cell_volumes(tess: Tessellation):
-    """(volumes, interior): Voronoi volumes and tier-2 flags; NaN volumes on a k-NN graph."""
+    """(volumes, interior): Voronoi volumes as the state carries them, +inf where no finite
+    volume exists (unbounded cells; every walker of a k-NN graph), and tier-2 flags."""
     if tess.simplices is None:
-        return jnp.full(tess.n_points, jnp.nan, tess.points.dtype), tess.interior
-    return voronoi_volumes(tess), tess.interior
+        return jnp.full(tess.n_points, jnp.inf, tess.points.dtype), tess.interior
+    volumes = voronoi_volumes(tess)
+    return jnp.where(jnp.isnan(volumes), jnp.inf, volumes), tess.interior
+
+
+def kernel_volumes(volumes):
+    """Carried volumes (+inf: none known) in the kernels' convention (NaN: unbounded)."""
+    return jnp.where(jnp.isfinite(volumes), volumes, jnp.nan)
 
 
 def current_nu(params: SwarmParams, progress):
@@ -253,7 +287,7 @@ def relativize(values, mask):
     count = jnp.maximum(jnp.sum(mask), 1).astype(values.dtype)
     safe = jnp.where(mask, values, 0.0)
     mean = jnp.sum(safe) / count
-    std = jnp.sqrt(jnp.sum(jnp.where(mask, (safe - mean) ** 2, 0.0)) / count)
+    std = safe_sqrt(jnp.sum(jnp.where(mask, (safe - mean) ** 2, 0.0)) / count)
     z = (safe - mean) / jnp.where(std > 0, std, 1.0)
     return jnp.where(mask, jnp.where(z > 0, 1.0 + jnp.log1p(jnp.where(z > 0, z, 0.0)), jnp.exp(jnp.minimum(z, 0.0))),
                      0.0)
@@ -271,7 +305,7 @@ def clone_decisions(params: SwarmParams, state: SwarmState, key):
     k_comp, k_other, k_draw = jax.random.split(key, 3)
     companion, other = random_partner(k_comp, n), random_partner(k_other, n)
     alive = state.alive
-    dist = jnp.sqrt(jnp.sum((state.positions - state.positions[other]) ** 2, axis=1))
+    dist = safe_sqrt(jnp.sum((state.positions - state.positions[other]) ** 2, axis=1))
     reward = relativize(-jnp.where(alive, state.fitness, 0.0), alive)
     vr = reward**params.reward_power * relativize(dist, alive) ** params.distance_power
     ratio = (vr[companion] - vr) / jnp.where(vr > 0, vr, 1.0)
@@ -353,11 +387,12 @@ def move_on_graph(fitness, params: SwarmParams, state: SwarmState, start: StepSt
         clones = start.clones & do_clone
         x, v = apply_clones(params, start.companion, clones, x, v, mean_nearest_neighbor_distance(tess), start.jitter)
         x, v, clones = jax.lax.optimization_barrier((x, v, clones))
+    parents = jnp.where(clones, start.companion, jnp.arange(x.shape[0], dtype=jnp.int32))
     return eqx.tree_at(
-        lambda s: (s.positions, s.velocities, s.cloned, s.key, s.tess, s.step, s.eps_factor),
+        lambda s: (s.positions, s.velocities, s.cloned, s.key, s.tess, s.step, s.eps_factor, s.scutoid_trace.parents),
         state,
         (x, v, clones, start.key, eqx.tree_at(lambda t: t.points, tess, x), state.step + 1,
-         _raised_eps_factor(params, state, g)),
+         _raised_eps_factor(params, state, g), parents),
     )
 
 

@@ -18,12 +18,14 @@ from jaxtyping import Array, Float
 
 from ..geometry._cells import shape_distortion, volume_distortion
 from ..geometry._curvature import ricci_resolution, ricci_scalar
+from ..base._simplex import safe_sqrt
 from ..geometry._metric import hessian_metric, riemannian_mean, riemannian_volumes
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM, metric_curvature
 from ..tessellation._graph import neighbor_displacements
 from ..geometry._weights import weights_on_graph
+from ..geometry._scutoids import neighbour_changes
 from ._dynamics import (
-    SwarmParams, SwarmState, cell_volumes, current_nu, metric_field, viscous_length,
+    ScutoidTrace, SwarmParams, SwarmState, cell_volumes, current_nu, kernel_volumes, metric_field, viscous_length,
 )
 
 
@@ -59,8 +61,9 @@ def _tier2_riemannian_mean(kernel):
 
     def observable(s: _View):
         g = _observed_metric(s)
-        values = kernel(s.new.tess, metric=g, volumes=s.new.volumes)
-        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=s.new.volumes),
+        volumes = kernel_volumes(s.new.volumes)
+        values = kernel(s.new.tess, metric=g, volumes=volumes)
+        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=volumes),
                                s.new.interior)
 
     return observable
@@ -112,7 +115,7 @@ def riemannian_log_weights(tess, g):
     1 / density up to a constant factor). Logs: r^d and det g overflow at d = 100."""
     log_sqrt_det = jnp.linalg.slogdet(g)[1] / 2
     if tess.simplices is None:
-        r = jnp.max(jnp.sqrt(jnp.sum(neighbor_displacements(tess) ** 2, axis=-1)), axis=1)
+        r = jnp.max(safe_sqrt(jnp.sum(neighbor_displacements(tess) ** 2, axis=-1)), axis=1)
         log_volume, ok = tess.dim * jnp.log(jnp.where(r > 0, r, 1.0)), r > 0
     else:
         volumes, interior = cell_volumes(tess)
@@ -126,6 +129,13 @@ def weighted_mean_from_logs(values, log_w, ok):
     log_w = jnp.where(ok, log_w, -jnp.inf)
     w = jnp.exp(log_w - jax.lax.stop_gradient(jnp.max(jnp.where(ok, log_w, -1e30))))
     return jnp.sum(jnp.where(ok, w * values, 0.0)) / jnp.sum(w)
+
+
+def _scutoid_share(s: _View, k: int):
+    """counts[k] / counts[0] of the state's scutoid trace: NaN where no walker was compared."""
+    counts = s.new.scutoid_trace.counts
+    dtype = s.new.positions.dtype
+    return jnp.where(counts[0] > 0, counts[k].astype(dtype) / jnp.maximum(counts[0], 1).astype(dtype), jnp.nan)
 
 
 def _degree_weighted_variance(s: _View):
@@ -156,7 +166,16 @@ OBSERVABLE_TABLE: dict[str, Observable] = {
     "eps_sigma": Observable(lambda s: s.params.eps_sigma * s.new.eps_factor),
     # the exact curvature the Regge proxy "mean_ricci" approximates; any graph, any d
     "mean_metric_curvature": Observable(_mean_metric_curvature, opt_in=True),
+    # the scutoids of the step that led to the state (`jaxgeom.scutoids`): the fractions of the
+    # walkers tier 2 at both steps whose cells are prisms, simple or complex scutoids, and
+    # their mean neighbour change lost + gained; NaN at a state without the step before
+    "prism_fraction": Observable(lambda s: _scutoid_share(s, 1), True, True),
+    "simple_scutoid_fraction": Observable(lambda s: _scutoid_share(s, 2), True, True),
+    "complex_scutoid_fraction": Observable(lambda s: _scutoid_share(s, 3), True, True),
+    "mean_neighbor_change": Observable(lambda s: _scutoid_share(s, 4), True, True),
 }
+SCUTOID_OBSERVABLES = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction",
+                       "mean_neighbor_change")
 OBSERVABLES = tuple(name for name, row in OBSERVABLE_TABLE.items() if not row.opt_in)  # the default set
 ALL_OBSERVABLES = tuple(OBSERVABLE_TABLE)
 
@@ -176,21 +195,58 @@ def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ..
 
     The volumes measured before move to `previous_volumes` when they belong to the step
     before (NaN otherwise); a state already measured at its step keeps its fields, so a
-    continued `simulate` call compares the same two steps as one uninterrupted call."""
+    continued `simulate` call compares the same two steps as one uninterrupted call. The
+    scutoid trace (`refresh_scutoids`) is refreshed the same way when a scutoid observable
+    is asked for."""
+    if any(name in SCUTOID_OBSERVABLES for name in observe):
+        state = refresh_scutoids(state)
     if not (params.volume_weighting or any(OBSERVABLE_TABLE[name].geometric for name in observe)):
         return state
     volumes, interior = cell_volumes(state.tess)
     measured = state.volumes_step == state.step
     adjacent = state.volumes_step == state.step - 1
-    previous = jnp.where(measured, state.previous_volumes, jnp.where(adjacent, state.volumes, jnp.nan))
+    previous = jnp.where(measured, state.previous_volumes, jnp.where(adjacent, state.volumes, jnp.inf))
     previous_interior = jnp.where(measured, state.previous_interior, adjacent & state.interior)
-    return eqx.tree_at(cell_fields, state,
-                       (volumes, interior, previous, previous_interior, state.step.astype(jnp.int32)))
+    return eqx.tree_at(cell_fields, state, (volumes, interior, previous, previous_interior,
+                                            state.step.astype(jnp.int32), state.scutoid_trace))
 
 
 def cell_fields(state: SwarmState) -> tuple:
     """The fields of a state that `refresh_cells` sets."""
-    return (state.volumes, state.interior, state.previous_volumes, state.previous_interior, state.volumes_step)
+    return (state.volumes, state.interior, state.previous_volumes, state.previous_interior, state.volumes_step,
+            state.scutoid_trace)
+
+
+def refresh_scutoids(state: SwarmState) -> SwarmState:
+    """The scutoid counts of the step from the trace's graph to the state's (when the trace
+    holds the step before; zero counts otherwise), and the state's graph as the new trace. A
+    state already traced at its step keeps its trace (a continued `simulate` call)."""
+    trace, tess = state.scutoid_trace, state.tess
+    if tess.simplices is None or trace.neighbors.shape[1] == 0:  # k-NN: no cells (NaN); not prepared
+        return state
+    n = tess.n_points
+    parents = trace.parents
+    shared, lost, gained = neighbour_changes(trace.neighbors[parents], tess.neighbors, n)
+    walkers = trace.interior[parents] & tess.interior & (trace.step == state.step - 1)
+    kinds = [(lost == 0) & (gained == 0), (lost + gained > 0) & (lost <= 1) & (gained <= 1), (lost > 1) | (gained > 1)]
+    counts = jnp.stack([jnp.sum(walkers)] + [jnp.sum(walkers & kind) for kind in kinds]
+                       + [jnp.sum(jnp.where(walkers, lost + gained, 0))]).astype(jnp.int32)
+    width = trace.neighbors.shape[1]
+    rows = tess.neighbors[:, :width] if width <= tess.neighbors.shape[1] else jnp.pad(
+        tess.neighbors, ((0, 0), (0, width - tess.neighbors.shape[1])), constant_values=n)
+    fresh = ScutoidTrace(parents, rows, tess.interior, state.step.astype(jnp.int32), counts)
+    kept = jax.tree_util.tree_map(lambda a, b: jnp.where(trace.step == state.step, a, b), trace, fresh)
+    return eqx.tree_at(lambda s: s.scutoid_trace, state, kept)
+
+
+def prepare_scutoid_trace(state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
+    """A state whose trace rows are as wide as its graph's, when a scutoid observable is asked
+    for (a new swarm's trace has none; a grown graph widens them), padded with the sentinel N."""
+    width, k = state.scutoid_trace.neighbors.shape[1], state.tess.neighbors.shape[1]
+    if not any(name in SCUTOID_OBSERVABLES for name in observe) or width >= k or state.tess.simplices is None:
+        return state
+    rows = jnp.pad(state.scutoid_trace.neighbors, ((0, 0), (0, k - width)), constant_values=state.tess.n_points)
+    return eqx.tree_at(lambda s: s.scutoid_trace.neighbors, state, rows)
 
 
 def measure(fitness, params: SwarmParams, new: SwarmState, progress, observe: tuple[str, ...]):

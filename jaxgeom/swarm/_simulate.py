@@ -41,7 +41,7 @@ from ..base._sharding import check_mesh, over_batch
 from ..tessellation._cellclip import describe_graph, rebuilds_on_device
 from ._drivers import _simulate_callback, _simulate_host, _simulate_split, _split_walkers
 from ._dynamics import SwarmParams, SwarmState
-from ._observables import ALL_OBSERVABLES, OBSERVABLES
+from ._observables import ALL_OBSERVABLES, OBSERVABLES, prepare_scutoid_trace
 from ._steps import _is_traced
 from ._swarm_init import check_callable_fitness, check_traceable_fitness
 
@@ -150,6 +150,9 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
                                observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh,
                                spectral_gap_every=spectral_gap_every)
     check_progress(progress)
+    if progress is not False and progress is not None and rebuild != "host":
+        raise ValueError(f"`progress` shows the host driver's steps; rebuild={rebuild!r} runs them in one traced "
+                         "program, which a bar cannot follow. Leave progress False.")
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
@@ -157,6 +160,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
         raise ValueError("`checkpoint=True` serves gradients through a traced run: use it with rebuild='callback' "
                          "or 'device' (rebuild='host' cannot be differentiated).")
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
+    state = prepare_scutoid_trace(state, observe)
     if mesh is not None:
         state = _split_walkers(state, params, mesh, rebuild, checkpoint)
         return _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, mesh)

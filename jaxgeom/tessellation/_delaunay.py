@@ -35,7 +35,7 @@ from ._contacts import (
     circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts,
 )
 from ._graph import (
-    Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords,
+    Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords, split_spatial_dims,
 )
 from ._planar import fan_neighbors
 from ._triangulators import resolve_triangulator, triangulate
@@ -66,7 +66,8 @@ class RawGraph(NamedTuple):
     fallbacks: tuple[str, ...] = ()  # why the asked-for triangulator was replaced by Qhull, per call
 
 
-def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto") -> Tessellation:
+def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto",
+             spatial_dims: int | None = None) -> Tessellation:
     """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
 
     Host-only (a host triangulator); not jittable. Qhull gets the points in Morton
@@ -98,14 +99,25 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
       else "qhull" (scipy, the reference, 2D-4D). Every backend gives the same graph on
       points in general position; a backend that fails (or returns a triangulation that
       fails a cheap check) is replaced by Qhull for this call with a `RuntimeWarning`.
+    - `spatial_dims`: k in [2, d] to tessellate the first k coordinates only (space, when
+      the rest are, say, a time or fitness coordinate). The graph and all its geometry are
+      k-dimensional; the other coordinates ride along in `Tessellation.carried`
+      (`all_coordinates` gives the full rows). A `box` of length-d vectors is cut to its
+      first k entries. `None` (default): every coordinate.
 
     **Returns:**
 
     A `Tessellation` with simplices, neighbours (ascending index; cells sharing a
     face of positive measure, see `Tessellation.neighbors`), tiers and hull flags.
     """
+    if spatial_dims is not None:
+        points = host_points(points, "points", func="jaxgeom.delaunay")
+    points, carried, box = split_spatial_dims(points, box, spatial_dims, "jaxgeom.delaunay")
     tess, fallbacks = build_delaunay(points, box=box, periodic=periodic, capacity=capacity,
                                      triangulator=triangulator)
+    if carried is not None:
+        tess = eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
+                           is_leaf=lambda leaf: leaf is None)
     for reason in fallbacks:
         warnings.warn(f"jaxgeom.delaunay: {reason}; Qhull built this graph instead.", RuntimeWarning, stacklevel=2)
     return tess

@@ -8,12 +8,14 @@ import math
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse
 from jaxtyping import Array, Bool, Float, Int
 
 from ..base._checks import check_metric_array, check_walker_array, real_array
+from ..base._simplex import safe_sqrt
 
 
 class Capacity(NamedTuple):
@@ -60,6 +62,9 @@ class Tessellation(eqx.Module):
       is then incomplete) or a periodic k-NN neighbour lies farther than half
       the box. Host builders raise instead; jitted rebuilds set this flag.
     - `periodic`: static bool.
+    - `carried`: (N, d_all - d) the walkers' coordinates past the first `spatial_dims`,
+      carried along untessellated (`delaunay(..., spatial_dims=k)`, `knn_graph`); `None`
+      when every coordinate was tessellated. Geometry uses `points` only.
     """
 
     points: Float[Array, "N d"]
@@ -72,6 +77,12 @@ class Tessellation(eqx.Module):
     box: Float[Array, "2 d"] | None
     overflow: Bool[Array, ""]
     periodic: bool = eqx.field(static=True, default=False)
+    carried: Float[Array, "N m"] | None = None
+
+    @property
+    def all_coordinates(self) -> Float[Array, "N d_all"]:
+        """(N, d_all) the walkers' full positions: `points`, then the `carried` coordinates."""
+        return self.points if self.carried is None else jnp.concatenate([self.points, self.carried], axis=1)
 
     @property
     def n_points(self) -> int:
@@ -135,7 +146,7 @@ def neighbor_coord_displacements(tess: Tessellation) -> list:
 
 def neighbor_distances(tess: Tessellation) -> Float[Array, "N K"]:
     """Euclidean |x_j - x_i| for every neighbour slot; zero on padding."""
-    return jnp.sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
+    return safe_sqrt(sum(dx * dx for dx in neighbor_coord_displacements(tess)))
 
 
 def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
@@ -271,3 +282,34 @@ def takes_tessellation(fn):
         return fn(*call_args.args, **call_args.kwargs)
 
     return call
+
+
+def split_spatial_dims(points, box, spatial_dims, func: str):
+    """The first `spatial_dims` coordinates of `points` (host or traced), the rest, and `box`
+    restricted to the tessellated coordinates (a box of d_all-vectors is cut to its first k)."""
+    if spatial_dims is None:
+        return points, None, box
+    d_all = np.shape(points)[-1] if np.ndim(points) == 2 else None
+    if isinstance(spatial_dims, bool) or not isinstance(spatial_dims, (int, np.integer)):
+        raise TypeError(f"{func}: `spatial_dims` must be a Python int k (tessellate the first k coordinates); "
+                        f"got {type(spatial_dims).__name__}.")
+    if d_all is None:
+        return points, None, box  # the shape error is the builder's
+    if not 2 <= spatial_dims <= d_all:
+        raise ValueError(f"{func}: `spatial_dims` must lie in [2, {d_all}] for {d_all}-dimensional points; "
+                         f"got {spatial_dims}. Pass spatial_dims=None to tessellate every coordinate.")
+    k = int(spatial_dims)
+    if box is not None and not isinstance(box, str):
+        box = _cut_box(box, d_all, k)
+    if k == d_all:
+        return points, None, box
+    return points[:, :k], points[:, k:], box
+
+
+def _cut_box(box, d_all: int, k: int):
+    """A (2, d_all) box cut to its first k columns; anything else is left to the box checks."""
+    try:
+        arr = box if isinstance(box, jax.Array) else np.asarray(box)
+    except ValueError:
+        return box
+    return arr[:, :k] if arr.ndim == 2 and arr.shape[-1] == d_all else box
