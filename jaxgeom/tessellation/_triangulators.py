@@ -6,7 +6,14 @@
   Shewchuk's exact predicates; a hard dependency.
 - "shull": shull (GPL-3.0), sweep-hull in Rust, 2D and 3D, exact predicates; only with the
   opt-in extra `pip install "jaxgeom[gpl]"`.
-- "auto": the fastest installed for the dimension (`AUTO_ORDER`, measured in bench/README.md).
+- "cupy": CuPy's `cupyx.scipy.spatial.Delaunay` (MIT; gDel2D: parallel insertion and flips on
+  the GPU, exact predicates with symbolic perturbation), 2D, with the opt-in extra
+  `jaxgeom[cuda12]` or `[cuda13]` and a CUDA device. Positions go to it as float64 device
+  arrays through DLPack (float32 input gives wrong triangles, cupy#8765); only its simplices
+  are read (its `neighbors` are wrong, cupy#9220); its result is checked on the device
+  (`_device_check.py`) and a failure falls back to CDT.
+- "auto": the fastest installed for the dimension (`AUTO_ORDER`, measured in bench/README.md);
+  "cupy" first where JAX's default backend is a CUDA GPU and CuPy imports.
 
 Every backend returns scipy's layout (`simplices`, `neighbors` opposite each vertex, -1 on
 the hull, `convex_hull`, `vertex_neighbor_vertices`, `coplanar` = points left out). A
@@ -27,11 +34,13 @@ from scipy.spatial import Delaunay, QhullError
 
 from ..base._checks import check_choice, columns, flat_word, thinness
 
-TRIANGULATORS = ("auto", "qhull", "cdt", "shull")
-DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3)}
-MODULES = {"qhull": "scipy", "cdt": "pythoncdt", "shull": "shull"}
-INSTALL = {"cdt": 'pip install pythoncdt (MPL-2.0)', "shull": 'pip install "jaxgeom[gpl]" (shull, GPL-3.0)'}
-AUTO_ORDER = ("shull", "cdt", "qhull")  # fastest first, per dimension where supported
+TRIANGULATORS = ("auto", "qhull", "cdt", "shull", "cupy")
+DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3), "cupy": (2,)}
+MODULES = {"qhull": "scipy", "cdt": "pythoncdt", "shull": "shull", "cupy": "cupy"}
+INSTALL = {"cdt": 'pip install pythoncdt (MPL-2.0)', "shull": 'pip install "jaxgeom[gpl]" (shull, GPL-3.0)',
+           "cupy": 'pip install "jaxgeom[cuda12]" (or [cuda13]: CuPy for that CUDA), on a machine with a CUDA GPU'}
+AUTO_ORDER = ("cupy", "shull", "cdt", "qhull")  # fastest first, per dimension where supported
+FALLBACK = {"cupy": "cdt"}  # the backend that builds a call whose result failed (default: Qhull)
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
 MORTON_MIN_POINTS = 30_000
 
@@ -60,7 +69,22 @@ class Triangulated(NamedTuple):
 
 @functools.cache
 def installed(name: str) -> bool:
+    if name == "cupy":
+        return cuda_cupy_available()
     return importlib.util.find_spec(MODULES[name]) is not None
+
+
+def cuda_cupy_available() -> bool:
+    """CuPy imports and JAX's default backend is a CUDA GPU (where the positions already are)."""
+    if importlib.util.find_spec("cupy") is None:
+        return False
+    try:
+        import cupy
+        import jax
+
+        return jax.default_backend() == "gpu" and cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception:  # noqa: BLE001 - a CuPy without its CUDA libraries: not available
+        return False
 
 
 def resolve_triangulator(name: str, d: int) -> str:
@@ -79,10 +103,30 @@ def resolve_triangulator(name: str, d: int) -> str:
     return name
 
 
+# Beyond this |coordinate| the predicates' products of four coordinates overflow float64: CDT
+# then looped for minutes (one walker at 1e200) or allocated until the machine ran out of memory
+# (an infinite coordinate), as a diverging swarm's rebuild did (`jaxgeom tune` on Rosenbrock).
+MAX_COORDINATE = 1e75
+
+
+def check_coordinates(x: np.ndarray) -> None:
+    """Refuse non-finite coordinates, and coordinates beyond +-`MAX_COORDINATE`, with a ValueError
+    (a traced rebuild turns it into REBUILD_FAILED, the swarm's divergence flag)."""
+    bad = ~np.isfinite(x).all(axis=1)
+    if x.dtype.itemsize >= 8:  # float32 cannot exceed 3.4e38
+        bad |= np.abs(np.where(bad[:, None], 0.0, x)).max(axis=1) > MAX_COORDINATE
+    if bad.any():
+        raise ValueError(f"{int(bad.sum())} walker(s) have non-finite coordinates or coordinates beyond "
+                         f"+-{MAX_COORDINATE:g} (first rows {np.flatnonzero(bad)[:5].tolist()}), which no "
+                         "triangulator can take: the walkers diverged, or the input is corrupt.")
+
+
 def triangulate(x: np.ndarray, name: str) -> Triangulated:
     """Delaunay triangulation of `x` (N, d) by the resolved backend `name`, Qhull where it
     fails. Raises `CoincidentPointsError` for walkers the triangulation leaves out, and
-    `ValueError` for degenerate input (all walkers on a hyperplane)."""
+    `ValueError` for degenerate input (all walkers on a hyperplane) and for coordinates no
+    backend can take (`check_coordinates`)."""
+    check_coordinates(x)
     if name == "qhull":
         return Triangulated(*qhull(x), None)
     try:
@@ -94,10 +138,17 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
     else:
         if len(tri.coplanar):
             raise_duplicates(x, tri.coplanar[:, 0], tri.coplanar[:, 2])
-        reason = check_triangulation(tri, x)
+        reason = None if getattr(tri, "checked", False) else check_triangulation(tri, x)
         if reason is None:
             return Triangulated(tri, None, None)
         reason = f"{name}'s triangulation failed its check: {reason}"
+    if FALLBACK.get(name) == "cdt":
+        try:
+            return Triangulated(_cdt(x), None, reason)
+        except CoincidentPointsError:
+            raise
+        except Exception:  # noqa: BLE001 - then Qhull, as for the other backends
+            pass
     try:
         return Triangulated(*qhull(x), reason)
     except ValueError as err:
@@ -295,7 +346,55 @@ def _shull(x: np.ndarray):
     return shull.Delaunay(np.ascontiguousarray(x, dtype=np.float64))
 
 
-BUILDERS = {"cdt": _cdt, "shull": _shull}
+def _cupy(x) -> _Triangulation:
+    import cupy
+    from cupyx.scipy.spatial import Delaunay as CupyDelaunay
+
+    return gpu_triangulation(x, CupyDelaunay, cupy)
+
+
+def gpu_triangulation(x, delaunay, xp) -> _Triangulation:
+    """A GPU backend's 2D triangulation in scipy's layout, checked on the device.
+
+    `delaunay(points)` triangulates device arrays of module `xp` (CuPy; numpy in the CPU tests
+    of this adapter): positions go in as float64 (from a JAX device array through DLPack, no
+    host copy), its `simplices` alone are read (counter-clockwise, as CuPy documents), checked
+    by `planar_triangulation_status` on the device (a failure raises, and `triangulate` falls
+    back to CDT), and only then copied to the host with their adjacency derived here."""
+    import jax
+
+    from ._device_check import REASONS, planar_triangulation_status
+
+    points = xp.from_dlpack(x) if isinstance(x, jax.Array) else xp.asarray(np.asarray(x))
+    points = xp.ascontiguousarray(points.astype(xp.float64))
+    simplices = xp.asarray(delaunay(points).simplices).astype(xp.int32)
+    to_jax = jax.numpy.asarray if xp is np else jax.dlpack.from_dlpack
+    status, _ = planar_triangulation_status(to_jax(points), to_jax(simplices))
+    if int(status):
+        raise RuntimeError(REASONS[int(status)])
+    simplices = np.asarray(simplices.get() if hasattr(simplices, "get") else simplices, np.int32)
+    tri = _Triangulation(simplices, triangle_adjacency(simplices), oriented=True)
+    tri.checked = True  # the device check ran: `triangulate` does not repeat it on the host
+    return tri
+
+
+def triangle_adjacency(simplices: np.ndarray) -> np.ndarray:
+    """(S, 3) the triangle across the edge opposite each vertex (-1 on the hull), from one sort
+    of the edges' (min, max) keys."""
+    s = np.asarray(simplices, np.int64)
+    n = int(s.max()) + 1 if s.size else 1
+    a, b = s[:, [1, 2, 0]], s[:, [2, 0, 1]]  # the edge opposite vertex k: (v_k+1, v_k+2)
+    keys = (np.minimum(a, b) * n + np.maximum(a, b)).ravel()
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    pair = np.flatnonzero(sorted_keys[1:] == sorted_keys[:-1])
+    out = np.full(keys.size, -1, np.int32)
+    first, second = order[pair], order[pair + 1]
+    out[first], out[second] = second // 3, first // 3
+    return out.reshape(-1, 3)
+
+
+BUILDERS = {"cdt": _cdt, "shull": _shull, "cupy": _cupy}
 
 
 # --- the check --------------------------------------------------------------------------

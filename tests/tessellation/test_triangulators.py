@@ -326,8 +326,10 @@ def test_auto_takes_the_fastest_installed(monkeypatch):
     assert resolve_triangulator("auto", 4) == "qhull"
     assert resolve_triangulator("auto", 2) == ("shull" if installed("shull") else "cdt")
     assert resolve_triangulator("auto", 3) == ("shull" if installed("shull") else "qhull")
-    monkeypatch.setattr(backends, "installed", lambda name: name != "shull")
+    monkeypatch.setattr(backends, "installed", lambda name: name not in ("shull", "cupy"))
     assert resolve_triangulator("auto", 2) == "cdt" and resolve_triangulator("auto", 3) == "qhull"
+    monkeypatch.setattr(backends, "installed", lambda name: True)  # a GPU with CuPy: cupy first in 2D
+    assert resolve_triangulator("auto", 2) == "cupy" and resolve_triangulator("auto", 3) == "shull"
 
 
 def test_bad_triangulators_are_refused(rng, monkeypatch):
