@@ -1,5 +1,7 @@
 import gc
 import os
+import shutil
+import tempfile
 from importlib.metadata import version
 
 
@@ -28,6 +30,26 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+# One persistent compilation cache for the whole run, shared by the xdist workers and by the
+# command lines the tests start (in-process or as children): a program compiled by one test is
+# read back by the next that needs it, in any worker, also after `_free_compiled_programs`
+# dropped it from memory. The controller creates the directory before the workers start (they
+# inherit its environment) and removes it at the end. JAXGEOM_TEST_COMPILE_CACHE=0 turns it off.
+_CACHE_OWNER = "JAXGEOM_COMPILE_CACHE_DIR" not in os.environ
+if os.environ.get("JAXGEOM_TEST_COMPILE_CACHE", "1") != "0":
+    if _CACHE_OWNER:
+        os.environ["JAXGEOM_COMPILE_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxgeom-test-xla-")
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAXGEOM_COMPILE_CACHE_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+else:
+    os.environ.setdefault("JAXGEOM_COMPILE_CACHE", "0")  # and the command lines the tests run
+
+
+def pytest_unconfigure(config):
+    if _CACHE_OWNER and not hasattr(config, "workerinput") and "JAXGEOM_COMPILE_CACHE_DIR" in os.environ:
+        shutil.rmtree(os.environ.pop("JAXGEOM_COMPILE_CACHE_DIR"), ignore_errors=True)
 
 
 @pytest.fixture

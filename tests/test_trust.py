@@ -241,7 +241,8 @@ def test_readme_quick_tour_enables_float64():
     from pathlib import Path
 
     readme = (Path(__file__).parents[1] / "README.md").read_text()
-    tour = readme[readme.index("## Quick tour"):readme.index("## Swarm dynamics")]
+    start = readme.index("## Quick tour")
+    tour = readme[start:readme.index("\n## ", start + 1)]
     assert 'jax.config.update("jax_enable_x64", True)' in tour
     assert "estimation.png" in readme
 
@@ -294,17 +295,32 @@ def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(save
     assert len(band) == 1 and np.allclose([band[0].get_y(), band[0].get_height()], [0.29 - 0.02, 0.04])
 
 
-def test_swarm_panels_share_one_frame(saved_figures, tmp_path):
+@pytest.mark.parametrize("layout", ["one cluster", "three wells"])
+def test_swarm_panels_share_one_frame_and_a_zoomed_one(saved_figures, tmp_path, layout):
+    """Top row: one frame holding every walker (comparable panels). Bottom row: one frame zoomed
+    on the later walkers (once: a few black dots in the whole box), holding 95% of them and at
+    most 10x their spread wide."""
     from jaxgeom.apps._plots import plot_swarm_snapshots
 
     rng = np.random.default_rng(0)
-    snaps = [{"step": 0, "positions": rng.uniform(-5, 5, (200, 2)), "ricci": None},
-             {"step": 9, "positions": 0.1 * rng.normal(size=(200, 2)), "ricci": None}]
+    centres = np.array([[0.0, 0.0]]) if layout == "one cluster" else np.array([[-3.0, 2.0], [1.0, 1.0], [2.5, -3.0]])
+    later = [centres[rng.integers(0, len(centres), 300)] + 0.05 * rng.normal(size=(300, 2)) for _ in range(2)]
+    snaps = [{"step": 0, "positions": rng.uniform(-5, 5, (300, 2)), "ricci": None}]
+    snaps += [{"step": 9 * (k + 1), "positions": x, "ricci": None} for k, x in enumerate(later)]
     plot_swarm_snapshots(bowl, snaps, (-5.0, 5.0), tmp_path / "swarm.png")
-    panels = [ax for ax in saved_figures[-1].axes if ax.get_title().startswith("step")]
-    assert len(panels) == 2 and panels[0].get_xlim() == panels[1].get_xlim()
-    assert panels[0].get_ylim() == panels[1].get_ylim()
-    assert "one frame for all panels" in saved_figures[-1].get_suptitle()
+    figure = saved_figures[-1]
+    top = [ax for ax in figure.axes if ax.get_title().startswith("step") and "zoomed" not in ax.get_title()]
+    zoomed = [ax for ax in figure.axes if ax.get_title().endswith("zoomed")]
+    assert len(top) == len(zoomed) == 3
+    for row in (top, zoomed):
+        assert len({ax.get_xlim() for ax in row}) == 1 and len({ax.get_ylim() for ax in row}) == 1
+    (x0, x1), (y0, y1) = zoomed[0].get_xlim(), zoomed[0].get_ylim()
+    walkers = np.concatenate(later)
+    inside = (walkers[:, 0] >= x0) & (walkers[:, 0] <= x1) & (walkers[:, 1] >= y0) & (walkers[:, 1] <= y1)
+    assert inside.mean() >= 0.95
+    assert max(x1 - x0, y1 - y0) <= 10 * np.max(np.std(walkers, axis=0))
+    assert max(x1 - x0, y1 - y0) < 0.5 * (top[0].get_xlim()[1] - top[0].get_xlim()[0]) or layout == "three wells"
+    assert "zoom" in zoomed[0].get_ylabel() and "wide" in zoomed[0].get_ylabel()
 
 
 def test_analyze_figures_are_labelled(saved_figures, tmp_path, capsys):

@@ -202,43 +202,71 @@ def _symlog_ticks(norm):
 
 def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
     """Walkers coloured by their Ricci scalar (one symmetric-log colour scale for every panel)
-    over contours of V, one panel per snapshot `{"step", "positions", "ricci"}` (ricci None on
-    a k-NN graph: walkers coloured by V instead), all in one frame that holds every walker. Beyond 2D the panels show the projection on
-    (x_1, x_2) and the contours V(x_1, x_2, 0, ..., 0); the figure says so."""
+    over contours of V, one column per snapshot `{"step", "positions", "ricci"}` (ricci None on
+    a k-NN graph: walkers coloured by V instead). The top row shares one frame that holds
+    every walker, so the panels compare; the bottom row shares a frame zoomed on where the
+    walkers of the later snapshots are (`zoom_frame`), drawn as a dashed box above and its
+    width written. Beyond 2D the panels show the projection on (x_1, x_2) and the contours
+    V(x_1, x_2, 0, ..., 0); the figure says so."""
     plt = pyplot()
+    from matplotlib.patches import Rectangle
     from matplotlib.ticker import MaxNLocator
 
     d = snapshots[0]["positions"].shape[1]
     has_ricci = any(s["ricci"] is not None for s in snapshots)
     norm = _shared_ricci_norm(snapshots) if has_ricci else None
-    fig, axes = plt.subplots(1, len(snapshots), figsize=(3.4 * len(snapshots) + 1.4, 3.8), squeeze=False,
+    fig, axes = plt.subplots(2, len(snapshots), figsize=(3.4 * len(snapshots) + 1.4, 7.2), squeeze=False,
                              layout="constrained")
     lo, hi = _frame(np.concatenate([snap["positions"] for snap in snapshots]), box)  # one frame: comparable
-    gx, gy, values = _landscape_grid(fitness, lo, hi, d)
-    for ax, snap in zip(axes[0], snapshots):
-        x = snap["positions"]
-        ax.contour(gx, gy, values, levels=_contour_levels(values), colors="0.55", linewidths=0.5)
-        if has_ricci:
-            ok = np.isfinite(snap["ricci"]) if snap["ricci"] is not None else np.zeros(len(x), bool)
-            ax.scatter(x[~ok, 0], x[~ok, 1], s=1, c="k")
-            mapped = ax.scatter(x[ok, 0], x[ok, 1], s=4, c=snap["ricci"][ok], cmap="coolwarm", norm=norm)
-        else:
-            v = np.asarray(_fitness_at(fitness, x))
-            mapped = ax.scatter(x[:, 0], x[:, 1], s=3, c=v, cmap="viridis", vmin=0.0 if v.min() >= 0 else None)
-        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), xlabel="x_1", title=f"step {snap['step']}")
-        ax.xaxis.set_major_locator(MaxNLocator(4))
-        ax.yaxis.set_major_locator(MaxNLocator(5))
+    later = snapshots[1:] or snapshots
+    zoom_lo, zoom_hi = zoom_frame(np.concatenate([snap["positions"] for snap in later]))
+    for row, (flo, fhi) in enumerate(((lo, hi), (zoom_lo, zoom_hi))):
+        gx, gy, values = _landscape_grid(fitness, flo, fhi, d)
+        for ax, snap in zip(axes[row], snapshots):
+            mapped = _draw_snapshot(ax, fitness, snap, gx, gy, values, norm, has_ricci, size=4 if row else 3)
+            ax.set(xlim=(flo[0], fhi[0]), ylim=(flo[1], fhi[1]), xlabel="x_1")
+            ax.xaxis.set_major_locator(MaxNLocator(4))
+            ax.yaxis.set_major_locator(MaxNLocator(5))
+            if row == 0:
+                ax.set_title(f"step {snap['step']}")
+                ax.add_patch(Rectangle(zoom_lo, *(zoom_hi - zoom_lo), fill=False, ls="--", lw=1.0, ec="k"))
+            else:
+                ax.set_title(f"step {snap['step']}, zoomed", fontsize=9)
     axes[0, 0].set_ylabel("x_2")
+    width = float(np.max(zoom_hi - zoom_lo))
+    axes[1, 0].set_ylabel(f"x_2   (zoom: frame {width:.3g} wide)")
     label = "Ricci scalar R (symmetric log scale)" if has_ricci else "V(x)"
-    bar = fig.colorbar(mapped, ax=axes[0].tolist(), label=label, fraction=0.03, pad=0.01)
+    bar = fig.colorbar(mapped, ax=axes.ravel().tolist(), label=label, fraction=0.03, pad=0.01)
     if has_ricci:
         bar.set_ticks(_symlog_ticks(norm))
     what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull "
             "tiers, no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
     where = (f"{d}D swarm projected on (x_1, x_2), contours of V(x_1, x_2, 0, ..., 0)" if d > 2
              else "contours of V")
-    fig.suptitle(f"{what}\n{where}; one frame for all panels, holding every walker", fontsize=9)
+    fig.suptitle(f"{what}\n{where}; top: one frame holding every walker; bottom: one frame {width:.3g} wide "
+                 "zoomed on the later walkers (dashed box above)", fontsize=9)
     return save_figure(fig, path, dpi=72, layout=False)
+
+
+def zoom_frame(positions, share: float = 0.97):
+    """A square frame (lower, upper) of the first two coordinates about the median walker that
+    holds `share` of the walkers, with a 10% margin: the bottom row of `plot_swarm_snapshots`."""
+    xy = positions[:, :2]
+    centre = np.median(xy, axis=0)
+    radius = float(np.quantile(np.max(np.abs(xy - centre), axis=1), share))
+    radius = 1.1 * max(radius, 1e-6 * max(float(np.max(np.abs(xy))), 1.0))
+    return centre - radius, centre + radius
+
+
+def _draw_snapshot(ax, fitness, snap, gx, gy, values, norm, has_ricci: bool, size: float):
+    x = snap["positions"]
+    ax.contour(gx, gy, values, levels=_contour_levels(values), colors="0.55", linewidths=0.5)
+    if has_ricci:
+        ok = np.isfinite(snap["ricci"]) if snap["ricci"] is not None else np.zeros(len(x), bool)
+        ax.scatter(x[~ok, 0], x[~ok, 1], s=size / 3, c="k")
+        return ax.scatter(x[ok, 0], x[ok, 1], s=size, c=snap["ricci"][ok], cmap="coolwarm", norm=norm)
+    v = np.asarray(_fitness_at(fitness, x))
+    return ax.scatter(x[:, 0], x[:, 1], s=size, c=v, cmap="viridis", vmin=0.0 if v.min() >= 0 else None)
 
 
 def _fitness_at(fitness, x):

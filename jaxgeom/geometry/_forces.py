@@ -16,22 +16,29 @@ from jaxtyping import Array, Float
 
 from ..base._checks import check_nonnegative
 from ..tessellation._graph import Tessellation, takes_tessellation
+from ._metric import warns_on_defective_metric
 from ._weights import (
-    DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph,
+    DEFAULT_ALPHA, check_weights, kernel_arguments, weights_on_graph,
 )
 
 VISCOUS_WEIGHTS = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
 
 
 @takes_tessellation
+@warns_on_defective_metric
 def edge_weights(tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None,
-                 alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+                 alpha: float | None = None) -> Float[Array, "N K"]:
     """Raw edge weights w_ij of the viscous force, aligned with `tess.neighbors` (0 on padding).
 
     `weights` and the other arguments as in [`jaxgeom.viscous_force`][]."""
     check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)
-    check_length_scale(length_scale)
-    check_alpha(alpha)
+    alpha = kernel_arguments(weights, length_scale, alpha, metric)
+    scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
+    return _edge_weights(tess, weights, scale, metric, alpha)
+
+
+@eqx.filter_jit
+def _edge_weights(tess, weights, length_scale, metric, alpha):
     return weights_on_graph(tess, weights, metric=metric, length_scale=length_scale, alpha=alpha)
 
 
@@ -79,8 +86,9 @@ def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Flo
 
 
 @takes_tessellation
+@warns_on_defective_metric
 def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel", length_scale=None, metric=None,
-                  volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N d"]:
+                  volume_weights=None, alpha: float | None = None) -> Float[Array, "N d"]:
     """The scutoidal viscous force F_i = nu sum_j w_ij / sum_k w_ik (v_j - v_i), O(N K).
 
     **Arguments:**
@@ -96,10 +104,12 @@ def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel"
     - `length_scale`: l of "kernel"; None = alpha * mean nearest-neighbour distance.
       The row-normalised kernel is computed relative to each row's nearest neighbour, so
       l far below the spacing tends to nearest-neighbour weighting (never 0 / 0).
-    - `metric`: (N, d, d) array or callable x -> g; required by the metric modes.
+    - `metric`: (N, d, d) array or callable x -> g; required by the metric modes, refused
+      by the others.
     - `volume_weights`: optional (N,) cell volumes V_j; weights become w_ij V_j
       (edges to non-finite volumes are dropped). This breaks w_ij = w_ji.
-    - `alpha`: factor of the adaptive length rule (default 3).
+    - `alpha`: factor of the adaptive length rule of "kernel" (None: 3). `length_scale` and
+      `alpha` are refused with the rules that do not use them.
 
     **Returns:**
 
@@ -107,8 +117,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel"
     """
     check_weights(weights, "weights", VISCOUS_WEIGHTS, metric)  # volume_weights: takes_tessellation
     check_nonnegative(nu, "nu")
-    check_alpha(alpha)
-    check_length_scale(length_scale)
+    alpha = kernel_arguments(weights, length_scale, alpha, metric)
     scale = None if length_scale is None else jnp.asarray(length_scale)  # arrays: no recompile per value
     return _viscous_force(tess, jnp.asarray(velocities), jnp.asarray(nu), weights, scale, metric, volume_weights, alpha)
 

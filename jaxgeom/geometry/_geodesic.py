@@ -16,14 +16,15 @@ from scipy.sparse.csgraph import dijkstra
 from ..base._checks import check_choice, check_positive
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances, heat_operators
-from ._metric import edge_lengths
+from ._metric import edge_lengths, warns_on_defective_metric
 
 GEODESIC_METHODS = ("heat", "dijkstra", "bellman_ford")
 
 
 @takes_tessellation
+@warns_on_defective_metric
 def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = "full", method: str = "heat",
-                       t=None, boundary: str = "mean", solver: str = "auto") -> Float[Array, "M N"]:
+                       t=None, boundary: str | None = None, solver: str | None = None) -> Float[Array, "M N"]:
     """Geodesic distances from each source walker to every walker.
 
     **Arguments:**
@@ -85,9 +86,13 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
     sources outside [0, N)). Concrete sources outside [0, N) are a ValueError.
     """
     check_choice(method, "method", GEODESIC_METHODS)
+    given = [name for name, value in (("t", t), ("boundary", boundary), ("solver", solver)) if value is not None]
+    if method != "heat" and given:
+        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of method='heat' given with method={method!r}, which "
+                         "does not use them. Drop them, or use method='heat'.")
     src = _check_sources(sources, tess.n_points)
     if method == "heat":
-        return _heat(tess, src, metric, mode=mode, t=t, boundary=boundary, solver=solver)
+        return _heat(tess, src, metric, mode=mode, t=t, boundary=boundary or "mean", solver=solver or "auto")
     lengths = edge_lengths(tess, metric=metric, mode=mode)
     if method == "dijkstra":
         return jnp.asarray(_dijkstra(tess, lengths, np.asarray(src)), dtype=lengths.dtype)

@@ -17,7 +17,7 @@ from ..base._checks import check_choice, check_integer, check_positive
 from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._weights import (
-    DEFAULT_ALPHA, check_alpha, check_length_scale, check_weights, weights_on_graph,
+    check_weights, kernel_arguments, weights_on_graph,
 )
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
@@ -85,7 +85,7 @@ class GraphLaplacian(eqx.Module):
 @takes_tessellation
 @eqx.filter_jit
 def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
-                    alpha: float = DEFAULT_ALPHA) -> GraphLaplacian:
+                    alpha: float | None = None) -> GraphLaplacian:
     """The normalized graph Laplacian L = I - D^-1/2 W D^-1/2 on the neighbour graph.
 
     **Arguments:**
@@ -94,15 +94,15 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
     - `length_scale`: kernel width l of w_ij = exp(-|x_j - x_i|^2 / (2 l^2)).
       `None` uses the chapter's adaptive rule l = alpha * mean nearest-neighbour distance.
     - `weights`: "kernel" or "uniform" (w_ij = 1).
-    - `alpha`: factor of the adaptive rule (default 3).
+    - `alpha`: factor of the adaptive rule (None: 3). `length_scale` and `alpha` act on
+      "kernel" only, and are refused with "uniform".
 
     **Returns:**
 
     A [`jaxgeom.GraphLaplacian`][] with a jittable `matvec` and `to_scipy()`.
     """
     check_weights(weights, "weights", LAPLACIAN_WEIGHTS)
-    check_length_scale(length_scale)
-    check_alpha(alpha)
+    alpha = kernel_arguments(weights, length_scale, alpha)
     w = weights_on_graph(tess, weights, length_scale=length_scale, alpha=alpha, shift="global")
     symmetric = tess.simplices is not None
     degree = jnp.sum(w, axis=1)
@@ -114,8 +114,8 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
 
 @takes_tessellation
 def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: str = "kernel",
-                 alpha: float = DEFAULT_ALPHA, method: str = "scipy", tol=None, maxiter: int = 2000,
-                 seed: int = 0) -> Float[Array, " k"]:
+                 alpha: float | None = None, method: str = "scipy", tol=None, maxiter: int | None = None,
+                 seed: int | None = None) -> Float[Array, " k"]:
     """The k smallest eigenvalues of the normalized Laplacian, ascending.
 
     lambda_0 = 0 (the constant mode D^1/2 1) and lambda_1 is the spectral gap.
@@ -131,6 +131,7 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
       afterwards: an eigenvalue whose residual |L u - lambda u| exceeds `tol` is
       returned as NaN, never as a silent wrong number; so is one whose residual exceeds
       1% of its value (an eigenvalue lies within the residual of it).
+    - `tol`, `maxiter` (None: 2000), `seed` (None: 0): of "lobpcg" only, refused with "scipy".
     - `tol`: LOBPCG residual tolerance; default 1e-8 in float64 and 1e-3 in float32.
       Measured at N = 1e4 in 2D (lambda_1 ~ 2.6e-4): float64 agrees with scipy to
       3e-11 relative; float32 reaches only ~3e-3 relative on lambda_1 (2.5e-3 with
@@ -144,6 +145,11 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     spacing): the graph has then fallen apart and its small eigenvalues are 0.
     """
     check_choice(method, "method", SPECTRAL_METHODS)
+    given = [name for name, value in (("tol", tol), ("maxiter", maxiter), ("seed", seed)) if value is not None]
+    if method == "scipy" and given:
+        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of method='lobpcg' given with method='scipy', which "
+                         "does not use them (shift-invert eigsh). Drop them, or use method='lobpcg'.")
+    maxiter, seed = (2000 if maxiter is None else maxiter), (0 if seed is None else seed)
     check_positive(tol, "tol", " (LOBPCG's residual tolerance; None: 1e-8 in float64, 1e-3 in float32)")
     check_integer(maxiter, "maxiter", 1)
     check_integer(seed, "seed")
@@ -175,7 +181,7 @@ def warn_if_underflowed(lap: GraphLaplacian, tess: Tessellation) -> None:
 
 @takes_tessellation
 def bulk_spectral_gap(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
-                      alpha: float = DEFAULT_ALPHA) -> tuple[float, int, int]:
+                      alpha: float | None = None) -> tuple[float, int, int]:
     """(gap, n_components, n_outside): the spectral gap of the largest connected component
     of the weighted graph, the number of components, and the walkers outside the largest.
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -12,14 +13,15 @@ from jaxtyping import Array, Float, Int
 from scipy.spatial import cKDTree
 
 from ..base._checks import check_choice, host_box, host_points
-from ._graph import Tessellation, neighbor_any
+from ._graph import Tessellation, neighbor_any, split_spatial_dims
 
 KNN_METHODS = ("auto", "kdtree", "brute")
 # Elements of one (block, N) distance tile in the brute-force path.
 TILE_ELEMENTS = 2**22
 
 
-def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str = "auto") -> Tessellation:
+def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str = "auto",
+              spatial_dims: int | None = None) -> Tessellation:
     """Graph of the exact k nearest neighbours of every walker, in any dimension.
 
     **Arguments:**
@@ -48,10 +50,13 @@ def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str =
     traced = isinstance(points, jax.core.Tracer)
     if method == "auto":
         method = "brute" if traced else "kdtree"
+    if not traced:
+        points = host_points(points, "points", func="jaxgeom.knn_graph")
+    points, carried, box = split_spatial_dims(points, box, spatial_dims, "jaxgeom.knn_graph")
     if traced:
         x, box_arr = _traced_points(points, box, periodic, method)
     else:
-        x = host_points(points, "points", func="jaxgeom.knn_graph")
+        x = points
         box_arr = host_box(box, x, periodic=periodic)
     k = _check_k(k, x.shape[0])
     lengths = None if box_arr is None or not periodic else box_arr[1] - box_arr[0]
@@ -59,7 +64,11 @@ def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str =
         nbrs = jnp.asarray(_kdtree_neighbors(x, k, box_arr, periodic))
     else:
         nbrs = _brute_neighbors(jnp.asarray(x), k, lengths)
-    return _knn_tessellation(jnp.asarray(x), nbrs, None if box_arr is None else jnp.asarray(box_arr), periodic)
+    tess = _knn_tessellation(jnp.asarray(x), nbrs, None if box_arr is None else jnp.asarray(box_arr), periodic)
+    if carried is None:
+        return tess
+    return eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
+                       is_leaf=lambda leaf: leaf is None)
 
 
 def _traced_points(points, box, periodic, method):
@@ -94,6 +103,7 @@ def _kdtree_neighbors(x: np.ndarray, k: int, box, periodic: bool) -> np.ndarray:
     return np.take_along_axis(idx, order, axis=1)[:, :k].astype(np.int32)
 
 
+@functools.partial(jax.jit, static_argnums=1)
 def _brute_neighbors(x: Float[Array, "N d"], k: int, lengths) -> Int[Array, "N k"]:
     n = x.shape[0]
     block = max(1, min(n, TILE_ELEMENTS // n))
@@ -124,6 +134,7 @@ def _sq_distances(x, q, lengths):
     return jax.lax.scan(add_coordinate, acc0, (x.T, q.T, per_coord))[0]
 
 
+@functools.partial(jax.jit, static_argnums=3)
 def _knn_tessellation(x, nbrs, box, periodic: bool) -> Tessellation:
     n, d = x.shape
     dx = x.at[nbrs].get(mode="fill", fill_value=0.0) - x[:, None, :]  # padding (NaN walkers) at the sentinel N
