@@ -149,6 +149,10 @@ OBSERVABLE_LABELS = {
     "nu": ("viscous coupling", "nu"),
     "eps_sigma": ("metric floor", "eps_Sigma"),
     "spectral_gap": ("spectral gap (largest component)", "lambda_2 of the graph Laplacian"),
+    "prism_fraction": ("prisms (no neighbour lost or gained)", "fraction, tier 2 at both steps"),
+    "simple_scutoid_fraction": ("simple scutoids (<= 1 lost, <= 1 gained)", "fraction, tier 2 at both steps"),
+    "complex_scutoid_fraction": ("complex scutoids (>= 2 lost or gained)", "fraction, tier 2 at both steps"),
+    "mean_neighbor_change": ("neighbour change per walker", "<lost + gained>, tier 2 at both steps"),
 }
 
 

@@ -125,10 +125,17 @@ def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
     assert "NaN or inf" in capsys.readouterr().err
 
 
-def test_simulate_writes_time_series_and_figures(tmp_path, capsys):
-    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--no-progress",
+def test_simulate_writes_time_series_and_figures(tmp_path, capsys, monkeypatch):
+    import matplotlib.figure
+
+    saved, savefig = [], matplotlib.figure.Figure.savefig
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
+                                                                                    savefig(fig, *a, **k))[1])
+    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--no-progress", "--scutoids",
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
+    scutoid_series = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction", "mean_neighbor_change")
+    assert all(name in out for name in scutoid_series), "--scutoids: the table shows the scutoid observables"
     assert "best_fitness" in out and "total clones" in out
     history = json.loads((tmp_path / "history.json").read_text())
     assert len(history["series"]["mean_fitness"]) == 13 and len(history["series"]["time"]) == 13
@@ -136,6 +143,11 @@ def test_simulate_writes_time_series_and_figures(tmp_path, capsys):
     assert history["series"]["best_fitness"][-1] <= history["series"]["best_fitness"][0]
     assert history["spectral_gap"]["step"] == [0, 4, 8, 12]
     assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
+    fractions = np.array([history["series"][name] for name in scutoid_series[:3]], dtype=float)
+    assert np.isnan(fractions[:, 0]).all(), "no scutoid before the first step"
+    np.testing.assert_allclose(fractions[:, 1:].sum(axis=0), 1.0, rtol=1e-12)
+    titles = {ax.get_title() for fig in saved for ax in fig.axes}
+    assert any(title.startswith("prisms") for title in titles) and any(t.startswith("complex") for t in titles)
 
 
 def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
