@@ -184,7 +184,7 @@ def test_every_bench_section_the_readme_cites_exists():
     """`bench/README.md, "Title"` in the README names a heading of bench/README.md."""
     bench = (Path(__file__).parents[1] / "bench" / "README.md").read_text()
     headings = [line.lstrip("#").strip() for line in bench.splitlines() if line.startswith("## ")]
-    cited = re.findall(r'bench/README\.md`?,?\s+"([^"]+)"', README.replace("\n", " "))
+    cited = re.findall(r'bench/README\.md`?,?\s+"([^"]+)"', " ".join(README.split()))
     assert cited, "the README cites no bench section"
     for title in cited:
         assert any(h.startswith(title) for h in headings), f"bench/README.md has no section {title!r}"
