@@ -40,7 +40,11 @@ _CACHE_OWNER = "JAXGEOM_COMPILE_CACHE_DIR" not in os.environ
 if os.environ.get("JAXGEOM_TEST_COMPILE_CACHE", "1") != "0":
     if _CACHE_OWNER:
         os.environ["JAXGEOM_COMPILE_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxgeom-test-xla-")
-    jax.config.update("jax_compilation_cache_dir", os.environ["JAXGEOM_COMPILE_CACHE_DIR"])
+    from jaxgeom.cli import machine_tag  # the folder the command lines use (one per CPU type)
+
+    _cache = os.path.join(os.environ["JAXGEOM_COMPILE_CACHE_DIR"], machine_tag())
+    os.makedirs(_cache, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", _cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 else:

@@ -6,7 +6,10 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
+import platform
+import sys
 from pathlib import Path
 
 import jax
@@ -42,6 +45,19 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get(CACHE_DIR_ENV) or Path(base) / "jaxgeom" / "xla")
 
 
+def machine_tag() -> str:
+    """A short name for this CPU's instruction set: compiled CPU programs run only where every
+    feature they were built for exists, so a cache shared between machines (a network home)
+    keeps one folder per tag."""
+    flags = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as info:
+            flags = next((line for line in info if line.startswith(("flags", "Features"))), flags)
+    except OSError:
+        pass
+    return hashlib.sha1(f"{platform.machine()} {flags}".encode()).hexdigest()[:12]
+
+
 def use_compile_cache(choice) -> Path | None:
     """Switch on JAX's persistent compilation cache for this process (the command line only:
     the library never changes JAX's settings), unless --no-compile-cache or $JAXGEOM_COMPILE_CACHE=0.
@@ -50,7 +66,7 @@ def use_compile_cache(choice) -> Path | None:
         choice = os.environ.get(CACHE_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
     if not choice:
         return None
-    path = default_cache_dir()
+    path = default_cache_dir() / machine_tag()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
@@ -108,8 +124,26 @@ def main(argv=None) -> int:
     check_arguments(parser, args)
 
     jax.config.update("jax_enable_x64", args.precision == "float64")
-    use_compile_cache(args.compile_cache)
+    if use_compile_cache(args.compile_cache) is not None and argv is None:
+        quiet_false_cache_alarms()
     if args.command == "analyze":  # no iterations to stop between: Ctrl-C as usual
         return analyze_main(args)
     with deferred_interrupt():  # Ctrl-C ends simulate / tune at the next step or iteration
         return {"simulate": simulate_main, "tune": tune_main}[args.command](args)
+
+
+def quiet_false_cache_alarms() -> None:
+    """jaxlib (0.8-0.10 at least) logs an ERROR "... could lead to execution errors such as
+    SIGILL" for every CPU program read back from the cache: it takes LLVM's tuning flags
+    +prefer-no-gather/-scatter for CPU features the host lacks (jax-ml/jax#38445), hundreds of
+    lines per warm run. The cache has one folder per CPU type (`machine_tag`), so the alarm is
+    false. XLA reads its log level once, when jaxlib loads, so the command starts again (the same
+    process, `exec`, ~1.5 s) with XLA's C++ log at FATAL only; errors that matter raise in
+    Python. Not where TF_CPP_MIN_LOG_LEVEL is set to another level than jax's default (1), nor
+    for in-process calls of `main`."""
+    if os.name != "posix" or os.environ.get("TF_CPP_MIN_LOG_LEVEL", "1") != "1" or not getattr(sys, "orig_argv", None):
+        return
+    os.environ["TF_CPP_MIN_LOG_LEVEL"] = "3"
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])

@@ -369,3 +369,54 @@ def test_analyze_reports_ollivier_ricci_on_knn_graphs():
     assert out["isolated_walkers"] == 0 and not out["overflow"]
     delaunay = section_ollivier_ricci(Analysis(args, x[:, :2], None, "test", tess=jaxgeom.delaunay(x[:, :2])))
     assert "skipped" in delaunay
+
+
+@pytest.fixture
+def jax_cache_settings():
+    """Restore JAX's cache settings that `use_compile_cache` changes for the process."""
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes")
+    saved = {name: getattr(jax.config, name) for name in names}
+    yield
+    for name, value in saved.items():
+        jax.config.update(name, value)
+
+
+def test_the_command_line_keeps_its_compiled_programs_unless_told_not_to(tmp_path, monkeypatch, jax_cache_settings):
+    from jaxgeom.cli import machine_tag, use_compile_cache
+
+    monkeypatch.setenv("JAXGEOM_COMPILE_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("JAXGEOM_COMPILE_CACHE", raising=False)
+    path = use_compile_cache(None)
+    assert path == tmp_path / machine_tag() and path.is_dir()
+    assert jax.config.jax_compilation_cache_dir == str(path)
+    assert use_compile_cache(False) is None
+    for off in ("0", "false", "off"):
+        monkeypatch.setenv("JAXGEOM_COMPILE_CACHE", off)
+        assert use_compile_cache(None) is None
+    assert use_compile_cache(True) == path, "the flag wins over the environment"
+
+
+def test_the_cache_has_one_folder_per_cpu_type(monkeypatch):
+    import platform
+
+    from jaxgeom.cli import machine_tag
+
+    here = machine_tag()
+    monkeypatch.setattr(platform, "machine", lambda: "another-machine")
+    assert machine_tag() != here and len(here) == 12
+
+
+def test_the_cache_is_pruned_to_half_its_cap_oldest_first(tmp_path):
+    import os
+
+    from jaxgeom.cli import prune_cache
+
+    for age in range(10):
+        entry = tmp_path / f"entry{age}"
+        entry.write_bytes(b"x" * 100)
+        os.utime(entry, (1000 + age, 1000 + age))
+    prune_cache(tmp_path, cap=2000)
+    assert len(list(tmp_path.iterdir())) == 10, "under the cap: nothing removed"
+    prune_cache(tmp_path, cap=600)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"entry{age}" for age in range(7, 10)]
