@@ -18,7 +18,6 @@ import argparse
 import itertools
 import json
 import platform
-import time
 from pathlib import Path
 
 import jax
@@ -28,6 +27,7 @@ import numpy as np
 import jaxgeom
 from jaxgeom.base import _simplex
 from jaxgeom.geometry import _metric
+from _timing import summary, timed
 
 
 def unrolled_eigh(m):
@@ -45,16 +45,6 @@ def unrolled_eigh(m):
 VARIANTS = {"fori_loop": _simplex.small_eigh, "unrolled": unrolled_eigh, "lapack": jnp.linalg.eigh}
 
 
-def seconds(fn) -> float:
-    start = time.perf_counter()
-    jax.block_until_ready(fn())
-    return time.perf_counter() - start
-
-
-def summary(values) -> dict:
-    return {"median": float(np.median(values)), "min": float(min(values)), "max": float(max(values))}
-
-
 def eigh_rows(sizes, repeat: int) -> list:
     rng = np.random.default_rng(0)
     rows = []
@@ -67,8 +57,8 @@ def eigh_rows(sizes, repeat: int) -> list:
             for name in names:
                 jax.clear_caches()
                 fn = jax.jit(lambda x, f=VARIANTS[name]: f(x))
-                first[name].append(seconds(lambda: fn(m)))
-                warm[name].append(min(seconds(lambda: fn(m)) for _ in range(3)))
+                first[name].append(timed(lambda: fn(m)))
+                warm[name].append(min(timed(lambda: fn(m)) for _ in range(3)))
         values = {k: np.asarray(jax.jit(VARIANTS[k])(m)[0]) for k in names}
         rows.append({"d": d, "n": n, "first_call_s": {k: summary(v) for k, v in first.items()},
                      "warm_s": {k: summary(v) for k, v in warm.items()},
@@ -88,7 +78,7 @@ def curvature_row(repeat: int, n: int = 2000) -> dict:
             _metric.small_eigh = VARIANTS[name]
             fitness = lambda y: jnp.sum(y**4) - jnp.sum(y**2)  # a new function object: no cache hit
             metric = jaxgeom.hessian_metric(fitness, 0.1)
-            times[name].append(seconds(lambda: jaxgeom.ricci_scalar(tess, metric=metric)))
+            times[name].append(timed(lambda: jaxgeom.ricci_scalar(tess, metric=metric)))
     _metric.small_eigh = _simplex.small_eigh
     row = {"n": n, "d": 3, "ricci_scalar_hessian_metric_first_call_s": {k: summary(v) for k, v in times.items()}}
     print(json.dumps(row), flush=True)
