@@ -365,6 +365,15 @@ def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:
     return arr
 
 
+def refuse_unused(arguments: dict, *, of: str, chosen: str, why: str = "") -> None:
+    """Refuse the `arguments` (name -> value, None when not given) that only `of` uses (e.g.
+    "method='heat'") when the caller chose `chosen`, which ignores them; `why` says how."""
+    given = [name for name, value in arguments.items() if value is not None]
+    if given:
+        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of {of} given with {chosen}, which does not use "
+                         f"them{why}. Drop them, or use {of}.")
+
+
 def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
     valid = tuple(valid)
     if value not in valid:

@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.sparse.csgraph import dijkstra
 
-from ..base._checks import check_choice, check_positive
+from ..base._checks import check_choice, check_positive, refuse_unused
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances, heat_operators
 from ._metric import edge_lengths, warns_on_defective_metric
@@ -86,10 +86,8 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
     sources outside [0, N)). Concrete sources outside [0, N) are a ValueError.
     """
     check_choice(method, "method", GEODESIC_METHODS)
-    given = [name for name, value in (("t", t), ("boundary", boundary), ("solver", solver)) if value is not None]
-    if method != "heat" and given:
-        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of method='heat' given with method={method!r}, which "
-                         "does not use them. Drop them, or use method='heat'.")
+    if method != "heat":
+        refuse_unused({"t": t, "boundary": boundary, "solver": solver}, of="method='heat'", chosen=f"method={method!r}")
     src = _check_sources(sources, tess.n_points)
     if method == "heat":
         return _heat(tess, src, metric, mode=mode, t=t, boundary=boundary or "mean", solver=solver or "auto")

@@ -13,7 +13,7 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ..base._checks import check_choice, check_integer, check_positive
+from ..base._checks import check_choice, check_integer, check_positive, refuse_unused
 from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._weights import (
@@ -145,10 +145,9 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     spacing): the graph has then fallen apart and its small eigenvalues are 0.
     """
     check_choice(method, "method", SPECTRAL_METHODS)
-    given = [name for name, value in (("tol", tol), ("maxiter", maxiter), ("seed", seed)) if value is not None]
-    if method == "scipy" and given:
-        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of method='lobpcg' given with method='scipy', which "
-                         "does not use them (shift-invert eigsh). Drop them, or use method='lobpcg'.")
+    if method == "scipy":
+        refuse_unused({"tol": tol, "maxiter": maxiter, "seed": seed}, of="method='lobpcg'", chosen="method='scipy'",
+                      why=" (shift-invert eigsh)")
     maxiter, seed = (2000 if maxiter is None else maxiter), (0 if seed is None else seed)
     check_positive(tol, "tol", " (LOBPCG's residual tolerance; None: 1e-8 in float64, 1e-3 in float32)")
     check_integer(maxiter, "maxiter", 1)

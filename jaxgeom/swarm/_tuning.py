@@ -221,8 +221,8 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
       (sum over `targets` of (A - target)^2 / target^2, or the plain square for a target 0,
       A the observable averaged over the last `window` of the run and over the seeds), or
       a callable `history -> scalar` (history: the dict `simulate` returns for one seed,
-      with the observables `observe`, without the unmeasured `seconds_*`). The loss is the mean over seeds of the objective
-      (for "match": of the seed-averaged observables).
+      with the observables `observe`, without the unmeasured `seconds_*`). The loss is the
+      mean over seeds of the objective (for "match": of the seed-averaged observables).
     - `n_steps`, `params`: the run and the [`jaxgeom.SwarmParams`][] whose fields `tuned`
       (names in `TUNABLE`) are replaced by the map of theta.
     - `n_seeds`: runs averaged (>= 1), vmapped; their keys are `jax.random.split(key,
