@@ -16,7 +16,8 @@ def _jaxlib_at_least(*wanted: int) -> bool:
 # compilation left (`jaxgeom analyze --n 400 --dim 3`: 13.8 s -> 7.4 s of it; test_trust.py +
 # apps/test_cli.py side by side: 185 s -> 124 s). Results are the same IEEE arithmetic (XLA's
 # fast-math stays off), differing from XLA's defaults by rounding only. JAXGEOM_TEST_XLA_OPT=default
-# keeps XLA's own settings; CI runs the slow set that way (the jaxlib miscompile guard among them).
+# keeps XLA's own settings; CI runs the slow reliability studies that way (the jaxlib miscompile
+# guard among them).
 # (The emitter flag exists in the jaxlib 0.8 the suite is measured with; an unknown flag
 # aborts XLA, so older jaxlibs, which pyproject.toml still allows, do without it.)
 if os.environ.get("JAXGEOM_TEST_XLA_OPT", "0") != "default":

@@ -293,7 +293,7 @@ def test_float32_curvature_and_volumes_work_at_extreme_but_representable_scales(
     np.testing.assert_allclose(ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric=metric))[interior], rtol=2e-2, atol=2e-2)
 
 
-@pytest.mark.slow  # meaningful at XLA's default optimisation level: CI runs the slow set that way
+@pytest.mark.slow  # meaningful at XLA's default optimisation level: CI runs this module's slow tests that way
 @pytest.mark.parametrize("n", [5000, 16384, 30720])
 def test_float32_hessians_are_symmetric_at_every_batch_size(n):
     """jaxlib 0.10.2 miscompiled this on CPU (asymmetric, entries off by 15% at n = 16384 and

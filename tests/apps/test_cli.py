@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxgeom
+from jaxgeom.apps._landscapes import sample_boltzmann
 from jaxgeom.cli import main
 
 
@@ -42,8 +43,26 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     assert np.isfinite(exact["exact_same_walkers"]) and np.isfinite(exact["regge_same_walkers"])
 
 
+def test_analyze_accepts_a_landscape_file_like_simulate(tmp_path, capsys):
+    """A .py landscape is the same landscape as the built-in it copies: identical metric and
+    curvature sections on the same walkers (600, as the test above: one compilation serves the three runs)."""
+    (tmp_path / "dw.py").write_text("from jaxgeom.apps._landscapes import double_well as V\nBOX = (-2.5, 2.5)\n")
+    points = tmp_path / "x.npy"
+    np.save(points, sample_boltzmann("double_well", 600, 2, seed=2)[0])
+    reports = []
+    for spec in ("double_well", str(tmp_path / "dw.py")):
+        out = tmp_path / spec.replace("/", "_")
+        assert main(["analyze", "--points", str(points), "--landscape", spec, "--out", str(out)]) == 0
+        reports.append(json.loads((out / "summary.json").read_text()))
+    capsys.readouterr()
+    for section in ("curvature", "cells", "graph_proxies"):
+        for key, value in reports[0][section].items():
+            if isinstance(value, float) and "seconds" not in key:
+                assert reports[1][section][key] == pytest.approx(value, rel=1e-12, nan_ok=True), (section, key)
+
+
 def test_analyze_flat_metric_has_zero_curvature(tmp_path):
-    assert main(["analyze", "--n", "500", "--metric", "none", "--out", str(tmp_path)]) == 0
+    assert main(["analyze", "--n", "200", "--metric", "none", "--out", str(tmp_path)]) == 0  # as the beta = 0 test
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["curvature"]["tier2_ricci_max"] == report["curvature"]["tier2_ricci_min"] == 0.0
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
@@ -155,8 +174,10 @@ def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
                                       "    return jnp.sum(x ** 2)\n")
     assert main(["simulate", "--landscape", str(tmp_path / "bowl.py"), "--n", "200", "--steps", "6", "--dim", "4",
                  "--graph", "knn", "--k", "8", "--gap-every", "0", "--no-cloning",
-                 "--no-progress"]) == 0
+                 "--no-progress", "--out", str(tmp_path / "out")]) == 0
     assert "mean_fitness" in capsys.readouterr().out
+    for figure in ("swarm.png", "observables.png"):  # drawn for a k-NN swarm in 4D too
+        assert (tmp_path / "out" / figure).stat().st_size > 10_000
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -170,8 +191,8 @@ def test_simulate_reports_bad_input(argv, message, capsys):
 
 
 def test_tune_prints_iterations_and_writes_json_and_figure(tmp_path, capsys):
-    assert main(["tune", "--n", "40", "--steps", "4", "--seeds", "2", "--max-steps", "2", "--grid", "2",
-                 "--tune", "nu", "eps_sigma", "--no-progress", "--out", str(tmp_path)]) == 0
+    assert main(["tune", "--n", "30", "--steps", "3", "--max-steps", "2", "--seeds", "2", "--tune", "nu",
+                 "eps_sigma", "--grid", "2", "--out", str(tmp_path), "--no-progress"]) == 0  # as the Ctrl-C tests below
     out = capsys.readouterr().out
     assert re.search(r"iter\s+loss\s+\|grad\|\s+nu\s+eps_sigma", out) and "true values:" in out
     assert re.search(r"found:\s+nu=\S+ \+- \S+\s+eps_sigma=\S+ \+- \S+", out)
@@ -279,6 +300,7 @@ def test_ctrl_c_during_simulate_writes_the_steps_that_ran(tmp_path):
     assert (tmp_path / "swarm.png").stat().st_size > 0 and (tmp_path / "observables.png").stat().st_size > 0
 
 
+@pytest.mark.slow  # the default tier: a real SIGINT while tune compiles, and Ctrl-C read between iterations below
 def test_ctrl_c_during_tune_writes_the_iterations_that_ran(tmp_path):
     status, err = _interrupt_when(["tune", "--n", "30", "--steps", "5", "--max-steps", "100000", "--seeds", "1",
                                    "--tune", "nu"], r"\b([1-9]\d*)/100001", tmp_path, timeout=480)

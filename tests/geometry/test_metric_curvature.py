@@ -132,7 +132,8 @@ def test_gradients_in_eps_sigma_and_a_landscape_parameter_match_central_differen
     np.testing.assert_allclose(gx, 0.0, atol=1e-9)  # constant curvature: no gradient in the points
 
 
-@pytest.mark.parametrize("d", [2, 3, 4, 5, 6])
+@pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.slow), pytest.param(4, marks=pytest.mark.slow),
+                               pytest.param(5, marks=pytest.mark.slow), 6])  # the sweep in d: slow
 def test_exact_hessian_form_equals_the_christoffel_form(d):
     fitness = convex_landscape(d, d)
     x = points(10, d, scale=1.0)
@@ -156,7 +157,8 @@ def test_separable_landscapes_give_flat_hessian_metrics():
     np.testing.assert_allclose(jaxgeom.metric_curvature(metric, x), 0.0, atol=1e-10)
 
 
-@pytest.mark.parametrize("d", [2, 3, 4, 5, 6])
+@pytest.mark.parametrize("d", [pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(4, marks=pytest.mark.slow),
+                               pytest.param(5, marks=pytest.mark.slow), 6])  # the sweep in d: slow
 def test_stochastic_form_is_unbiased_within_three_standard_errors(d):
     metric = jaxgeom.hessian_metric(convex_landscape(d, d), 0.05)
     x = points(12, d, scale=1.0)
