@@ -2,8 +2,6 @@
 the states, continued runs against one run, the spectral gap's components, cells clipped to
 the box against scipy's half-space intersection, the CLI's reports and figures."""
 
-import json
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -82,24 +80,6 @@ def test_expansion_under_a_known_uniform_expansion(rng):
     expected = 2 * np.log((1 + n * rate * dt) / (1 + (n - 1) * rate * dt)) / dt
     assert np.isnan(history["mean_expansion"][0])
     np.testing.assert_allclose(history["mean_expansion"][1:], expected, rtol=1e-10)
-
-
-def test_cli_history_equals_one_call_and_every_gap_is_on_schedule(tmp_path, capsys):
-    """10 steps run as segments of 4, 4, 2 (the figure's snapshots), gaps every 3 steps."""
-    assert main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress",
-                 "--out", str(tmp_path)]) == 0
-    printed = capsys.readouterr().out
-    history = json.loads((tmp_path / "history.json").read_text())
-    assert history["spectral_gap"]["step"] == [0, 3, 6, 9] and "spectral gap at steps [0, 3, 6, 9]" in printed
-    fitness, _, half = LANDSCAPES["rastrigin"]
-    x0 = np.random.default_rng(0).uniform(-half, half, (120, 2))
-    params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=1.0, nu=0.1, eps_sigma=0.1, clone_rate=0.1)
-    state = jaxgeom.init_swarm(fitness, x0, key=0)
-    _, whole = jaxgeom.simulate(fitness, state, params, n_steps=10, spectral_gap_every=3)
-    for name in ("mean_expansion", "velocity_variance", "mean_ricci", "n_clones"):
-        cli = np.array([np.nan if v is None else v for v in history["series"][name]])
-        np.testing.assert_allclose(cli, np.asarray(whole[name]), rtol=1e-10, atol=1e-12, equal_nan=True)
-    np.testing.assert_allclose(history["spectral_gap"]["value"], np.asarray(whole["spectral_gap"]), rtol=1e-8)
 
 
 def test_the_largest_component_has_a_resolved_gap(rng):
@@ -184,23 +164,6 @@ def test_clipped_volumes_in_float32(rng):
         vol = jaxgeom.voronoi_volumes(jaxgeom.delaunay(x, box=(0.0, 1.0)))
         assert vol.dtype == jnp.float32
         np.testing.assert_allclose(float(jnp.sum(vol)), 1.0, rtol=1e-5)
-
-
-def test_analyze_points_without_a_landscape_reports_only_geometry(tmp_path, capsys):
-    np.save(tmp_path / "pts.npy", np.random.default_rng(0).random((300, 2)))
-    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--box", "0", "1", "--out", str(tmp_path)]) == 0
-    report = json.loads((tmp_path / "summary.json").read_text())
-    assert report["swarm"]["landscape"].startswith("none") and report["metric"]["kind"] == "none"
-    assert "skipped" in report["estimation"] and "best_fitness" not in report["graph_proxies"]
-    assert "total_finite" not in report["volumes"]
-    np.testing.assert_allclose(report["volumes"]["total_in_box"], 1.0, rtol=1e-12)
-    assert 0 < report["volumes"]["tier2_total"] < 1
-    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--landscape", "quadratic",
-                 "--out", str(tmp_path)]) == 0
-    report = json.loads((tmp_path / "summary.json").read_text())
-    assert report["swarm"]["landscape"] == "quadratic" and report["metric"]["kind"] == "hessian"
-    assert "best_fitness" in report["graph_proxies"] and "walkers_with_hessian" in report["estimation"]
-    capsys.readouterr()
 
 
 def test_an_undetermined_hessian_fit_warns_and_analyze_picks_k_from_d(rng):

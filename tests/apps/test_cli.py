@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxgeom
-from jaxgeom.apps._landscapes import sample_boltzmann
+from jaxgeom.apps._landscapes import LANDSCAPES, sample_boltzmann
 from jaxgeom.cli import main
 
 
@@ -66,6 +66,23 @@ def test_analyze_flat_metric_has_zero_curvature(tmp_path):
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["curvature"]["tier2_ricci_max"] == report["curvature"]["tier2_ricci_min"] == 0.0
     assert "kind" in report["metric"] and "tier2_condition_mean" not in report["metric"]
+
+
+def test_analyze_points_without_a_landscape_reports_only_geometry(tmp_path, capsys):
+    np.save(tmp_path / "pts.npy", np.random.default_rng(0).random((200, 2)))  # as the flat-metric and beta = 0 tests
+    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--box", "0", "1", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["swarm"]["landscape"].startswith("none") and report["metric"]["kind"] == "none"
+    assert "skipped" in report["estimation"] and "best_fitness" not in report["graph_proxies"]
+    assert "total_finite" not in report["volumes"]
+    np.testing.assert_allclose(report["volumes"]["total_in_box"], 1.0, rtol=1e-12)
+    assert 0 < report["volumes"]["tier2_total"] < 1
+    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--landscape", "quadratic",
+                 "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert report["swarm"]["landscape"] == "quadratic" and report["metric"]["kind"] == "hessian"
+    assert "best_fitness" in report["graph_proxies"] and "walkers_with_hessian" in report["estimation"]
+    capsys.readouterr()
 
 
 @pytest.mark.slow
@@ -150,23 +167,42 @@ def test_simulate_writes_time_series_and_figures(tmp_path, capsys, monkeypatch):
     saved, savefig = [], matplotlib.figure.Figure.savefig
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
                                                                                     savefig(fig, *a, **k))[1])
-    assert main(["simulate", "--n", "300", "--steps", "12", "--gap-every", "4", "--no-progress", "--scutoids",
+    assert main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     scutoid_series = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction", "mean_neighbor_change")
     assert all(name in out for name in scutoid_series), "--scutoids: the table shows the scutoid observables"
     assert "best_fitness" in out and "total clones" in out
     history = json.loads((tmp_path / "history.json").read_text())
-    assert len(history["series"]["mean_fitness"]) == 13 and len(history["series"]["time"]) == 13
+    assert len(history["series"]["mean_fitness"]) == 11 and len(history["series"]["time"]) == 11
     assert history["dtype"] == "float64"  # the default of both commands
     assert history["series"]["best_fitness"][-1] <= history["series"]["best_fitness"][0]
-    assert history["spectral_gap"]["step"] == [0, 4, 8, 12]
+    assert history["spectral_gap"]["step"] == [0, 3, 6, 9]
     assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
     fractions = np.array([history["series"][name] for name in scutoid_series[:3]], dtype=float)
     assert np.isnan(fractions[:, 0]).all(), "no scutoid before the first step"
     np.testing.assert_allclose(fractions[:, 1:].sum(axis=0), 1.0, rtol=1e-12)
     titles = {ax.get_title() for fig in saved for ax in fig.axes}
     assert any(title.startswith("prisms") for title in titles) and any(t.startswith("complex") for t in titles)
+
+
+def test_cli_history_equals_one_call_and_every_gap_is_on_schedule(tmp_path, capsys):
+    """10 steps run as segments of 4, 4, 2 (the figure's snapshots), gaps every 3 steps (the
+    arguments of the test above: one compilation serves both)."""
+    assert main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
+                 "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert history["spectral_gap"]["step"] == [0, 3, 6, 9] and "spectral gap at steps [0, 3, 6, 9]" in printed
+    fitness, _, half = LANDSCAPES["rastrigin"]
+    x0 = np.random.default_rng(0).uniform(-half, half, (120, 2))
+    params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=1.0, nu=0.1, eps_sigma=0.1, clone_rate=0.1)
+    state = jaxgeom.init_swarm(fitness, x0, key=0)
+    _, whole = jaxgeom.simulate(fitness, state, params, n_steps=10, spectral_gap_every=3)
+    for name in ("mean_expansion", "velocity_variance", "mean_ricci", "n_clones"):
+        cli = np.array([np.nan if v is None else v for v in history["series"][name]])
+        np.testing.assert_allclose(cli, np.asarray(whole[name]), rtol=1e-10, atol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(history["spectral_gap"]["value"], np.asarray(whole["spectral_gap"]), rtol=1e-8)
 
 
 def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
