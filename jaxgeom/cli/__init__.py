@@ -17,7 +17,7 @@ import numpy as np
 
 from ..base._progress import deferred_interrupt
 from ._analyze import add_analyze_parser, analyze_main
-from ._simulate import add_simulate_parser, simulate_main
+from ._simulate import INTERRUPTED, add_simulate_parser, simulate_main
 from ._tune import add_tune_parser, tune_main
 
 
@@ -49,12 +49,14 @@ def machine_tag() -> str:
     """A short name for this CPU's instruction set: compiled CPU programs run only where every
     feature they were built for exists, so a cache shared between machines (a network home)
     keeps one folder per tag."""
-    flags = platform.processor()
+    flags = None
     try:
         with open("/proc/cpuinfo") as info:
-            flags = next((line for line in info if line.startswith(("flags", "Features"))), flags)
+            flags = next((line for line in info if line.startswith(("flags", "Features"))), None)
     except OSError:
         pass
+    if flags is None:  # not Linux; platform.processor() starts a process on some systems
+        flags = platform.processor()
     return hashlib.sha1(f"{platform.machine()} {flags}".encode()).hexdigest()[:12]
 
 
@@ -122,10 +124,13 @@ def main(argv=None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     check_arguments(parser, args)
-
-    jax.config.update("jax_enable_x64", args.precision == "float64")
-    if use_compile_cache(args.compile_cache) is not None and argv is None:
-        quiet_false_cache_alarms()
+    try:
+        jax.config.update("jax_enable_x64", args.precision == "float64")
+        if use_compile_cache(args.compile_cache) is not None and argv is None:
+            quiet_false_cache_alarms()
+    except KeyboardInterrupt:  # before the command began: one line and 130, as once it runs
+        print(f"jaxgeom {args.command}: interrupted before it began; nothing written", file=sys.stderr)
+        return INTERRUPTED
     if args.command == "analyze":  # no iterations to stop between: Ctrl-C as usual
         return analyze_main(args)
     with deferred_interrupt():  # Ctrl-C ends simulate / tune at the next step or iteration

@@ -303,6 +303,8 @@ def _interrupt_when(argv, pattern, tmp_path, timeout=240, after=None):
     import time
 
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    if pattern is None:  # a SIGINT at a time, not at a line: one start (no restart for the cache's log level)
+        env["JAXGEOM_COMPILE_CACHE"] = "0"
     proc = subprocess.Popen([sys.executable, "-m", "jaxgeom.cli", *argv, "--out", str(tmp_path), "--progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=tmp_path)
     err = []
@@ -356,14 +358,27 @@ def test_ctrl_c_in_tune_ends_with_the_message_and_130(moment, pattern, after, tm
     status, err = _interrupt_when(["tune", "--n", "30", "--steps", "4", "--max-steps", "2", "--seeds", "2",
                                    "--tune", "nu", "eps_sigma", "--grid", "3"], pattern, tmp_path, after=after)
     assert status == 130 and "Traceback" not in err, (moment, err)
-    line = re.search(r"jaxgeom tune: interrupted at iteration (\d+) of 2(; the iterations that ran are written|"
-                     r"; nothing written)", err)
+    line = re.search(r"jaxgeom tune: interrupted (?:at iteration (\d+) of 2|before it began)(; the iterations that "
+                     r"ran are written|; nothing written)", err)
     assert line, (moment, err)
     if line.group(2).startswith("; the"):
         report = json.loads((tmp_path / "tune.json").read_text())
         assert len(report["iterations"]) == int(line.group(1)) + 1
     if pattern is not None:
         assert line.group(2).startswith("; the"), (moment, err)
+
+
+def test_a_ctrl_c_before_the_command_begins_is_one_line_and_130(monkeypatch, capsys):
+    """Once: a Ctrl-C while the command line set itself up (a slow machine, 4 s after the start)
+    ended in a traceback."""
+    import jaxgeom.cli as cli
+
+    def interrupted(choice):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "use_compile_cache", interrupted)
+    assert main(["tune", "--n", "30", "--steps", "3", "--tune", "nu"]) == 130
+    assert capsys.readouterr().err == "jaxgeom tune: interrupted before it began; nothing written\n"
 
 
 @pytest.mark.parametrize("moment", ["the last solver step", "the standard errors", "the loss grid"])
