@@ -41,13 +41,10 @@ _CACHE_OWNER = "JAXGEOM_COMPILE_CACHE_DIR" not in os.environ
 if os.environ.get("JAXGEOM_TEST_COMPILE_CACHE", "1") != "0":
     if _CACHE_OWNER:
         os.environ["JAXGEOM_COMPILE_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxgeom-test-xla-")
-    from jaxgeom.cli import machine_tag  # the folder the command lines use (one per CPU type)
+    from jaxgeom.cli import use_compile_cache  # the command lines' own set-up: their folder (one per CPU type)
 
-    _cache = os.path.join(os.environ["JAXGEOM_COMPILE_CACHE_DIR"], machine_tag())
-    os.makedirs(_cache, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", _cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    if use_compile_cache(True) is None:
+        raise RuntimeError(f"the suite's compile cache in {os.environ['JAXGEOM_COMPILE_CACHE_DIR']} cannot be created")
 else:
     os.environ.setdefault("JAXGEOM_COMPILE_CACHE", "0")  # and the command lines the tests run
 
