@@ -32,6 +32,13 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
+# CPython's cyclic collector less often: tracing and lowering, half the suite's time, allocate
+# millions of short-lived containers, and the default young-generation threshold (700) runs the
+# collector thousands of times per program (~20% of their time: bench/gc_thresholds.py).
+# JAXGEOM_TEST_GC=default keeps Python's thresholds.
+if os.environ.get("JAXGEOM_TEST_GC") != "default":
+    gc.set_threshold(50_000, 20, 100)
+
 # One persistent compilation cache for the whole run, shared by the xdist workers and by the
 # command lines the tests start (in-process or as children): a program compiled by one test is
 # read back by the next that needs it, in any worker, also after `_free_compiled_programs`
