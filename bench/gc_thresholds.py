@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -69,7 +70,7 @@ def main() -> None:
         "peak_rss_mb": {s: summary(v) for s, v in memory.items()},
         "ratio_suite_over_default": float(np.median(seconds["suite"]) / np.median(seconds["default"])),
         "rounds": args.rounds,
-        "machine": f"{platform.machine()}, {__import__('os').cpu_count()} cores",
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "python": platform.python_version(),
         "jax": __import__("jax").__version__,
     }
