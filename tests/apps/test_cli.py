@@ -161,24 +161,37 @@ def test_analyze_reports_bad_input_clearly(tmp_path, capsys):
     assert "NaN or inf" in capsys.readouterr().err
 
 
-def test_simulate_writes_time_series_and_figures(tmp_path, capsys, monkeypatch):
+@pytest.fixture(scope="module")
+def simulate_run(tmp_path_factory):
+    """One `jaxgeom simulate` run read by the tests below: its printed table, its history.json,
+    the figures it saved and its output folder."""
+    import contextlib
+    import io
+
     import matplotlib.figure
 
-    saved, savefig = [], matplotlib.figure.Figure.savefig
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
-                                                                                    savefig(fig, *a, **k))[1])
-    assert main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
-                 "--out", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
+    out_dir = tmp_path_factory.mktemp("simulate")
+    saved, savefig, printed = [], matplotlib.figure.Figure.savefig, io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
+                                                                                 savefig(fig, *a, **k))[1])
+        status = main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
+                       "--out", str(out_dir)])
+    history = json.loads((out_dir / "history.json").read_text()) if status == 0 else None
+    return {"status": status, "out": printed.getvalue(), "history": history, "saved": saved, "dir": out_dir}
+
+
+def test_simulate_writes_time_series_and_figures(simulate_run):
+    assert simulate_run["status"] == 0
+    out, history, saved, out_dir = (simulate_run[k] for k in ("out", "history", "saved", "dir"))
     scutoid_series = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction", "mean_neighbor_change")
     assert all(name in out for name in scutoid_series), "--scutoids: the table shows the scutoid observables"
     assert "best_fitness" in out and "total clones" in out
-    history = json.loads((tmp_path / "history.json").read_text())
     assert len(history["series"]["mean_fitness"]) == 11 and len(history["series"]["time"]) == 11
     assert history["dtype"] == "float64"  # the default of both commands
     assert history["series"]["best_fitness"][-1] <= history["series"]["best_fitness"][0]
     assert history["spectral_gap"]["step"] == [0, 3, 6, 9]
-    assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
+    assert (out_dir / "swarm.png").stat().st_size > 10_000 and (out_dir / "observables.png").stat().st_size > 10_000
     fractions = np.array([history["series"][name] for name in scutoid_series[:3]], dtype=float)
     assert np.isnan(fractions[:, 0]).all(), "no scutoid before the first step"
     np.testing.assert_allclose(fractions[:, 1:].sum(axis=0), 1.0, rtol=1e-12)
@@ -186,13 +199,11 @@ def test_simulate_writes_time_series_and_figures(tmp_path, capsys, monkeypatch):
     assert any(title.startswith("prisms") for title in titles) and any(t.startswith("complex") for t in titles)
 
 
-def test_cli_history_equals_one_call_and_every_gap_is_on_schedule(tmp_path, capsys):
-    """10 steps run as segments of 4, 4, 2 (the figure's snapshots), gaps every 3 steps (the
-    arguments of the test above: one compilation serves both)."""
-    assert main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
-                 "--out", str(tmp_path)]) == 0
-    printed = capsys.readouterr().out
-    history = json.loads((tmp_path / "history.json").read_text())
+def test_cli_history_equals_one_call_and_every_gap_is_on_schedule(simulate_run):
+    """10 steps run as segments of 4, 4, 2 (the figure's snapshots), gaps every 3 steps: the
+    command line's history against one `jaxgeom.simulate` call."""
+    assert simulate_run["status"] == 0
+    printed, history = simulate_run["out"], simulate_run["history"]
     assert history["spectral_gap"]["step"] == [0, 3, 6, 9] and "spectral gap at steps [0, 3, 6, 9]" in printed
     fitness, _, half = LANDSCAPES["rastrigin"]
     x0 = np.random.default_rng(0).uniform(-half, half, (120, 2))
