@@ -14,12 +14,23 @@ backend, medians (min, max) over `--repeat` calls after a warm-up call (compilat
 - `no_rebuild`: the step without its rebuild, (10 step_10 - step) / 9;
 - `kernels`: the warm kernels of a step on the state's graph (Voronoi volumes, viscous force,
   Ricci scalar, fitness gradient), and their sum with the force twice;
-- `delaunay`: one `jaxgeom.delaunay` of the walkers with that backend.
+- `delaunay`: one `jaxgeom.delaunay` of the walkers with that backend;
+- `parts` (with `--parts`): where one rebuild's time goes, warm: the bare triangulation
+  (`triangulate`: for CuPy the host-to-device copy, gDel2D, the device check and the simplices'
+  copy back with their adjacency), `planar_triangles` (that plus degrees and padding) and
+  `build_delaunay` (that plus the input checks and the jitted fan walk), and for CuPy gDel2D
+  alone on device float64 points; the cProfile of one `build_delaunay` goes to stdout.
+
+A row that raises is recorded with its error and the run goes on; the JSON is rewritten after
+each row, so a run cut short keeps the rows it finished.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import io
+import pstats
 import json
 import os
 import platform
@@ -32,6 +43,8 @@ import numpy as np
 import jaxgeom
 from _timing import summary, timed
 from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.tessellation import _triangulators as triangulators
+from jaxgeom.tessellation._delaunay import build_delaunay, planar_triangles
 
 OBSERVE = ("mean_fitness", "best_fitness", "n_clones")
 
@@ -42,6 +55,7 @@ def row(n: int, backend: str, steps: int, repeat: int) -> dict:
     params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=1.0, nu=0.1, eps_sigma=0.1, weights="kernel",
                                  clone_rate=0.1)
     state, _ = jaxgeom.simulate(rastrigin, state, params, n_steps=10, observe=OBSERVE)  # warm, and a real swarm
+    jaxgeom.simulate(rastrigin, state, params, n_steps=10, rebuild_every=10, observe=OBSERVE)  # compile 10-step chunks
     every, tenth = [], []
     for _ in range(repeat):
         every.append(timed(lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=steps, observe=OBSERVE)[0]
@@ -49,11 +63,12 @@ def row(n: int, backend: str, steps: int, repeat: int) -> dict:
         tenth.append(timed(lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=10, rebuild_every=10,
                                                     observe=OBSERVE)[0].positions) / 10)
     tess, v = state.tess, state.velocities
+    fitness_gradient = jax.jit(jax.vmap(jax.grad(rastrigin)))
     kernels = {
         "voronoi_volumes": lambda: jaxgeom.voronoi_volumes(tess),
         "viscous_force": lambda: jaxgeom.viscous_force(tess, v, nu=0.1),
         "ricci_scalar": lambda: jaxgeom.ricci_scalar(tess),
-        "fitness_gradient": lambda: jax.jit(jax.vmap(jax.grad(rastrigin)))(state.positions),
+        "fitness_gradient": lambda: fitness_gradient(state.positions),
     }
     warm = {}
     for name, fn in kernels.items():
@@ -69,23 +84,67 @@ def row(n: int, backend: str, steps: int, repeat: int) -> dict:
             "delaunay": summary(build)}
 
 
+def parts(x: np.ndarray, backend: str, repeat: int) -> dict:
+    calls = {"triangulate": lambda: triangulators.triangulate(x, backend).tri.simplices,
+             "planar_triangles": lambda: planar_triangles(x, None, backend)[0],
+             "build_delaunay": lambda: build_delaunay(x, triangulator=backend)[0].neighbors}
+    if backend == "cupy":
+        import cupy
+        from cupyx.scipy.spatial import Delaunay as CupyDelaunay
+
+        xd = cupy.asarray(x, cupy.float64)
+
+        def gdel2d():
+            out = CupyDelaunay(xd).simplices
+            cupy.cuda.runtime.deviceSynchronize()
+            return out
+
+        calls = {"gdel2d": gdel2d, **calls}
+    out = {}
+    for name, fn in calls.items():
+        fn()
+        out[name] = summary([timed(fn) for _ in range(repeat)])
+    profile = cProfile.Profile()
+    profile.enable()
+    jax.block_until_ready(build_delaunay(x, triangulator=backend)[0].neighbors)
+    profile.disable()
+    text = io.StringIO()
+    pstats.Stats(profile, stream=text).sort_stats("cumulative").print_stats(18)
+    print(f"== cProfile of one build_delaunay, n = {len(x)}, {backend}\n{text.getvalue()}", flush=True)
+    return out
+
+
+def safe_row(n: int, backend: str, args) -> dict:
+    out = {"n": n, "triangulator": backend}
+    try:
+        out.update(row(n, backend, args.steps, args.repeat))
+        if n in args.parts and backend in args.parts_triangulators:
+            x = np.random.default_rng(1).uniform(-5.12, 5.12, (n, 2))
+            out["parts"] = parts(x, backend, args.repeat)
+    except Exception as err:  # noqa: BLE001 - a bench run records a failing backend and goes on
+        out["error"] = f"{type(err).__name__}: {err}"[:2000]
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
     parser.add_argument("--triangulators", nargs="+", default=["cupy", "cdt"])
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--parts", type=int, nargs="*", default=[],
+                        help="sizes at which to break one rebuild into its parts")
+    parser.add_argument("--parts-triangulators", nargs="+", default=["cupy"])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "gpu_step.json")
     args = parser.parse_args()
-    rows = []
+    rows, device = [], jax.devices()[0]
     for n in args.sizes:
         for backend in args.triangulators:  # side by side, size by size
-            rows.append(row(n, backend, args.steps, args.repeat))
+            rows.append(safe_row(n, backend, args))
             print(json.dumps(rows[-1]), flush=True)
-    device = jax.devices()[0]
-    args.out.write_text(json.dumps({"rows": rows, "device": f"{device.platform}: {device.device_kind}",
-                                    "jax": jax.__version__, "machine": platform.machine(), "cpus": os.cpu_count(),
-                                    "date": time.strftime("%Y-%m-%d")}, indent=1))
+            args.out.write_text(json.dumps({"rows": rows, "device": f"{device.platform}: {device.device_kind}",
+                                            "jax": jax.__version__, "machine": platform.machine(),
+                                            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}, indent=1))
 
 
 if __name__ == "__main__":
