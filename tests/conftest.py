@@ -66,33 +66,11 @@ def rng():
     return np.random.default_rng(12345)
 
 
-def _memory_maps_and_resident_gb() -> tuple[int, float]:
-    with open("/proc/self/maps") as maps:
-        n_maps = sum(1 for _ in maps)
-    with open("/proc/self/status") as status:
-        kb = next(int(line.split()[1]) for line in status if line.startswith("VmRSS"))
-    return n_maps, kb / 1e6
-
-
-def _max_map_count() -> int:
-    try:
-        with open("/proc/sys/vm/max_map_count") as f:
-            return int(f.read())
-    except OSError:
-        return 65530
-
-
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
-    """Keep the compiled programs for the worker's next modules (they share many: ~7% of the
-    default run), and drop them once the process holds half of Linux's vm.max_map_count in
-    memory maps or 6 GB resident. XLA's CPU code lives in ~3 memory maps per executable; a
-    whole suite in one process passed vm.max_map_count (65530) and segfaulted inside the
-    compiler. JAXGEOM_TEST_CLEAR=module drops them after every module."""
+    """Drop each module's compiled programs when it ends. XLA's CPU code lives in ~3 memory
+    maps per executable; a whole suite in one process passed Linux's vm.max_map_count (65530)
+    and segfaulted inside the compiler."""
     yield
-    if os.environ.get("JAXGEOM_TEST_CLEAR") != "module" and os.path.exists("/proc/self/maps"):
-        n_maps, resident_gb = _memory_maps_and_resident_gb()
-        if n_maps < _max_map_count() // 2 and resident_gb < 6.0:
-            return
     jax.clear_caches()
     gc.collect()
