@@ -30,10 +30,10 @@ from __future__ import annotations
 import argparse
 import cProfile
 import io
-import pstats
 import json
 import os
 import platform
+import pstats
 import time
 from pathlib import Path
 
