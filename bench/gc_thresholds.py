@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _timing import summary
+
 CHILD = r"""
 import gc, resource, sys, time
 if sys.argv[1] == "suite":
@@ -62,7 +64,6 @@ def main() -> None:
             seconds[s].append(t)
             memory[s].append(m)
             print(f"round {r}: {s:8s} {t:6.2f} s CPU, peak {m:.0f} MB", flush=True)
-    summary = lambda v: {"median": float(np.median(v)), "min": float(min(v)), "max": float(max(v))}  # noqa: E731
     result = {
         "what": "CPU seconds of tracing + lowering jax.grad(simulation_loss) (rebuild='device'), fresh process each",
         "thresholds": {"default": [700, 10, 10], "suite": [50000, 20, 100]},
