@@ -31,10 +31,11 @@ def test_a_walker_ringed_by_200_others(rng):
     np.testing.assert_allclose(area, 200 * 0.5**2 * np.tan(np.pi / 200), rtol=1e-12)
 
 
+@pytest.mark.parametrize("network", [True, None])
 @pytest.mark.parametrize("width", [5, 32, 33, 100])
-def test_rows_are_sorted_at_any_width(rng, width):
+def test_rows_are_sorted_at_any_width(rng, width, network):
     columns = jnp.asarray(rng.integers(0, 50, (width, 40)), jnp.int32)
-    np.testing.assert_array_equal(np.asarray(sort_rows(columns)), np.sort(np.asarray(columns).T, axis=1))
+    np.testing.assert_array_equal(np.asarray(sort_rows(columns, network=network)), np.sort(np.asarray(columns).T, axis=1))
 
 
 def test_a_fine_grid_far_from_the_origin_triangulates_like_at_the_origin():

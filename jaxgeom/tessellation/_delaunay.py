@@ -495,30 +495,32 @@ def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
     barycentric coordinate of the centre until a simplex contains it (inside) or the face
     is on the hull (outside). Flat simplices stop at once (inside: they have no centre).
     Most centres lie in or next to their simplex: after `HULL_WALK_ALL` steps of all
-    simplices, the ones still walking (near the hull) are gathered into a short buffer and
-    walk on alone (the whole array again only if the buffer overflows), which makes the walk
-    O(S) instead of O(S x longest walk): 0.2 s instead of 2.3 s at N = 1e6 (2D)."""
-    n = tess.n_points
-    table = jnp.concatenate([tess.points, jnp.zeros((1, tess.dim), tess.points.dtype)])
+    simplices, the ones still walking (near the hull) are gathered into short batches
+    (`hull_walk_batch`) that walk on alone, which makes the walk O(S) instead of
+    O(S x longest walk): 0.2 s instead of 2.3 s at N = 1e6 (2D). The batches reuse one
+    traced walk, so the program holds two walks (all simplices, one batch)."""
     s_count = tess.simplices.shape[0]
+    table = jnp.concatenate([tess.points, jnp.zeros((1, tess.dim), tess.points.dtype)])
     start = jnp.arange(s_count, dtype=jnp.int32)
-    state = jnp.where(tess.simplices[:, 0] < n, _WALKING, _INSIDE)
+    state = jnp.where(tess.simplices[:, 0] < tess.n_points, _WALKING, _INSIDE)
     current, state = _hull_walk(tess, table, adjacency, centers, start, state, HULL_WALK_ALL)
-    size = min(s_count, 64 + 8 * math.isqrt(s_count))
-    (rows,) = jnp.nonzero(state == _WALKING, size=size, fill_value=s_count)
-    fits = jnp.sum(state == _WALKING) <= size
+    size = hull_walk_batch(s_count)
 
-    def few(state):
-        rest = HULL_WALK_STEPS - HULL_WALK_ALL
+    def next_batch(carry):  # the next `size` walkers still waiting walk the remaining steps
+        state, waiting = carry
+        (rows,) = jnp.nonzero(waiting, size=size, fill_value=s_count)
         safe = jnp.minimum(rows, s_count - 1)
         _, sub = _hull_walk(tess, table, adjacency, centers[safe], current[safe],
-                            jnp.where(rows < s_count, state[safe], _INSIDE), rest)
-        return state.at[rows].set(sub, mode="drop")
+                            jnp.where(rows < s_count, state[safe], _INSIDE), HULL_WALK_STEPS - HULL_WALK_ALL)
+        return state.at[rows].set(sub, mode="drop"), waiting.at[rows].set(False, mode="drop")
 
-    def all_(state):
-        return _hull_walk(tess, table, adjacency, centers, current, state, HULL_WALK_STEPS - HULL_WALK_ALL)[1]
+    state, _ = jax.lax.while_loop(lambda carry: jnp.any(carry[1]), next_batch, (state, state == _WALKING))
+    return state != _INSIDE
 
-    return jax.lax.cond(fits, few, all_, state) != _INSIDE
+
+def hull_walk_batch(s_count: int) -> int:
+    """Simplices per batch of the long visibility walks (`circumcenters_outside_hull`)."""
+    return min(s_count, 64 + 8 * math.isqrt(s_count))
 
 
 _WALKING, _INSIDE, _OUTSIDE = 0, 1, 2

@@ -95,16 +95,26 @@ def _counterclockwise_corners(simplices, adjacency):
 # others) by XLA's sort, whose cost and compile time stay flat in the width (the network's
 # comparator count grows like K log^2 K, and each comparator is an op XLA compiles).
 MERGE_NETWORK_MAX_WIDTH = 32
+# Fewer rows than this are sorted by XLA's sort: there the network saves at most ~0.3 ms a call
+# on a CPU and costs 0.4-1.2 s more compilation (K = 16-24, bench/README.md "Sorting the
+# neighbour rows"), which a run repays only after thousands of rebuilds.
+MERGE_NETWORK_MIN_ROWS = 4096
 
 
-def sort_rows(columns) -> Int[Array, "N K"]:
+def sort_rows(columns, *, network: bool | None = None) -> Int[Array, "N K"]:
     """Stack K columns (a list of (N,) arrays, or a (K, N) array) into rows sorted ascending:
-    Batcher's odd-even merge network for K <= `MERGE_NETWORK_MAX_WIDTH` (elementwise
-    min/max that XLA fuses; its CPU sort is ~4x slower on short rows), `jnp.sort` beyond."""
-    if len(columns) > MERGE_NETWORK_MAX_WIDTH:
+    Batcher's odd-even merge network (elementwise min/max that XLA fuses; its CPU sort is
+    ~4-10x slower on short rows) for K <= `MERGE_NETWORK_MAX_WIDTH` and N >=
+    `MERGE_NETWORK_MIN_ROWS`, `jnp.sort` otherwise. `network` forces the choice (the network
+    still only up to `MERGE_NETWORK_MAX_WIDTH`)."""
+    width = len(columns)
+    rows = columns[0].shape[0]
+    if network is None:
+        network = rows >= MERGE_NETWORK_MIN_ROWS
+    if not network or width > MERGE_NETWORK_MAX_WIDTH:
         return jnp.sort(jnp.stack(list(columns), axis=1) if isinstance(columns, list) else columns.T, axis=1)
     columns = list(columns)
-    for i, j in _merge_network(len(columns)):
+    for i, j in _merge_network(width):
         columns[i], columns[j] = jnp.minimum(columns[i], columns[j]), jnp.maximum(columns[i], columns[j])
     return jnp.stack(columns, axis=1)
 

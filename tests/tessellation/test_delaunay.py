@@ -45,6 +45,38 @@ def test_tiers_match_brute_force(rng, d, with_box):
     assert counts.min() > 0, "the test set has walkers in every tier"
 
 
+@pytest.mark.parametrize("batch", [None, 3])
+@pytest.mark.parametrize("d", [2, 3])
+def test_circumcentres_outside_the_hull_equal_scipys_point_location(rng, monkeypatch, d, batch):
+    """The visibility walk against scipy's find_simplex, with its long walks in batches of the
+    default size or of 3 simplices (many batches after one another)."""
+    from scipy.spatial import Delaunay
+
+    from jaxgeom.base._simplex import simplex_circumcenter
+    from jaxgeom.tessellation import _delaunay
+
+    if batch is not None:
+        monkeypatch.setattr(_delaunay, "hull_walk_batch", lambda s_count: batch)
+    x = rng.normal(size=(300, d))
+    tri = Delaunay(x)
+    tess = jaxgeom.delaunay(x)
+    ours = np.asarray(tess.simplices)[: len(tri.simplices)]
+    theirs = {tuple(sorted(t)): j for j, t in enumerate(tri.simplices)}
+    to_scipy = np.array([theirs[tuple(sorted(t))] for t in ours])
+    to_ours = np.argsort(to_scipy)
+    adjacency = np.full((tess.simplices.shape[0], d + 1), -1, np.int32)  # the simplex across from each vertex
+    for s, t in enumerate(ours):
+        j = to_scipy[s]
+        for a, vertex in enumerate(t):
+            across = tri.neighbors[j][list(tri.simplices[j]).index(vertex)]
+            adjacency[s, a] = -1 if across < 0 else to_ours[across]
+    centers = jax.vmap(simplex_circumcenter)(_delaunay.simplex_coords(tess))
+    outside = np.asarray(_delaunay.circumcenters_outside_hull(tess, jnp.asarray(adjacency), centers))  # eager: the patch holds
+    expected = tri.find_simplex(np.asarray(centers)[: len(ours)]) < 0
+    assert 10 < expected.sum() < len(expected) - 10
+    np.testing.assert_array_equal(outside[: len(ours)], expected)
+
+
 def test_hull_flags_are_unbounded_cells(rng):
     from scipy.spatial import ConvexHull
 

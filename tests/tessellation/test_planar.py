@@ -30,11 +30,14 @@ def padded(tri, n, s_cap):
     return jnp.asarray(simplices), jnp.asarray(adjacency)
 
 
-@pytest.mark.parametrize("layout", ["random", "grid", "clustered"])
+@pytest.mark.parametrize("layout", ["random", "grid", "clustered", "random, rows sorted by the network"])
 def test_fan_walk_equals_scipy_rows_and_hull(rng, layout):
     """Random points; a square grid (cocircular quadruples, collinear hull points); tight pairs."""
     if layout == "random":
         x = rng.random((500, 2))
+    elif "network" in layout:
+        from jaxgeom.tessellation._planar import MERGE_NETWORK_MIN_ROWS
+        x = rng.random((MERGE_NETWORK_MIN_ROWS + 1, 2))
     elif layout == "grid":
         x = np.stack(np.meshgrid(np.arange(15.0), np.arange(12.0)), axis=-1).reshape(-1, 2)
     else:
@@ -84,16 +87,24 @@ def test_walker_in_no_triangle_is_incomplete(rng):
 def test_merge_network_sorts_every_zero_one_input(k):
     """0-1 principle: a comparator network sorts everything iff it sorts all 2^k 0-1 inputs."""
     bits = np.array(list(itertools.product([0, 1], repeat=k)), np.int32).reshape(-1, k)
-    out = np.asarray(sort_rows([jnp.asarray(bits[:, j]) for j in range(k)]))
+    out = np.asarray(sort_rows([jnp.asarray(bits[:, j]) for j in range(k)], network=True))
     np.testing.assert_array_equal(out, np.sort(bits, axis=1))
     assert all(0 <= i < j < k for i, j in _merge_network(k))
 
 
+@pytest.mark.parametrize("network", [True, None])
 @pytest.mark.parametrize("k", [16, 24, 32])
-def test_sort_rows_on_random_rows(rng, k):
+def test_sort_rows_on_random_rows(rng, k, network):
     a = rng.integers(0, 50, size=(2000, k)).astype(np.int32)
-    out = jax.jit(lambda a: sort_rows([a[:, j] for j in range(k)]))(jnp.asarray(a))
+    out = jax.jit(lambda a: sort_rows([a[:, j] for j in range(k)], network=network))(jnp.asarray(a))
     np.testing.assert_array_equal(np.asarray(out), np.sort(a, axis=1))
+
+
+def test_the_network_sorts_from_its_row_count_on(monkeypatch):
+    from jaxgeom.tessellation import _planar
+    monkeypatch.setattr(_planar, "MERGE_NETWORK_MIN_ROWS", 100)
+    ops = lambda n: len(jax.make_jaxpr(lambda c: sort_rows(c))(jnp.zeros((16, n), jnp.int32)).eqns)  # noqa: E731
+    assert ops(99) < 10 < 100 < ops(100)  # one sort, against the network's min/max pairs
 
 
 def test_planar_triangles_pads_and_checks_capacity(rng):
