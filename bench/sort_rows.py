@@ -49,12 +49,13 @@ def main() -> None:
             for name, network in (("network", True), ("xla_sort", False)):
                 row[name] = measure(n, k, network, args.repeat)
             row["default"] = "network" if n >= _planar.MERGE_NETWORK_MIN_ROWS else "xla_sort"
-            print(f"N={n:>8} K={k}: network first {row['network']['first_call_s']['median']:.2f} s, warm "
-                  f"{row['network']['warm_ms']['median']:.2f} ms | XLA sort first "
-                  f"{row['xla_sort']['first_call_s']['median']:.2f} s, warm {row['xla_sort']['warm_ms']['median']:.2f} ms"
-                  f" | default {row['default']}")
+            net, xla = row["network"], row["xla_sort"]
+            print(f"N={n:>8} K={k}: network first {net['first_call_s']['median']:.2f} s, warm "
+                  f"{net['warm_ms']['median']:.2f} ms | XLA sort first {xla['first_call_s']['median']:.2f} s, "
+                  f"warm {xla['warm_ms']['median']:.2f} ms | default {row['default']}")
             rows.append(row)
-    meta = {"jax": jax.__version__, "device": str(jax.devices()[0]), "machine": platform.processor() or platform.machine(),
+    meta = {"jax": jax.__version__, "device": str(jax.devices()[0]),
+            "machine": platform.processor() or platform.machine(),
             "merge_network_min_rows": _planar.MERGE_NETWORK_MIN_ROWS, "repeat": args.repeat}
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
     print(f"wrote {args.out}")

@@ -95,9 +95,9 @@ def _counterclockwise_corners(simplices, adjacency):
 # others) by XLA's sort, whose cost and compile time stay flat in the width (the network's
 # comparator count grows like K log^2 K, and each comparator is an op XLA compiles).
 MERGE_NETWORK_MAX_WIDTH = 32
-# Fewer rows than this are sorted by XLA's sort: there the network saves at most ~0.3 ms a call
-# on a CPU and costs 0.4-1.2 s more compilation (K = 16-24, bench/README.md "Sorting the
-# neighbour rows"), which a run repays only after thousands of rebuilds.
+# Fewer rows than this are sorted by XLA's sort: there the network saves 0.1-1.5 ms a call on a
+# CPU and costs 0.5-1.5 s more compilation (K = 16-24; bench/README.md, "Sorting the neighbour
+# rows"), which a run repays only after hundreds (near 4096) to thousands (1000) of rebuilds.
 MERGE_NETWORK_MIN_ROWS = 4096
 
 
