@@ -19,11 +19,24 @@ def swarm(n, seed=0, **kwargs):
     return jaxgeom.init_swarm(rastrigin, np.random.default_rng(seed).uniform(-2.0, 2.0, (n, 2)), key=seed, **kwargs)
 
 
+# tests/conftest.py's compile settings for the suite (LLVM optimisation off, XLA's loop emitters).
+# Under them XLA emits some float ops differently for 2 lanes a device than for 8 on one, and the
+# sharded ensemble drifts from the unsharded one by an ulp (velocities at step 3: 4.5e-15
+# relative). The bitwise claim is made, and checked, under XLA's own settings: what users run.
+_SUITE_ONLY_XLA_FLAGS = ("--xla_backend_optimization_level", "--xla_llvm_disable_expensive_passes",
+                         "--xla_cpu_use_fusion_emitters")
+
+
+def _xla_default_env() -> dict[str, str]:
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(_SUITE_ONLY_XLA_FLAGS)]
+    return dict(os.environ, XLA_FLAGS=" ".join(flags))
+
+
 @pytest.mark.multidevice
 def test_sharded_ensembles_and_gradients_equal_one_device():
     script = Path(__file__).with_name("sharded_checks.py")
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900,
-                          env=dict(os.environ))
+                          env=_xla_default_env())
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
     assert "sharded checks passed" in done.stdout
 
