@@ -3,6 +3,7 @@ with the step and the likely cause (dt against the landscape's stiffness, a sing
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,6 +20,14 @@ class SimulationDiverged(FloatingPointError):
 
 
 _health = jax.jit(health)
+_metric_field = eqx.filter_jit(metric_field)
+
+
+@eqx.filter_jit
+def _largest_curvature_and_slope(fitness, x):
+    """Per walker: the largest Hessian eigenvalue of V and |grad V|."""
+    curvature = jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x)  # no batched LAPACK
+    return curvature, jnp.linalg.norm(jax.vmap(jax.grad(fitness))(x), axis=1)
 
 
 def check_health(fitness, params: SwarmParams, codes, first_step: int, before: SwarmState) -> None:
@@ -55,7 +64,7 @@ def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
     x = np.asarray(state.positions)
     x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
     if params.needs_metric:
-        g = np.asarray(metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
+        g = np.asarray(_metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
         lam = np.linalg.eigvalsh(np.where(np.isfinite(g), g, 0.0))[:, 0]
         if not np.isfinite(g).all() or lam.min() <= 0:
             zero = int(np.sum(np.all(g == 0, axis=(1, 2))))
@@ -65,9 +74,8 @@ def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
                     f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s)"
                     f"{f', the zero metric at {zero}' if zero else ''} (smallest eigenvalue {lam.min():.3g}), so "
                     f"{uses} undefined; raise eps_sigma or use floor='softabs'.")
-    curvature = np.asarray(jax.vmap(lambda p: eigh(jax.hessian(fitness)(p))[0][-1])(x))  # no batched LAPACK
+    curvature, slope = map(np.asarray, _largest_curvature_and_slope(fitness, x))
     curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
-    slope = np.linalg.norm(np.asarray(jax.vmap(jax.grad(fitness))(x)), axis=1)
     slope = float(np.max(slope[np.isfinite(slope)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
     if omega_dt > 2.0:

@@ -16,12 +16,12 @@ from jax.sharding import Mesh
 from ..base._progress import close_bar, open_bar, raise_if_interrupted
 from ..base._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, shard_walkers
 from ._divergence import _health, check_health
-from ._dynamics import SwarmState, health
+from ._dynamics import SwarmState
 from ._history import _bulk_gap, _history
 from ._observables import prepare_scutoid_trace
 from ._rebuild import grown, update_host
 from ._steps import (
-    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final, _progress,
+    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final,
     _run_callback, _run_chunk, _run_split,
 )
 
@@ -55,7 +55,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
             state, opening = _finish_and_begin(fitness, params, moved)
             end = min(start + rebuild_every, n_steps)
-            first = _measure_first(fitness, params, entering, cells, _progress(start, n_total, dtype), observe)
+            first = _measure_first(fitness, params, entering, cells, _host_progress(start, n_steps, dtype), observe)
             pending.append((obs, first, end - start))
             jax.block_until_ready(moved.positions)
             codes = [*np.asarray(obs["_health"])[: end - start], int(moved_health)]
@@ -88,6 +88,11 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     return _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, (n_steps, entering))
 
 
+def _host_progress(step: int, n_steps: int, dtype):
+    """`_progress` computed on the host (the same IEEE division; eagerly, jnp compiles three programs)."""
+    return jnp.asarray(np.asarray(step, dtype) / np.asarray(max(n_steps - 1, 1), dtype))
+
+
 def _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, check=None):
     """(state with its final observables, history) from the chunks' pending observables;
     `check` = (step, last sound state): the final state's health is checked too."""
@@ -95,7 +100,7 @@ def _host_history(fitness, params, state, pending, observe, gaps, reallocations,
                for name in observe} for obs, first, size in pending]
     state, final = _observe_final(fitness, params, state, observe)
     if check is not None:
-        check_health(fitness, params, [health(state)], *check)
+        check_health(fitness, params, [_health(state)], *check)
     series = {name: np.concatenate([c[name] for c in chunks] + [np.asarray(final[name])[None]]) for name in observe}
     return state, _history(series, gaps, reallocations, seconds, state, -1)
 
@@ -151,12 +156,19 @@ def _simulate_callback(fitness, state, params, n_steps, rebuild_every, observe, 
             break
         state = prepare_scutoid_trace(eqx.tree_at(lambda s: s.tess, state, grown(state.tess)), observe)
         reallocations += 1
-    codes = jnp.concatenate([obs["_health"], health(final)[None]])
+    codes, series, diverged, fallbacks = _callback_summary(obs, last, final, observe)
     if not traced:
         check_health(fitness, params, codes, 0, state)
-    series = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
-    # Under a trace nothing can be raised: the first step whose state failed `health`, or -1.
-    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
     nan = {"rebuild": jnp.nan, "steps": jnp.nan}
-    fallbacks = jnp.sum(obs["_fallback"], dtype=jnp.int32)
     return final, _history(series, [], reallocations, nan, final, diverged, fallbacks)
+
+
+@eqx.filter_jit
+def _callback_summary(obs: dict, last: dict, final: SwarmState, observe: tuple):
+    """(health codes, observable series, first diverged step or -1, Qhull fallbacks) of a
+    callback-mode run: under a trace nothing can be raised, so divergence is the first step
+    whose state failed `health`."""
+    codes = jnp.concatenate([obs["_health"], _health(final)[None]])
+    series = {name: jnp.concatenate([obs[name], last[name][None]]) for name in observe}
+    diverged = jnp.where(jnp.any(codes != 0), jnp.argmax(codes != 0), -1)
+    return codes, series, diverged, jnp.sum(obs["_fallback"], dtype=jnp.int32)

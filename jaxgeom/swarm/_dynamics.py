@@ -27,6 +27,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from ..base._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
@@ -135,8 +136,9 @@ class ScutoidTrace(eqx.Module):
 
 
 def empty_scutoid_trace(n: int) -> ScutoidTrace:
-    return ScutoidTrace(jnp.arange(n, dtype=jnp.int32), jnp.zeros((n, 0), jnp.int32), jnp.zeros(n, bool),
-                        jnp.asarray(-1, jnp.int32), jnp.zeros(5, jnp.int32))
+    """(host) A trace with no step recorded yet."""
+    return ScutoidTrace(*map(jnp.asarray, (np.arange(n, dtype=np.int32), np.zeros((n, 0), np.int32), np.zeros(n, bool),
+                                           np.int32(-1), np.zeros(5, np.int32))))
 
 
 class SwarmState(eqx.Module):

@@ -41,7 +41,9 @@ SIMPLEX_HEADROOM = 1.1  # 3D simplex counts drift by a few percent
 
 def capacity_with_headroom(tess: Tessellation, previous: Capacity | None = None) -> Capacity:
     """Capacities with room for a moving swarm, for the graph `tess` (at least `previous`)."""
-    need = Capacity(int(np.asarray(tess.simplex_mask).sum()), int(np.asarray(tess.degree).max()))
+    n = tess.n_points  # on the host: the masks as jnp operations compile a program per shape
+    need = Capacity(int(np.count_nonzero(np.asarray(tess.simplices)[:, 0] < n)),
+                    int(np.count_nonzero(np.asarray(tess.neighbors) < n, axis=1).max()))
     return _with_headroom(need, tess, previous)
 
 

@@ -186,6 +186,12 @@ def stack_swarms(states) -> SwarmState:
     if len(structures) > 1 or len(shapes) > 1:
         raise ValueError("the swarms differ in walkers, dimension or graph capacity; build every one with the same "
                          "N and init_swarm(..., capacity=jaxgeom.Capacity(simplices=S, neighbors=K)).")
+    return _stack_leaves(states)
+
+
+@jax.jit
+def _stack_leaves(states: list):
+    """The swarms leaf by leaf on a new leading axis, in one program (eagerly: one per leaf)."""
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
 
 

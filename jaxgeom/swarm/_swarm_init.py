@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,22 +20,33 @@ def check_callable_fitness(fitness) -> None:
         raise TypeError(f"`fitness` must be a JAX function x (d,) -> scalar V(x); got {type(fitness).__name__}.")
 
 
-def check_fitness(fitness, x: np.ndarray) -> None:
-    """`fitness` must map one walker (d,) to a finite scalar at every initial walker."""
+def check_fitness(fitness, x: np.ndarray):
+    """`fitness` must map one walker (d,) to a finite scalar at every initial walker. Returns
+    V and -grad V there (`fitness_and_force`, one compiled program)."""
     check_callable_fitness(fitness)
+    xj = jnp.asarray(x)
     try:
-        values = jax.vmap(fitness)(jnp.asarray(x))
+        out = jax.eval_shape(jax.vmap(fitness), xj)
     except Exception as err:  # noqa: BLE001 - re-raised with the fix
         raise TypeError(f"`fitness` must map one walker x of shape (d,) = ({x.shape[1]},) to a scalar with "
                         f"jax.numpy operations; calling it failed: {err}") from err
-    if jnp.shape(values) != (len(x),):
-        raise TypeError(f"`fitness` must return a scalar per walker (shape ()); it returned shape "
-                        f"{jnp.shape(values)[1:]} for one walker.")
-    check_fitness_dtype(values.dtype)
+    shape = getattr(out, "shape", None)
+    if shape != (len(x),):
+        raise TypeError("`fitness` must return a scalar per walker (shape ()); it returned "
+                        + (f"shape {shape[1:]}" if shape is not None else type(out).__name__) + " for one walker.")
+    check_fitness_dtype(out.dtype)
+    values, force = _fitness_and_force(fitness, xj)
     bad = np.flatnonzero(~np.isfinite(np.asarray(values)))
     if bad.size:
         raise ValueError(f"`fitness` is NaN or inf at {bad.size} initial walker(s), first rows "
                          f"{bad[:5].tolist()}; move them into the landscape's domain.")
+    return values, force
+
+
+# One program each (per fitness and shape) instead of op by op: called eagerly, every primitive
+# of the fitness, its gradient and the spacing compiles on its own (~60 programs per new swarm size).
+_fitness_and_force = eqx.filter_jit(fitness_and_force)
+_mean_spacing = eqx.filter_jit(mean_nearest_neighbor_distance)
 
 
 def check_fitness_dtype(dtype) -> None:
@@ -98,7 +110,8 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
                          "row(s). Repair them or start from velocities=None (zeros).")
     key = _as_key(key)
     backend = resolve_triangulator(triangulator, x.shape[1])
-    check_fitness(fitness, x)
+    x0 = x
+    values, force = check_fitness(fitness, x)
     if capacity is not None and graph == "delaunay":  # pinned: raises CapacityError when the graph does not fit
         tess, reasons = build_delaunay(x, capacity=capacity, triangulator=backend)
         fallbacks = len(reasons)
@@ -106,12 +119,14 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
         tess, _, x, _, fallbacks = allocate_graph(x, graph, k, None, backend)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
-    values, force = fitness_and_force(fitness, xj)
+    if x is not x0 and not np.array_equal(x, x0):  # coinciding walkers were moved apart
+        values, force = _fitness_and_force(fitness, xj)
     n = len(x)
     zero = jnp.asarray(0, jnp.int32)
-    unmeasured = jnp.full(n, jnp.inf, dtype)  # no finite volume known (`SwarmState`)
-    return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.isfinite(values), jnp.zeros(n, bool),
-                      unmeasured, jnp.zeros(n, bool), unmeasured, jnp.zeros(n, bool), jnp.asarray(-1, jnp.int32),
+    none = jnp.asarray(np.zeros(n, bool))  # host-made constants: no program compiled per size
+    unmeasured = jnp.asarray(np.full(n, np.inf), dtype)  # no finite volume known (`SwarmState`)
+    return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.asarray(np.isfinite(np.asarray(values))), none,
+                      unmeasured, none, unmeasured, none, jnp.asarray(-1, jnp.int32),
                       key, tess, zero,
-                      jnp.asarray(mean_nearest_neighbor_distance(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,
+                      jnp.asarray(_mean_spacing(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,
                       jnp.asarray(fallbacks, jnp.int32), empty_scutoid_trace(n), triangulator=backend)

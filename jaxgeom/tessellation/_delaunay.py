@@ -404,7 +404,7 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
     tess = Tessellation(
         points=jnp.asarray(x),
         neighbors=jnp.asarray(nbrs),
-        tier=jnp.full((n,), 2, jnp.int8),
+        tier=jnp.asarray(np.full(n, 2, np.int8)),
         hull=jnp.asarray(raw.hull),
         simplices=jnp.asarray(simplices),
         neighbor_shifts=as_jnp(nbr_shifts),

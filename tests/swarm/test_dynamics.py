@@ -60,6 +60,26 @@ def test_no_recompilation_after_warm_up(rng):
     assert not bool(final.tess.overflow)
 
 
+def test_a_new_swarm_size_compiles_whole_programs_not_single_operations(rng):
+    """init_swarm and simulate's host driver compile a few programs for a swarm size not seen
+    before (the graph build, the fitness and force, the chunk of steps, ...), not one per
+    jax.numpy operation run eagerly on the host (64 in init_swarm and 29 in simulate before; 7 and 11)."""
+    programs = []
+
+    def count(event, duration, **kwargs):
+        if event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            programs.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        state = jaxgeom.init_swarm(bowl, rng.uniform(-1.0, 1.0, (137, 2)), key=0)
+        in_init = len(programs)
+        jaxgeom.simulate(bowl, state, jaxgeom.SwarmParams(), n_steps=2)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(count)
+    assert in_init <= 12 and len(programs) - in_init <= 16, (in_init, len(programs) - in_init)
+
+
 def test_cloning_improves_the_best_fitness_on_rastrigin(rng):
     state = jaxgeom.init_swarm(rastrigin, rng.uniform(2.0, 5.0, (500, 2)), key=0)
     runs = {}
