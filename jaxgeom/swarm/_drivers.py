@@ -21,7 +21,7 @@ from ._history import _bulk_gap, _history
 from ._observables import prepare_scutoid_trace
 from ._rebuild import grown, update_host
 from ._steps import (
-    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final,
+    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final, _progress,
     _run_callback, _run_chunk, _run_split,
 )
 
@@ -55,7 +55,8 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
             state, opening = _finish_and_begin(fitness, params, moved)
             end = min(start + rebuild_every, n_steps)
-            first = _measure_first(fitness, params, entering, cells, _host_progress(start, n_steps, dtype), observe)
+            progress = _jit_progress(jnp.asarray(start, jnp.int32), n_total, dtype)
+            first = _measure_first(fitness, params, entering, cells, progress, observe)
             pending.append((obs, first, end - start))
             jax.block_until_ready(moved.positions)
             codes = [*np.asarray(obs["_health"])[: end - start], int(moved_health)]
@@ -88,9 +89,7 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     return _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, (n_steps, entering))
 
 
-def _host_progress(step: int, n_steps: int, dtype):
-    """`_progress` computed on the host (the same IEEE division; eagerly, jnp compiles three programs)."""
-    return jnp.asarray(np.asarray(step, dtype) / np.asarray(max(n_steps - 1, 1), dtype))
+_jit_progress = jax.jit(_progress, static_argnums=2)  # one program (eagerly: three)
 
 
 def _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, check=None):

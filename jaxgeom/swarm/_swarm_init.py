@@ -110,16 +110,15 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
                          "row(s). Repair them or start from velocities=None (zeros).")
     key = _as_key(key)
     backend = resolve_triangulator(triangulator, x.shape[1])
-    x0 = x
     values, force = check_fitness(fitness, x)
     if capacity is not None and graph == "delaunay":  # pinned: raises CapacityError when the graph does not fit
         tess, reasons = build_delaunay(x, capacity=capacity, triangulator=backend)
-        fallbacks = len(reasons)
+        fallbacks, moved = len(reasons), 0
     else:
-        tess, _, x, _, fallbacks = allocate_graph(x, graph, k, None, backend)
+        tess, _, x, moved, fallbacks = allocate_graph(x, graph, k, None, backend)
     xj = jnp.asarray(x)  # float64 input becomes float32 unless jax_enable_x64 is set
     dtype = xj.dtype
-    if x is not x0 and not np.array_equal(x, x0):  # coinciding walkers were moved apart
+    if moved:  # coinciding walkers were moved apart
         values, force = _fitness_and_force(fitness, xj)
     n = len(x)
     zero = jnp.asarray(0, jnp.int32)

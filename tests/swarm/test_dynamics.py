@@ -63,7 +63,7 @@ def test_no_recompilation_after_warm_up(rng):
 def test_a_new_swarm_size_compiles_whole_programs_not_single_operations(rng):
     """init_swarm and simulate's host driver compile a few programs for a swarm size not seen
     before (the graph build, the fitness and force, the chunk of steps, ...), not one per
-    jax.numpy operation run eagerly on the host (64 in init_swarm and 29 in simulate before; 7 and 11)."""
+    jax.numpy operation run eagerly on the host (64 in init_swarm and 29 in simulate before; 7 and 12)."""
     programs = []
 
     def count(event, duration, **kwargs):
