@@ -35,7 +35,8 @@ from ._contacts import (
     circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts,
 )
 from ._graph import (
-    Capacity, Tessellation, bucket_neighbors, bucket_simplices, neighbor_any, simplex_coords, split_spatial_dims,
+    Capacity, Tessellation, bucket_neighbors, bucket_simplices, bucket_walkers, neighbor_any, simplex_coords,
+    split_spatial_dims,
 )
 from ._planar import fan_neighbors
 from ._triangulators import resolve_triangulator, triangulate
@@ -138,10 +139,7 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
     check_resolved_positions(x, jnp.asarray(x[:1]).dtype)
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
-        points = jnp.asarray(x)
-        return planar_tessellation(points, jnp.asarray(simplices), jnp.asarray(adjacency),
-                                   None if box_arr is None else jnp.asarray(box_arr, points.dtype),
-                                   k_cap=cap.neighbors), fallbacks
+        return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), fallbacks
     raw = _periodic_graph(x, box_arr, backend) if periodic else _plain_graph(x, backend)
     need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
     return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic), raw.fallbacks
@@ -189,13 +187,50 @@ def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacenc
 def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tessellation:
     """Jittable: the 2D `Tessellation` from `planar_triangles`' arrays (neighbour rows by
     walking each vertex's fan, hull flags, tiers); `overflow` if a row needs more than `k_cap`."""
+    tess, complete = _planar_tessellation(points, simplices, adjacency, box, k_cap)
+    return eqx.tree_at(lambda t: t.overflow, tess, ~jnp.all(complete))
+
+
+def _planar_tessellation(points, simplices, adjacency, box, k_cap: int) -> tuple[Tessellation, jax.Array]:
+    """`planar_tessellation`, with whether each walker's row fitted (False for a walker in no triangle)."""
     n = points.shape[0]
     degenerate = planar_degenerate_corners(points, simplices, adjacency)
     neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap, degenerate)
     tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
                         simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
                         overflow=~jnp.all(complete), periodic=False)
-    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency)), complete
+
+
+@functools.partial(jax.jit, static_argnames="k_cap")
+def _planar_rows(points, simplices, adjacency, box, n_walkers, *, k_cap: int):
+    """(neighbors, hull, tier, overflow) of `planar_tessellation` over walkers padded past
+    `n_walkers` (traced) with walkers in no triangle, whose rows are left out of `overflow`."""
+    tess, complete = _planar_tessellation(points, simplices, adjacency, box, k_cap)
+    padding = jnp.arange(points.shape[0], dtype=n_walkers.dtype) >= n_walkers
+    return tess.neighbors, tess.hull, tess.tier, ~jnp.all(complete | padding)
+
+
+def _planar_from_host(x: np.ndarray, simplices: np.ndarray, adjacency: np.ndarray, box, k_cap: int) -> Tessellation:
+    """`planar_tessellation` of host arrays, compiled once per bucket of walker counts
+    (`bucket_walkers`) instead of once per N: the walkers are padded with copies of the
+    first that lie in no triangle (so they change no row, flag or tier), the triangles with
+    two padding rows per padding walker (2D's bound of 2N triangles), and the rows cut back
+    to the N walkers on the host."""
+    n, m = len(x), bucket_walkers(len(x))
+    points = jnp.asarray(x)
+    padded = jnp.asarray(np.concatenate([x, np.repeat(x[:1], m - n, axis=0)]))
+    extra = 2 * (m - n)
+    triangles = np.concatenate([np.where(simplices == n, m, simplices), np.full((extra, 3), m, simplices.dtype)])
+    across = np.concatenate([adjacency, np.full((extra, 3), -1, adjacency.dtype)])
+    box = None if box is None else jnp.asarray(box, points.dtype)
+    neighbors, hull, tier, overflow = _planar_rows(padded, jnp.asarray(triangles), jnp.asarray(across), box,
+                                                   jnp.asarray(n, jnp.int32), k_cap=k_cap)
+    neighbors = np.asarray(neighbors)[:n]
+    return Tessellation(points=points, neighbors=jnp.asarray(np.where(neighbors == m, n, neighbors)),
+                        tier=jnp.asarray(np.asarray(tier)[:n]), hull=jnp.asarray(np.asarray(hull)[:n]),
+                        simplices=jnp.asarray(simplices), neighbor_shifts=None, simplex_shifts=None, box=box,
+                        overflow=overflow, periodic=False)
 
 
 def _csr_rows(tri, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -418,7 +453,27 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
     if periodic:
         return tess
     adjacency = None if raw.adjacency is None else jnp.asarray(_pad_adjacency(raw.adjacency, cap.simplices))
-    return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency))
+    tier = np.asarray(boundary_tiers(_padded_walkers(tess), adjacency))[:n]
+    return eqx.tree_at(lambda t: t.tier, tess, jnp.asarray(tier))
+
+
+def _padded_walkers(tess: Tessellation) -> Tessellation:
+    """`tess` for the jitted steps of a host build, with walkers added up to
+    `bucket_walkers(N)` so that they compile once per bucket instead of once per N: copies of
+    the first walker in no simplex and with no neighbour, so every per-simplex result and
+    every row of the N walkers is unchanged (and the caller keeps those)."""
+    n = tess.n_points
+    m = bucket_walkers(n)
+    relabel = lambda a: np.where(a == n, m, a)  # noqa: E731  (the sentinel)
+    grow = lambda a, fill: np.concatenate([a, np.full((m - n, *a.shape[1:]), fill, a.dtype)])  # noqa: E731
+    points = np.asarray(tess.points)
+    return eqx.tree_at(
+        lambda t: (t.points, t.neighbors, t.tier, t.hull, t.simplices, t.neighbor_shifts), tess,
+        (jnp.asarray(np.concatenate([points, np.repeat(points[:1], m - n, axis=0)])),
+         jnp.asarray(grow(relabel(np.asarray(tess.neighbors)), m)), jnp.asarray(grow(np.asarray(tess.tier), 2)),
+         jnp.asarray(grow(np.asarray(tess.hull), False)), jnp.asarray(relabel(np.asarray(tess.simplices))),
+         None if tess.neighbor_shifts is None else jnp.asarray(grow(np.asarray(tess.neighbor_shifts), 0))),
+        is_leaf=lambda leaf: leaf is None)
 
 
 def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
@@ -430,7 +485,7 @@ def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
     again in float64, where only centres within the walkers' float32 rounding still count as
     shared (3D, N = 1e5 uniform: 5 suspects, of which 2 pairs 1e-6 spacings apart remain,
     so the contact filter still runs there: 1.1 s)."""
-    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(tess))
+    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(_padded_walkers(tess)))
     suspects = flat | _shared_centers(center, tess)
     if not suspects.any() or tess.points.dtype == np.float64:
         return bool(suspects.any())

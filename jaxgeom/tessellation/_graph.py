@@ -212,6 +212,12 @@ def bucket_simplices(n: int) -> int:
     return octave * math.ceil(n / octave)
 
 
+def bucket_walkers(n: int) -> int:
+    """Walkers a host build pads to before its jitted part, so that swarms of nearby sizes
+    share one compiled program: the simplex ladder (at most 12.5% padding)."""
+    return bucket_simplices(n)
+
+
 
 # A periodic walker may neighbour several images of the same walker (tiny boxes);
 # slot lookup scans this many consecutive columns for the matching image shift.

@@ -210,3 +210,28 @@ def test_float32_walkers_far_from_the_origin_are_refused(offset):
     inner = np.asarray(tess.interior)
     assert ours.dtype == np.float32 and abs(ours[inner].sum() / exact[inner].sum() - 1) < 1e-5
     np.testing.assert_allclose(ours[inner], exact[inner], rtol=2e-3)
+
+
+@pytest.mark.parametrize("case", ["3d", "3d box float32", "4d", "3d periodic", "2d periodic", "3d lattice"])
+def test_host_builds_pad_walkers_to_a_bucket_and_equal_the_unpadded_build(rng, monkeypatch, case):
+    """The jitted steps of a host build (circumcentres, tiers) run over walkers padded to
+    `bucket_walkers(N)`, so swarms of nearby sizes share their programs; the graph is field
+    for field the one built without padding (the 2D planar path: test_planar.py)."""
+    from jaxgeom.tessellation import _delaunay
+
+    d = int(case[0])
+    x = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.2 + 0.1 \
+        if "lattice" in case else rng.random((301 if d < 4 else 90, d))
+    x = x.astype(np.float32) if "float32" in case else x
+    kwargs = dict(box=(0.0, 1.0), periodic=True) if "periodic" in case else dict(box=(0.0, 1.0)) if "box" in case else {}
+    assert _delaunay.bucket_walkers(len(x)) > len(x)
+    padded = jaxgeom.delaunay(x, **kwargs)
+    monkeypatch.setattr(_delaunay, "bucket_walkers", lambda n: n)
+    plain = jaxgeom.delaunay(x, **kwargs)
+    for field in ("points", "neighbors", "tier", "hull", "simplices", "neighbor_shifts", "simplex_shifts", "box",
+                  "overflow"):
+        got, want = getattr(padded, field), getattr(plain, field)
+        assert (got is None) == (want is None), field
+        if want is not None:
+            assert got.shape == want.shape and got.dtype == want.dtype, field
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=field)

@@ -118,3 +118,37 @@ def test_planar_triangles_pads_and_checks_capacity(rng):
     degree = np.diff(Delaunay(x).vertex_neighbor_vertices[0])
     with pytest.raises(CapacityError, match=f"neighbors >= {degree.max()}"):
         planar_triangles(x, (200, int(degree.max()) - 1))
+
+
+def test_delaunay_pads_walkers_to_a_bucket_and_equals_the_unpadded_program(rng):
+    """`jaxgeom.delaunay` in 2D runs `planar_tessellation` over walkers padded to
+    `bucket_walkers(N)`: field for field the unpadded program's graph, also with a box, a
+    pinned capacity, float32 and a square grid, and overflow for rows past the capacity; swarms in one bucket compile it once."""
+    import jaxgeom
+    from jaxgeom.tessellation._delaunay import _planar_from_host, _planar_rows
+    from jaxgeom.tessellation._graph import bucket_walkers
+
+    grid = np.c_[np.repeat(np.arange(8), 8), np.tile(np.arange(8), 8)][:57] * 0.1 + 0.01
+    cases = [(rng.random((113, 2)), None, None), (rng.random((120, 2)), (0.0, 1.0), None), (grid, None, None),
+             (rng.random((117, 2)).astype(np.float32), None, None), (rng.random((115, 2)), None, (240, 16))]
+    assert bucket_walkers(113) == bucket_walkers(120) == 120 and bucket_walkers(57) == 60
+    for x, box, capacity in cases:
+        tess = jaxgeom.delaunay(x, box=box, capacity=capacity, triangulator="qhull")
+        simplices, adjacency, cap, _ = planar_triangles(x, capacity)
+        b = None if box is None else jnp.asarray(np.array(box)[:, None] * np.ones(2), tess.points.dtype)
+        ref = planar_tessellation(jnp.asarray(x), jnp.asarray(simplices), jnp.asarray(adjacency), b,
+                                  k_cap=cap.neighbors)
+        for field in ("points", "neighbors", "tier", "hull", "simplices", "box", "overflow"):
+            got, want = getattr(tess, field), getattr(ref, field)
+            assert (got is None) == (want is None), field
+            if want is not None:
+                assert got.shape == want.shape and got.dtype == want.dtype, field
+                np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=field)
+        assert not bool(tess.overflow)
+    x = rng.random((113, 2))
+    simplices, adjacency, _, _ = planar_triangles(x)
+    assert bool(_planar_from_host(x, simplices, adjacency, None, 4).overflow)  # rows of degree > 4
+    misses = _planar_rows._cache_size()
+    jaxgeom.delaunay(rng.random((118, 2)))
+    jaxgeom.delaunay(rng.random((114, 2)))
+    assert _planar_rows._cache_size() == misses  # 113 and 120 walkers compiled the program for their bucket
