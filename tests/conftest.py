@@ -18,10 +18,15 @@ def _jaxlib_at_least(*wanted: int) -> bool:
 # fast-math stays off), differing from XLA's defaults by rounding only. JAXGEOM_TEST_XLA_OPT=default
 # keeps XLA's own settings; CI runs the slow reliability studies that way (the jaxlib miscompile
 # guard among them).
-# (The emitter flag exists in the jaxlib 0.8 the suite is measured with; an unknown flag
-# aborts XLA, so older jaxlibs, which pyproject.toml still allows, do without it.)
+# LLVM's code generation then runs in one piece instead of split for a thread pool, which two
+# busy xdist workers on 2 cores cannot use: 15% less XLA compilation (tests/geometry test_heat,
+# test_curvature, test_ollivier, test_volumes, two alternating rounds: 120 and 121 s -> 101 and
+# 104 s, bench/compile_counts.py; bench/README.md, "The README's commands").
+# (The emitter and split flags exist in the jaxlib 0.8 the suite is measured with; an unknown
+# flag aborts XLA, so older jaxlibs do without them.)
 if os.environ.get("JAXGEOM_TEST_XLA_OPT", "0") != "default":
-    emitters = " --xla_cpu_use_fusion_emitters=false" if _jaxlib_at_least(0, 8) else ""
+    emitters = (" --xla_cpu_use_fusion_emitters=false --xla_cpu_parallel_codegen_split_count=1"
+                if _jaxlib_at_least(0, 8) else "")
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
                                " --xla_llvm_disable_expensive_passes=true" + emitters).strip()
 

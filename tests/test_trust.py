@@ -139,7 +139,8 @@ def test_cells_clipped_to_the_box(rng, d, n):
     reference = np.array([_clipped_cell_scipy(x, i, (lower, upper)) for i in range(n)])
     np.testing.assert_allclose(vol, reference, rtol=1e-10)
     inside = np.asarray(tess.tier) > 0  # tiers keep their meaning: these cells lie inside the box
-    np.testing.assert_array_equal(vol[inside], raw[inside])
+    # unclipped, to rounding: two programs, whose code generation may round differently (ulps)
+    np.testing.assert_allclose(vol[inside], raw[inside], rtol=1e-13)
     ricci = np.asarray(jaxgeom.ricci_scalar(tess))
     assert np.isnan(ricci[np.asarray(tess.tier) == 0]).all()
 
