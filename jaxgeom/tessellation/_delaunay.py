@@ -187,8 +187,7 @@ def _planar_max_degree(triangles_at: np.ndarray, simplices: np.ndarray, adjacenc
 def planar_tessellation(points, simplices, adjacency, box, *, k_cap: int) -> Tessellation:
     """Jittable: the 2D `Tessellation` from `planar_triangles`' arrays (neighbour rows by
     walking each vertex's fan, hull flags, tiers); `overflow` if a row needs more than `k_cap`."""
-    tess, complete = _planar_tessellation(points, simplices, adjacency, box, k_cap)
-    return eqx.tree_at(lambda t: t.overflow, tess, ~jnp.all(complete))
+    return _planar_tessellation(points, simplices, adjacency, box, k_cap)[0]
 
 
 def _planar_tessellation(points, simplices, adjacency, box, k_cap: int) -> tuple[Tessellation, jax.Array]:
@@ -448,12 +447,14 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
         overflow=jnp.asarray(False),
         periodic=periodic,
     )
-    if _has_cospherical_simplices(tess, len(raw.simplices)):
+    padded = _padded_walkers(tess)
+    if _has_cospherical_simplices(tess, len(raw.simplices), padded):
         tess = drop_contacts(tess, positive_measure_contacts(tess))
+        padded = _padded_walkers(tess)
     if periodic:
         return tess
     adjacency = None if raw.adjacency is None else jnp.asarray(_pad_adjacency(raw.adjacency, cap.simplices))
-    tier = np.asarray(boundary_tiers(_padded_walkers(tess), adjacency))[:n]
+    tier = np.asarray(boundary_tiers(padded, adjacency))[:n]
     return eqx.tree_at(lambda t: t.tier, tess, jnp.asarray(tier))
 
 
@@ -476,7 +477,7 @@ def _padded_walkers(tess: Tessellation) -> Tessellation:
         is_leaf=lambda leaf: leaf is None)
 
 
-def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
+def _has_cospherical_simplices(tess: Tessellation, n_simplices: int, padded: Tessellation) -> bool:
     """Host pre-check for `positive_measure_contacts` (a compilation of seconds per shape):
     zero-measure contacts exist only inside a Delaunay cell split into several simplices,
     which then share a circumcentre (or are flat). Centres are compared on a grid of 1e-9
@@ -484,8 +485,8 @@ def _has_cospherical_simplices(tess: Tessellation, n_simplices: int) -> bool:
     slivers look flat and near-cospherical centres coincide: those few suspects are decided
     again in float64, where only centres within the walkers' float32 rounding still count as
     shared (3D, N = 1e5 uniform: 5 suspects, of which 2 pairs 1e-6 spacings apart remain,
-    so the contact filter still runs there: 1.1 s)."""
-    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(_padded_walkers(tess)))
+    so the contact filter still runs there: 1.1 s). `padded`: `tess` as `_padded_walkers` gives it."""
+    center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(padded))
     suspects = flat | _shared_centers(center, tess)
     if not suspects.any() or tess.points.dtype == np.float64:
         return bool(suspects.any())
