@@ -18,8 +18,10 @@ backend, medians (min, max) over `--repeat` calls after a warm-up call (compilat
 - `parts` (with `--parts`): where one rebuild's time goes, warm: the bare triangulation
   (`triangulate`: for CuPy the host-to-device copy, gDel2D, the device check and the simplices'
   copy back with their adjacency), `planar_triangles` (that plus degrees and padding) and
-  `build_delaunay` (that plus the input checks and the jitted fan walk), and for CuPy gDel2D
-  alone on device float64 points; the cProfile of one `build_delaunay` goes to stdout.
+  `build_delaunay` (that plus the input checks and the jitted fan walk; for CuPy the device
+  build below from a host array), and for CuPy gDel2D alone on device float64 points and
+  `planar_graph_on_device` from the JAX device array as `simulate` rebuilds (no host round trip),
+  with its steps (`device_parts`); the cProfile of the last call goes to stdout.
 
 A row that raises is recorded with its error and the run goes on; the JSON is rewritten after
 each row, so a run cut short keeps the rows it finished.
@@ -44,7 +46,11 @@ import jaxgeom
 from _timing import summary, timed
 from jaxgeom.apps._landscapes import rastrigin
 from jaxgeom.tessellation import _triangulators as triangulators
-from jaxgeom.tessellation._delaunay import build_delaunay, planar_triangles
+from jaxgeom.tessellation._delaunay import (
+    _cut_to_walkers, _pad_walkers, _planar_rows, build_delaunay, planar_graph_on_device, planar_triangles,
+)
+from jaxgeom.tessellation._device_check import planar_summary
+from jaxgeom.tessellation._graph import bucket_neighbors, bucket_walkers
 
 OBSERVE = ("mean_fitness", "best_fitness", "n_clones")
 
@@ -100,18 +106,39 @@ def parts(x: np.ndarray, backend: str, repeat: int) -> dict:
             return out
 
         calls = {"gdel2d": gdel2d, **calls}
+    if backend in triangulators.DEVICE_BUILDERS:
+        calls.update(device_parts(jax.numpy.asarray(x, jax.numpy.float32), backend))
     out = {}
     for name, fn in calls.items():
         fn()
         out[name] = summary([timed(fn) for _ in range(repeat)])
+    profiled = list(calls)[-1]
     profile = cProfile.Profile()
     profile.enable()
-    jax.block_until_ready(build_delaunay(x, triangulator=backend)[0].neighbors)
+    jax.block_until_ready(calls[profiled]())
     profile.disable()
     text = io.StringIO()
     pstats.Stats(profile, stream=text).sort_stats("cumulative").print_stats(18)
-    print(f"== cProfile of one build_delaunay, n = {len(x)}, {backend}\n{text.getvalue()}", flush=True)
+    print(f"== cProfile of one {profiled}, n = {len(x)}, {backend}\n{text.getvalue()}", flush=True)
     return out
+
+
+def device_parts(xj, backend: str) -> dict:
+    """The steps of `planar_graph_on_device` from the device positions `xj`, one call each, and
+    the whole: the backend's padded triangles, `planar_summary` (check, adjacency, degrees: one
+    sort), the fan walk and tiers (`_planar_rows`), the rows cut to the walkers."""
+    n = xj.shape[0]
+    m = bucket_walkers(n)
+    triangles, flat = triangulators.DEVICE_BUILDERS[backend](xj, 2 * m, m)
+    padded, n_walkers = _pad_walkers(xj, m), jax.numpy.asarray(n, jax.numpy.int32)
+    (counts, _), adjacency = planar_summary(padded, triangles, flat, n_walkers)
+    k_cap = bucket_neighbors(int(counts[2]))
+    rows = _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)
+    return {"device_triangles": lambda: triangulators.DEVICE_BUILDERS[backend](xj, 2 * m, m)[0],
+            "planar_summary": lambda: planar_summary(padded, triangles, flat, n_walkers)[1],
+            "planar_rows": lambda: _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)[0],
+            "cut_to_walkers": lambda: _cut_to_walkers(xj, triangles, None, *rows, s_cap=2 * n).neighbors,
+            "planar_graph_on_device": lambda: planar_graph_on_device(xj, None, None, backend)[0].neighbors}
 
 
 def safe_row(n: int, backend: str, args) -> dict:

@@ -241,9 +241,14 @@ def columns(points: np.ndarray) -> np.ndarray:
 
 def mean_spacing(points: np.ndarray) -> float:
     """Mean walker spacing (bounding-box volume / N)^(1/d), over the axes of non-zero extent."""
-    n, d = points.shape
     cols = columns(points)
-    extent = cols.max(axis=1) - cols.min(axis=1)
+    return spacing_of_box(cols.min(axis=1), cols.max(axis=1), len(points))
+
+
+def spacing_of_box(lower: np.ndarray, upper: np.ndarray, n: int) -> float:
+    """`mean_spacing` of n walkers whose bounding box is (lower, upper)."""
+    extent = np.asarray(upper, np.float64) - np.asarray(lower, np.float64)
+    d = extent.size
     extent = extent[extent > 0]
     return float(np.exp(np.mean(np.log(extent)))) / n ** (1.0 / d) if extent.size else 0.0
 
@@ -252,7 +257,11 @@ def check_representable_spacing(points: np.ndarray, dtype, name: str = "points")
     """Cell volumes and circumcentres multiply up to four lengths (spacing^4): reject swarms
     whose mean spacing puts that outside the dtype's normal range (float32: about 1e-9 to
     4e9), with the fix, instead of returning zero or infinite volumes."""
-    spacing = mean_spacing(points)
+    refuse_unrepresentable_spacing(mean_spacing(points), dtype, name)
+
+
+def refuse_unrepresentable_spacing(spacing: float, dtype, name: str = "points") -> None:
+    """`check_representable_spacing` of a swarm whose mean spacing is `spacing`."""
     if spacing == 0.0:
         return
     info = np.finfo(dtype)
@@ -274,15 +283,19 @@ def check_resolved_positions(points: np.ndarray, dtype, name: str = "points") ->
     (float32, 5000 walkers in [1e6, 1e6 + 1]^2: 17 distinct x, tier-2 volumes summing to 1.003
     instead of 0.875; at an offset of 1e3 the rounding is 0.8% of the spacing and one cell came
     out negative; at 1e2, 0.08%, the volumes agree with float64 to 5 digits)."""
-    spacing = mean_spacing(points)
+    refuse_unresolved_positions(mean_spacing(points), float(np.max(np.abs(points))), dtype, name)
+
+
+def refuse_unresolved_positions(spacing: float, largest: float, dtype, name: str = "points") -> None:
+    """`check_resolved_positions` of a swarm of mean spacing `spacing` whose largest |x| is `largest`."""
     if spacing == 0.0:
         return
-    rounding = float(np.finfo(dtype).eps) * float(np.max(np.abs(points)))
+    rounding = float(np.finfo(dtype).eps) * largest
     if rounding > RESOLUTION_LIMIT * spacing:
         fix = (" or use float64 (jax.config.update('jax_enable_x64', True))"
                if np.dtype(dtype) == np.float32 else "")
         raise ValueError(
-            f"`{name}` cannot be resolved in {np.dtype(dtype).name}: at |x| up to {np.max(np.abs(points)):.3g} its "
+            f"`{name}` cannot be resolved in {np.dtype(dtype).name}: at |x| up to {largest:.3g} its "
             f"rounding is {rounding:.3g}, {rounding / spacing:.2g} of the mean walker spacing {spacing:.3g} (at most "
             f"{RESOLUTION_LIMIT:g}); walkers collapse and cell volumes lose their sign. Centre the walkers "
             f"(points - points.mean(axis=0)){fix}.")

@@ -28,10 +28,12 @@ import numpy as np
 
 from ..base._checks import mean_spacing
 from ..tessellation._cellclip import rebuild_unchecked
-from ..tessellation._delaunay import CapacityError, build_delaunay, planar_tessellation, planar_triangles
+from ..tessellation._delaunay import (
+    CapacityError, build_delaunay, planar_graph_on_device, planar_tessellation, planar_triangles,
+)
 from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ..tessellation._knn import knn_graph
-from ..tessellation._triangulators import CoincidentPointsError
+from ..tessellation._triangulators import DEVICE_BUILDERS, FALLBACK, CoincidentPointsError
 from ._dynamics import REBUILD_FAILED, SwarmState
 
 GRAPHS = ("delaunay", "knn")
@@ -155,14 +157,22 @@ def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None, triangulato
 def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
     """(state, grew, n_moved): the state with a new graph at its positions (coinciding walkers
     moved apart; triangulator fallbacks to Qhull counted), whether the capacity grew, and how
-    many walkers were moved."""
-    x = np.asarray(state.positions)
-    graph = _graph_kind(state.tess)
+    many walkers were moved. A 2D graph whose triangulator runs on the device (CuPy) is built
+    there (`planar_graph_on_device`: the positions stay on the device); where that build fails,
+    the host builds it with the backend's fallback, counted."""
+    graph, triangulator, failed = _graph_kind(state.tess), state.triangulator, 0
     try:
+        if graph == "delaunay" and _on_device(state.tess, triangulator):
+            tess, grew, reason = _allocate_on_device(state.positions, state.tess, triangulator)
+            if tess is not None:
+                return eqx.tree_at(lambda s: s.tess, state, tess), grew, 0
+            triangulator, failed = FALLBACK[triangulator], int(reason is not None)
+        x = np.asarray(state.positions)
         tess, grew, x_new, moved, fallbacks = allocate_graph(x, graph, k, None if graph == "knn" else state.tess,
-                                                             state.triangulator)
+                                                             triangulator)
     except ValueError as err:
         raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
+    fallbacks += failed
     if moved:
         xj = jnp.asarray(x_new, state.positions.dtype)
         state = eqx.tree_at(lambda s: (s.positions, s.n_separated), state, (xj, state.n_separated + moved))
@@ -170,6 +180,25 @@ def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
     if fallbacks:
         state = eqx.tree_at(lambda s: s.n_triangulator_fallbacks, state, state.n_triangulator_fallbacks + fallbacks)
     return eqx.tree_at(lambda s: s.tess, state, tess), grew, moved
+
+
+def _on_device(tess: Tessellation, triangulator: str) -> bool:
+    return tess.dim == 2 and not tess.periodic and triangulator in DEVICE_BUILDERS
+
+
+def _allocate_on_device(positions: jax.Array, tess: Tessellation, triangulator: str
+                        ) -> tuple[Tessellation | None, bool, str | None]:
+    """`allocate_graph` by `planar_graph_on_device` at `tess`'s capacity, grown by the growth rule
+    when the graph does not fit: (graph, grew, None), or (None, False, why the device build failed;
+    None where the host path must raise the reason)."""
+    try:
+        new, reason = planar_graph_on_device(positions, None, tess, triangulator)
+        return new, False, reason
+    except CapacityError:
+        new, reason = planar_graph_on_device(positions, None, None, triangulator)
+        if new is None:
+            return None, False, reason
+        return pad_to_capacity(new, capacity_with_headroom(new, tess.capacity)), True, None
 
 
 def _graph_kind(tess: Tessellation) -> str:

@@ -3,7 +3,8 @@ derived from its simplices.
 
 In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours to
 JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
-same code serves rebuilds inside `jax.pure_callback`). In 3D/4D and on the torus
+same code serves rebuilds inside `jax.pure_callback`). A backend whose triangles stay
+on the device (CuPy) has the whole 2D graph built there (`planar_graph_on_device`). In 3D/4D and on the torus
 the neighbour rows come from numpy index bookkeeping. Geometry derived from the
 simplices (tiers from circumcentres, volumes, angles) is computed in JAX; the one
 geometric test done on the host is the periodic skin check, which decides whether
@@ -28,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from ..base._checks import (
     check_full_rank, check_min_points, check_representable_spacing, check_resolved_positions, host_box, host_points,
-    mean_spacing,
+    mean_spacing, refuse_unrepresentable_spacing, refuse_unresolved_positions, spacing_of_box,
 )
 from ..base._simplex import det_entries, simplex_circumcenter
 from ._contacts import (
@@ -39,7 +40,9 @@ from ._graph import (
     split_spatial_dims,
 )
 from ._planar import fan_neighbors
-from ._triangulators import resolve_triangulator, triangulate
+from ._device_check import REASONS as DEVICE_REASONS
+from ._device_check import planar_summary
+from ._triangulators import DEVICE_BUILDERS, FALLBACK, resolve_triangulator, triangulate
 
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
@@ -137,9 +140,15 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
     check_full_rank(x)
     check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
     check_resolved_positions(x, jnp.asarray(x[:1]).dtype)
+    device_failure = ()
+    if d == 2 and not periodic and backend in DEVICE_BUILDERS:
+        tess, reason = planar_graph_on_device(x, box_arr, capacity, backend)
+        if tess is not None:
+            return tess, ()
+        backend, device_failure = FALLBACK[backend], () if reason is None else (reason,)
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
-        return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), fallbacks
+        return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), device_failure + fallbacks
     raw = _periodic_graph(x, box_arr, backend) if periodic else _plain_graph(x, backend)
     need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
     return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic), raw.fallbacks
@@ -229,6 +238,64 @@ def _planar_from_host(x: np.ndarray, simplices: np.ndarray, adjacency: np.ndarra
     return Tessellation(points=points, neighbors=jnp.asarray(np.where(neighbors == m, n, neighbors)),
                         tier=jnp.asarray(np.asarray(tier)[:n]), hull=jnp.asarray(np.asarray(hull)[:n]),
                         simplices=jnp.asarray(simplices), neighbor_shifts=None, simplex_shifts=None, box=box,
+                        overflow=overflow, periodic=False)
+
+
+def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessellation | None, str | None]:
+    """The 2D graph of `points` (a JAX array, or a host array copied in once as float64) built
+    on the device, by a backend whose triangles
+    stay on the device (`DEVICE_BUILDERS`: CuPy): its triangles, their check, adjacency and largest
+    degree (`planar_summary`), the fan walk and tiers (`_planar_rows`), all on the device; the one
+    transfer to the host is a read of a few scalars (the check, the counts, the bounding box).
+    Walkers are padded to `bucket_walkers(N)` as on the host path.
+
+    Returns `(graph, None)`; `(None, why)` when the backend failed or its triangles failed the
+    check (the caller builds this graph on the host and counts the fallback); `(None, None)` when
+    the backend refused the positions (non-finite: the host path raises the reason). Raises
+    `CapacityError` for a pinned `capacity` the graph does not fit, and the host path's
+    `ValueError`s for a mean spacing or a resolution the positions' dtype cannot represent."""
+    n = points.shape[0]
+    m = bucket_walkers(n)
+    try:
+        triangles, flat = DEVICE_BUILDERS[backend](points, 2 * m, m)
+    except ValueError:
+        return None, None
+    except Exception as err:  # noqa: BLE001 - any failure of the backend: the host builds this call
+        return None, f"{backend} raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    points = jnp.asarray(points)
+    padded, n_walkers = _pad_walkers(points, m), jnp.asarray(n, jnp.int32)
+    (counts, corners), adjacency = planar_summary(padded, triangles, flat, n_walkers)
+    (status, count, degree), corners = (np.asarray(a) for a in jax.device_get((counts, corners)))
+    spacing = spacing_of_box(corners[:2], corners[2:4], n)
+    refuse_unrepresentable_spacing(spacing, points.dtype)
+    refuse_unresolved_positions(spacing, float(corners[4]), points.dtype)
+    if status:
+        return None, f"{backend}'s triangulation failed its check: {DEVICE_REASONS[int(status)]}"
+    cap = _fit_capacity(Capacity(int(count), int(degree)), n, 2, capacity)
+    box = None if box is None else jnp.asarray(box, points.dtype)
+    rows = _planar_rows(padded, triangles, adjacency, box, n_walkers, k_cap=cap.neighbors)
+    return _cut_to_walkers(points, triangles, box, *rows, s_cap=cap.simplices), None
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _pad_walkers(points, m: int):
+    """`points` with copies of the first up to `m` walkers (they are put in no triangle)."""
+    return jnp.concatenate([points, jnp.broadcast_to(points[:1], (m - points.shape[0], points.shape[1]))])
+
+
+@functools.partial(jax.jit, static_argnames="s_cap")
+def _cut_to_walkers(points, triangles, box, neighbors, hull, tier, overflow, *, s_cap: int) -> Tessellation:
+    """The `Tessellation` of the N = len(points) walkers from rows over M padded walkers
+    (sentinel M -> N) and triangles padded to 2M rows (cut or padded to `s_cap`)."""
+    n, m = points.shape[0], neighbors.shape[0]
+    triangles = jnp.where(triangles == m, n, triangles)
+    if s_cap <= triangles.shape[0]:
+        triangles = triangles[:s_cap]  # the real triangles come first, and fit (`_fit_capacity`)
+    else:
+        triangles = jnp.concatenate([triangles, jnp.full((s_cap - triangles.shape[0], 3), n, triangles.dtype)])
+    neighbors = neighbors[:n]
+    return Tessellation(points=points, neighbors=jnp.where(neighbors == m, n, neighbors), tier=tier[:n],
+                        hull=hull[:n], simplices=triangles, neighbor_shifts=None, simplex_shifts=None, box=box,
                         overflow=overflow, periodic=False)
 
 

@@ -11,7 +11,8 @@
   `jaxgeom[cuda12]` or `[cuda13]` and a CUDA device. Positions go to it as float64 device
   arrays through DLPack (float32 input gives wrong triangles, cupy#8765); only its simplices
   are read (its `neighbors` are wrong, cupy#9220); its result is checked on the device
-  (`_device_check.py`) and a failure falls back to CDT.
+  (`_device_check.py`) and a failure falls back to CDT. Its triangles stay on the device
+  (`DEVICE_BUILDERS`): the 2D graph is built there (`_delaunay.planar_graph_on_device`).
 - "auto": the fastest installed for the dimension (`AUTO_ORDER`, measured in bench/README.md);
   "cupy" first where JAX's default backend is a CUDA GPU and CuPy imports.
 
@@ -354,47 +355,66 @@ def _cupy(x) -> _Triangulation:
 
 
 def gpu_triangulation(x, delaunay, xp) -> _Triangulation:
-    """A GPU backend's 2D triangulation in scipy's layout, checked on the device.
-
-    `delaunay(points)` triangulates device arrays of module `xp` (CuPy; numpy in the CPU tests
-    of this adapter): positions go in as float64 (from a JAX device array through DLPack, no
-    host copy), its `simplices` alone are read (counter-clockwise, as CuPy documents), checked
-    by `planar_triangulation_status` on the device (a failure raises, and `triangulate` falls
-    back to CDT), and only then copied to the host with their adjacency derived here."""
+    """A GPU backend's 2D triangulation in scipy's layout, for the host paths (the callback
+    rebuild, periodic images): `device_triangles`, checked and its adjacency derived on the device
+    (`planar_summary`; a failed check raises, and `triangulate` falls back to CDT), then copied to
+    the host. Only the backend's `simplices` are read (counter-clockwise, as CuPy documents)."""
     import jax
 
-    from ._device_check import REASONS, planar_triangulation_status
+    from ._device_check import REASONS, planar_summary
 
-    points = xp.from_dlpack(x) if isinstance(x, jax.Array) else xp.asarray(np.asarray(x))
-    points = xp.ascontiguousarray(points.astype(xp.float64))
-    simplices = xp.asarray(delaunay(points).simplices).astype(xp.int32)
-    to_jax = jax.numpy.asarray if xp is np else jax.dlpack.from_dlpack
-    status, _ = planar_triangulation_status(to_jax(points), to_jax(simplices))
-    if int(status):
-        raise RuntimeError(REASONS[int(status)])
-    simplices = np.asarray(simplices.get() if hasattr(simplices, "get") else simplices, np.int32)
-    tri = _Triangulation(simplices, triangle_adjacency(simplices), oriented=True)
+    triangles, flat = device_triangles(x, 2 * len(x), len(x), delaunay, xp)
+    (counts, _), adjacency = planar_summary(jax.numpy.asarray(x), triangles, flat, len(x))
+    status, count, _ = (int(c) for c in jax.device_get(counts))
+    if status:
+        raise RuntimeError(REASONS[status])
+    simplices, adjacency = (np.asarray(a)[:count] for a in jax.device_get((triangles, adjacency)))
+    tri = _Triangulation(simplices, adjacency, oriented=True)
     tri.checked = True  # the device check ran: `triangulate` does not repeat it on the host
     return tri
 
 
-def triangle_adjacency(simplices: np.ndarray) -> np.ndarray:
-    """(S, 3) the triangle across the edge opposite each vertex (-1 on the hull), from one sort
-    of the edges' (min, max) keys."""
-    s = np.asarray(simplices, np.int64)
-    n = int(s.max()) + 1 if s.size else 1
-    a, b = s[:, [1, 2, 0]], s[:, [2, 0, 1]]  # the edge opposite vertex k: (v_k+1, v_k+2)
-    keys = (np.minimum(a, b) * n + np.maximum(a, b)).ravel()
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    pair = np.flatnonzero(sorted_keys[1:] == sorted_keys[:-1])
-    out = np.full(keys.size, -1, np.int32)
-    first, second = order[pair], order[pair + 1]
-    out[first], out[second] = second // 3, first // 3
-    return out.reshape(-1, 3)
-
-
 BUILDERS = {"cdt": _cdt, "shull": _shull, "cupy": _cupy}
+
+
+def _cupy_on_device(points, rows: int, sentinel: int):
+    import cupy
+    from cupyx.scipy.spatial import Delaunay as CupyDelaunay
+
+    return device_triangles(points, rows, sentinel, CupyDelaunay, cupy)
+
+
+def device_triangles(points, rows: int, sentinel: int, delaunay, xp):
+    """`(triangles, flat)` as JAX arrays: the (rows, 3) int32 triangles of `delaunay` (a GPU
+    backend of module `xp`; numpy and scipy in the CPU tests) on `points` (N, 2), padded with rows
+    of `sentinel` (>= N), and how many of them are flat or negatively oriented (`_flat`, in float64).
+    A JAX array goes in through DLPack and the triangles come back the same way: the positions
+    never leave the device (a host array is copied in). Raises `ValueError` for non-finite positions
+    and coordinates beyond +-`MAX_COORDINATE` (checked before the backend sees them; the host path
+    says which) and `RuntimeError` for more triangles than `rows`."""
+    import jax
+
+    on_device = xp is not np
+    if on_device:
+        p = xp.from_dlpack(points) if isinstance(points, jax.Array) else xp.asarray(points)
+    else:
+        p = np.asarray(points)
+    p = xp.ascontiguousarray(p.astype(xp.float64))
+    if not bool(xp.all(xp.abs(p) <= MAX_COORDINATE)):  # NaN fails it too
+        raise ValueError("walkers with non-finite coordinates or coordinates beyond "
+                         f"+-{MAX_COORDINATE:g}, which no triangulator can take")
+    simplices = xp.asarray(delaunay(p).simplices).astype(xp.int32)
+    if simplices.shape[0] > rows:
+        raise RuntimeError(f"{simplices.shape[0]} triangles for {len(p)} walkers, more than the bound {rows}")
+    padded = xp.full((rows, 3), sentinel, xp.int32)
+    padded[: simplices.shape[0]] = simplices
+    flat = xp.sum(_flat(p, simplices, xp)).astype(xp.int32).reshape(())
+    to_jax = jax.dlpack.from_dlpack if on_device else jax.numpy.asarray
+    return to_jax(padded), to_jax(flat)
+
+
+# Backends whose triangles stay on the device: the 2D graph is then built there (`_delaunay`).
+DEVICE_BUILDERS = {"cupy": _cupy_on_device}
 
 
 # --- the check --------------------------------------------------------------------------
@@ -435,23 +455,24 @@ def _symmetric(adj: np.ndarray) -> bool:
     return bool(np.logical_or.reduce([flat[first + k] == owner for k in range(width)]).all())
 
 
-def _flat(x: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """(S,) simplices of zero or negative volume, up to the rounding of its terms."""
-    volume, size = _volumes(x, s)
+def _flat(x: np.ndarray, s: np.ndarray, xp=np) -> np.ndarray:
+    """(S,) simplices of zero or negative volume, up to the rounding of its terms (arrays of
+    module `xp`: numpy, or CuPy on the device)."""
+    volume, size = _volumes(x, s, xp)
     return volume <= 8 * np.finfo(np.float64).eps * size
 
 
-def _volumes(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _volumes(x: np.ndarray, s: np.ndarray, xp=np) -> tuple[np.ndarray, np.ndarray]:
     """Signed volumes (times d!) of simplices `s` of `x` in float64, and the size of their
     terms (a volume within 8 float64 epsilons of it counts as flat: its sign is rounding)."""
-    cols = np.asarray(x, np.float64).T
+    cols = xp.asarray(x, dtype=xp.float64).T
     e = [[c[s[:, a]] - c[s[:, 0]] for c in cols] for a in range(1, s.shape[1])]
     if x.shape[1] == 2:
         terms = (e[0][0] * e[1][1], e[0][1] * e[1][0])
-        return terms[0] - terms[1], np.abs(terms[0]) + np.abs(terms[1])
+        return terms[0] - terms[1], xp.abs(terms[0]) + xp.abs(terms[1])
     minors = [e[1][1] * e[2][2] - e[1][2] * e[2][1], e[1][0] * e[2][2] - e[1][2] * e[2][0],
               e[1][0] * e[2][1] - e[1][1] * e[2][0]]
     volume = e[0][0] * minors[0] - e[0][1] * minors[1] + e[0][2] * minors[2]
-    size = sum(np.abs(e[0][k]) * np.sum([np.abs(e[1][m]) * np.abs(e[2][q]) for m in range(3) for q in range(3)
-                                          if len({k, m, q}) == 3], axis=0) for k in range(3))
+    size = sum(xp.abs(e[0][k]) * sum(xp.abs(e[1][m]) * xp.abs(e[2][q]) for m in range(3) for q in range(3)
+                                     if len({k, m, q}) == 3) for k in range(3))
     return volume, size

@@ -3,6 +3,7 @@ CuPy's Delaunay), and, marked `gpu`, CuPy's gDel2D against CDT with exact in-cir
 
 from fractions import Fraction
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -10,7 +11,11 @@ from scipy.spatial import Delaunay
 
 import jaxgeom
 from jaxgeom.tessellation import _triangulators as triangulators
-from jaxgeom.tessellation._device_check import EULER, FLAT, LEFT_OUT, OK, OUT_OF_RANGE, planar_triangulation_status
+from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.tessellation._delaunay import CapacityError, planar_graph_on_device
+from jaxgeom.tessellation._device_check import (
+    EULER, FLAT, LEFT_OUT, OK, OUT_OF_RANGE, planar_summary, planar_triangulation_status,
+)
 
 
 def point_sets(rng):
@@ -69,6 +74,118 @@ def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by():
     assert triangulators.resolve_triangulator("auto", 2) != "cupy"
 
 
+# --- the graph built on the device (scipy standing in for CuPy, the CPU for the GPU) ----------
+
+
+@pytest.fixture
+def stand_in(monkeypatch):
+    """triangulator="cupy" served by scipy's Qhull through the device path's adapter; per call,
+    whether it was handed a JAX array (the positions where they live) or a host array."""
+    calls = []
+
+    def build(points, rows, sentinel):
+        calls.append("jax" if isinstance(points, jax.Array) else "host")
+        return triangulators.device_triangles(points, rows, sentinel, Delaunay, np)
+
+    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", build)
+    monkeypatch.setattr(triangulators, "installed", lambda name: True)
+    return calls
+
+
+def same_graph(ours, ref):
+    assert ours.capacity == ref.capacity
+    for field in ("neighbors", "tier", "hull", "overflow"):
+        np.testing.assert_array_equal(np.asarray(getattr(ours, field)), np.asarray(getattr(ref, field)), err_msg=field)
+    assert sorted(map(tuple, np.sort(np.asarray(ours.simplices), axis=1))) == sorted(
+        map(tuple, np.sort(np.asarray(ref.simplices), axis=1)))
+
+
+@pytest.mark.parametrize("name", ["uniform", "gaussian", "clustered"])
+def test_the_device_build_gives_cdts_graph_field_for_field(rng, stand_in, name):
+    x = point_sets(rng)[name][:2900]  # 2900 walkers: padded to a bucket of 3072
+    ours, reason = planar_graph_on_device(jax.numpy.asarray(x), None, None, "cupy")
+    assert reason is None and stand_in == ["jax"]
+    same_graph(ours, jaxgeom.delaunay(x, triangulator="cdt"))
+    box = (x.min(axis=0) - 0.1, x.max(axis=0) + 0.1)
+    same_graph(jaxgeom.delaunay(x, triangulator="cupy", box=box), jaxgeom.delaunay(x, triangulator="cdt", box=box))
+
+
+def test_the_device_build_keeps_pinned_capacities_and_refuses_too_small_ones(rng, stand_in):
+    x = rng.random((500, 2))
+    ref = jaxgeom.delaunay(x, triangulator="cdt", capacity=(1200, 24))
+    same_graph(jaxgeom.delaunay(x, triangulator="cupy", capacity=(1200, 24)), ref)
+    need = int(np.max(np.sum(np.asarray(ref.neighbors) < 500, axis=1)))
+    with pytest.raises(CapacityError, match="too small for this graph"):
+        jaxgeom.delaunay(x, triangulator="cupy", capacity=(1200, need - 1))
+
+
+def test_a_failed_device_check_falls_back_to_cdt_and_says_why(rng, stand_in, monkeypatch):
+    x = rng.random((400, 2))
+    clockwise = lambda p, rows, sentinel: triangulators.device_triangles(  # noqa: E731
+        p, rows, sentinel, lambda q: type("T", (), {"simplices": Delaunay(q).simplices[:, [0, 2, 1]]}), np)
+    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", clockwise)
+    with pytest.warns(RuntimeWarning, match="cupy's triangulation failed its check: triangles flat or negatively"):
+        tess = jaxgeom.delaunay(x, triangulator="cupy")
+    same_graph(tess, jaxgeom.delaunay(x, triangulator="cdt"))
+    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", lambda p, rows, sentinel: 1 / 0)
+    assert planar_graph_on_device(jax.numpy.asarray(x), None, None, "cupy") == (
+        None, "cupy raised ZeroDivisionError: division by zero")
+
+
+def test_positions_the_device_build_refuses_get_the_host_paths_error(rng, stand_in):
+    x = rng.random((300, 2))
+    bad = x.copy()
+    bad[7] = np.nan
+    assert planar_graph_on_device(jax.numpy.asarray(bad), None, None, "cupy") == (None, None)
+    far = 1e11 + x * 1e-2  # float64 rounds these to 4% of their spacing: triangulated, then refused
+    with pytest.raises(ValueError, match="cannot be resolved in float64") as ours:
+        planar_graph_on_device(jax.numpy.asarray(far), None, None, "cupy")
+    with pytest.raises(ValueError) as theirs:
+        jaxgeom.delaunay(far, triangulator="cdt")
+    assert str(ours.value) == str(theirs.value)
+
+
+def test_the_device_check_skips_padding_rows_and_walkers(rng):
+    x = rng.random((300, 2))
+    s = Delaunay(x).simplices.astype(np.int32)
+    padded = np.vstack([s, np.full((40, 3), 300, np.int32)])
+    assert int(planar_triangulation_status(x, padded)[0]) == OK
+    walkers = np.vstack([x, np.repeat(x[:1], 20, axis=0)])  # 320 walkers, the last 20 padding
+    triangles = np.where(padded == 300, 320, padded)
+    (counts, box), adjacency = planar_summary(walkers, triangles, 0, 300)
+    ref = Delaunay(x)
+    assert counts.tolist()[:2] == [OK, len(s)]
+    assert int(counts[2]) == max(len(r) for r in np.split(ref.vertex_neighbor_vertices[1],
+                                                             ref.vertex_neighbor_vertices[0][1:-1]))
+    np.testing.assert_array_equal(np.asarray(adjacency)[: len(s)], ref.neighbors)
+    assert (np.asarray(adjacency)[len(s):] == -1).all()
+    np.testing.assert_array_equal(np.asarray(box), np.r_[x.min(axis=0), x.max(axis=0), np.abs(x).max()])
+    assert int(planar_summary(walkers, triangles[1:], 0, 300)[0][0][0]) == EULER
+    assert int(planar_summary(walkers, triangles, 0, 301)[0][0][0]) == LEFT_OUT  # walker 300 in no triangle
+    assert int(planar_summary(walkers, triangles, 1, 300)[0][0][0]) == FLAT
+
+
+@pytest.mark.parametrize("rebuild_every, tight", [(1, False), (3, False), (1, True)])
+def test_simulate_rebuilds_on_the_device_as_cdt_would(rng, stand_in, rebuild_every, tight):
+    x = rng.uniform(-3, 3, (300, 2))
+    degree = int(np.max(np.sum(np.asarray(jaxgeom.delaunay(x).neighbors) < 300, axis=1)))
+    capacity = (600, degree) if tight else None  # tight: the rebuilds must grow it
+    params = jaxgeom.SwarmParams(dt=0.05, nu=0.3)
+    run = lambda t: jaxgeom.simulate(  # noqa: E731
+        rastrigin, jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=t, capacity=capacity), params, n_steps=6,
+        rebuild_every=rebuild_every, observe=("mean_ricci", "n_clones"))
+    ref_state, ref = run("cdt")
+    stand_in.clear()
+    state, history = run("cupy")
+    builds = 6 // rebuild_every + int(history["n_reallocations"])  # a graph that did not fit is built again
+    assert stand_in == ["host"] + ["jax"] * builds  # the first graph, then every rebuild
+    assert int(history["n_reallocations"]) == int(ref["n_reallocations"]) == int(tight)
+    assert int(history["n_triangulator_fallbacks"]) == 0 and history["n_clones"].sum() > 0
+    np.testing.assert_allclose(state.positions, ref_state.positions, rtol=1e-10)
+    np.testing.assert_allclose(history["mean_ricci"], ref["mean_ricci"], rtol=1e-10)
+    same_graph(state.tess, ref_state.tess)
+
+
 def incircle(a, b, c, d) -> Fraction:
     """> 0 when d lies inside the circle through the counter-clockwise a, b, c; exact."""
     rows = [[Fraction(p[0]) - Fraction(d[0]), Fraction(p[1]) - Fraction(d[1])] for p in (a, b, c)]
@@ -101,3 +218,19 @@ def test_cupy_gives_cdts_graph_or_an_equally_delaunay_one(rng, name):
     a, b = jaxgeom.delaunay(x, triangulator="cupy"), jaxgeom.delaunay(x, triangulator="cdt")
     np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(a)), np.asarray(jaxgeom.voronoi_volumes(b)),
                                rtol=1e-9, equal_nan=True)
+
+
+@pytest.mark.gpu
+def test_a_cupy_rebuild_keeps_the_positions_on_the_device(rng):
+    if not triangulators.cuda_cupy_available():
+        pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
+    from jaxgeom.swarm._rebuild import update_host
+
+    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-3, 3, (20_000, 2)), triangulator="cupy")
+    moved = eqx.tree_at(lambda s: s.positions, state, state.positions + 0.01 * jax.numpy.sin(state.positions * 7))
+    with jax.transfer_guard_device_to_host("disallow"):  # an implicit copy of the positions raises
+        rebuilt, grew, separated = update_host(moved, 8)
+    assert int(rebuilt.n_triangulator_fallbacks) == 0 and separated == 0
+    same_graph(rebuilt.tess, jaxgeom.delaunay(np.asarray(moved.positions), triangulator="cdt",
+                                              capacity=rebuilt.tess.capacity))
+
