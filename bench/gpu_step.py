@@ -106,7 +106,7 @@ def parts(x: np.ndarray, backend: str, repeat: int) -> dict:
             return out
 
         calls = {"gdel2d": gdel2d, **calls}
-    if backend in triangulators.DEVICE_BUILDERS:
+    if backend in triangulators.DEVICE_BACKENDS:
         calls.update(device_parts(jax.numpy.asarray(x, jax.numpy.float32), backend))
     out = {}
     for name, fn in calls.items():
@@ -129,12 +129,12 @@ def device_parts(xj, backend: str) -> dict:
     sort), the fan walk and tiers (`_planar_rows`), the rows cut to the walkers."""
     n = xj.shape[0]
     m = bucket_walkers(n)
-    triangles, flat = triangulators.DEVICE_BUILDERS[backend](xj, 2 * m, m)
+    triangles, flat = triangulators.device_triangles(xj, 2 * m, m, backend)
     padded, n_walkers = _pad_walkers(xj, m), jax.numpy.asarray(n, jax.numpy.int32)
     (counts, _), adjacency = planar_summary(padded, triangles, flat, n_walkers)
     k_cap = bucket_neighbors(int(counts[2]))
     rows = _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)
-    return {"device_triangles": lambda: triangulators.DEVICE_BUILDERS[backend](xj, 2 * m, m)[0],
+    return {"device_triangles": lambda: triangulators.device_triangles(xj, 2 * m, m, backend)[0],
             "planar_summary": lambda: planar_summary(padded, triangles, flat, n_walkers)[1],
             "planar_rows": lambda: _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)[0],
             "cut_to_walkers": lambda: _cut_to_walkers(xj, triangles, None, *rows, s_cap=2 * n).neighbors,

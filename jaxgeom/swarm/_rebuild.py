@@ -6,7 +6,8 @@ allocation on the host, updates that keep the shapes, an overflow flag).
   grow the capacity to a larger bucket (`capacity_with_headroom`, the one growth rule).
 - `update_host(state, k)`: host, between jitted chunks; `state.triangulator` (or the k-d tree) on the
   final positions, capacity grown when needed.
-- `update_in_trace(state, k)`: inside a trace, through `jax.pure_callback`; the shapes
+- `update_in_trace(state, k)`: inside a trace, through `jax.pure_callback` (a device
+  triangulator: `jax.experimental.buffer_callback` on the device buffers); the shapes
   cannot change, so a graph that does not fit sets `tess.overflow` and keeps the old one.
 - `update_on_device(state, k)`: inside a trace, `jaxgeom.rebuild` (no host round trip);
   a rebuild it cannot certify falls back to `update_in_trace` for that step.
@@ -33,7 +34,11 @@ from ..tessellation._delaunay import (
 )
 from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
 from ..tessellation._knn import knn_graph
-from ..tessellation._triangulators import DEVICE_BUILDERS, FALLBACK, CoincidentPointsError
+from ..tessellation._device_check import OK as DEVICE_OK
+from ..tessellation._device_check import planar_summary
+from ..tessellation._triangulators import (
+    DEVICE_BACKENDS, FALLBACK, REFUSED, TOO_MANY, CoincidentPointsError, traced_device_triangles,
+)
 from ._dynamics import REBUILD_FAILED, SwarmState
 
 GRAPHS = ("delaunay", "knn")
@@ -183,7 +188,7 @@ def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
 
 
 def _on_device(tess: Tessellation, triangulator: str) -> bool:
-    return tess.dim == 2 and not tess.periodic and triangulator in DEVICE_BUILDERS
+    return tess.dim == 2 and not tess.periodic and triangulator in DEVICE_BACKENDS
 
 
 def _allocate_on_device(positions: jax.Array, tess: Tessellation, triangulator: str
@@ -241,7 +246,9 @@ def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     callback runs the triangulator alone and the neighbour rows are derived in the trace."""
     tess = state.tess
     if tess.simplices is not None and tess.dim == 2 and not tess.periodic:
-        return _callback_planar_rebuild(state)
+        if state.triangulator in DEVICE_BACKENDS:
+            return _device_planar_rebuild_in_trace(state)
+        return _callback_planar_rebuild(state, state.triangulator)
     graph, cap = _graph_kind(tess), tess.capacity
     old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
 
@@ -280,16 +287,45 @@ def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bo
     return state, ~certified
 
 
-def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
-    """2D rebuild in a trace: the callback returns the triangulator's triangles, the rows are built here."""
+def _device_planar_rebuild_in_trace(state: SwarmState) -> SwarmState:
+    """2D rebuild in a trace by a device backend (CuPy): its triangles written into a device
+    buffer (`traced_device_triangles`: the positions stay on the device), checked, and their
+    adjacency, rows and tiers derived here. A graph the backend fails (or whose triangles fail
+    the check) is built on the host by its fallback (`_callback_planar_rebuild`), counted; under
+    vmap that callback is entered for every swarm but works only for those that need it."""
+    tess, cap = state.tess, state.tess.capacity
+    x = jax.lax.stop_gradient(state.positions)
+    n = x.shape[0]
+    triangles, code = traced_device_triangles(x, cap.simplices, n, state.triangulator)
+    (counts, _), adjacency = planar_summary(x, triangles, jnp.maximum(code, 0), n)
+    overflowed = code == TOO_MANY
+    needs_host = ~overflowed & ((code < 0) | (counts[0] != DEVICE_OK))
+    new = planar_tessellation(x, triangles, adjacency, tess.box, k_cap=cap.neighbors)
+    outcome = jnp.where(overflowed | new.overflow, OVERFLOWED, REBUILT)
+    zero = jnp.asarray(0, jnp.int32)
+    on_device = _apply_rebuild(state, new, x, outcome, zero, zero)
+    fallback = FALLBACK[state.triangulator]
+    state = jax.lax.cond(needs_host, lambda s: _callback_planar_rebuild(s, fallback, needs_host), lambda s: on_device,
+                         state)
+    counted = (needs_host & (code != REFUSED)).astype(jnp.int32)  # refused positions fail on the host too
+    return eqx.tree_at(lambda s: s.n_triangulator_fallbacks, state, state.n_triangulator_fallbacks + counted)
+
+
+def _callback_planar_rebuild(state: SwarmState, triangulator: str, needed=None) -> SwarmState:
+    """2D rebuild in a trace: the callback returns `triangulator`'s triangles, the rows are built
+    here. `needed` (traced bool): where False the callback returns at once (the caller discards
+    its result)."""
     tess = state.tess
     cap = tess.capacity
 
     def triangles_and_fallbacks(y):
-        simplices, adjacency, _, fallbacks = planar_triangles(y, cap, state.triangulator)
+        simplices, adjacency, _, fallbacks = planar_triangles(y, cap, triangulator)
         return (simplices, adjacency), fallbacks
 
-    def host(x):
+    def host(x, needed):
+        if not needed:
+            return (np.full((cap.simplices, 3), -1, np.int32),) * 2 + (np.asarray(x), np.int32(REBUILT), np.int32(0),
+                                                                      np.int32(0))
         triangles, x, code, moved, fallbacks = _attempt(triangles_and_fallbacks, np.asarray(x))
         if triangles is None:
             triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
@@ -298,8 +334,9 @@ def _callback_planar_rebuild(state: SwarmState) -> SwarmState:
     triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
     shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
               *(jax.ShapeDtypeStruct((), jnp.int32),) * 3)
+    needed = jnp.asarray(True) if needed is None else needed
     simplices, adjacency, x, code, moved, fallbacks = jax.pure_callback(
-        host, shapes, jax.lax.stop_gradient(state.positions), vmap_method="sequential")
+        host, shapes, jax.lax.stop_gradient(state.positions), needed, vmap_method="sequential")
     new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
     code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
     return _apply_rebuild(state, new, x, code, moved, fallbacks)

@@ -42,7 +42,7 @@ from ._graph import (
 from ._planar import fan_neighbors
 from ._device_check import REASONS as DEVICE_REASONS
 from ._device_check import planar_summary
-from ._triangulators import DEVICE_BUILDERS, FALLBACK, resolve_triangulator, triangulate
+from ._triangulators import DEVICE_BACKENDS, FALLBACK, device_triangles, resolve_triangulator, triangulate
 
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
@@ -141,7 +141,7 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
     check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
     check_resolved_positions(x, jnp.asarray(x[:1]).dtype)
     device_failure = ()
-    if d == 2 and not periodic and backend in DEVICE_BUILDERS:
+    if d == 2 and not periodic and backend in DEVICE_BACKENDS:
         tess, reason = planar_graph_on_device(x, box_arr, capacity, backend)
         if tess is not None:
             return tess, ()
@@ -243,10 +243,10 @@ def _planar_from_host(x: np.ndarray, simplices: np.ndarray, adjacency: np.ndarra
 
 def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessellation | None, str | None]:
     """The 2D graph of `points` (a JAX array, or a host array copied in once as float64) built
-    on the device, by a backend whose triangles
-    stay on the device (`DEVICE_BUILDERS`: CuPy): its triangles, their check, adjacency and largest
-    degree (`planar_summary`), the fan walk and tiers (`_planar_rows`), all on the device; the one
-    transfer to the host is a read of a few scalars (the check, the counts, the bounding box).
+    on the device by a backend whose triangles stay there (`DEVICE_BACKENDS`: CuPy): its
+    triangles, their check, adjacency and largest degree (`planar_summary`), the fan walk and
+    tiers (`_planar_rows`), all on the device; the one transfer to the host is a read of a few
+    scalars (the check, the counts, the bounding box).
     Walkers are padded to `bucket_walkers(N)` as on the host path.
 
     Returns `(graph, None)`; `(None, why)` when the backend failed or its triangles failed the
@@ -257,7 +257,7 @@ def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessell
     n = points.shape[0]
     m = bucket_walkers(n)
     try:
-        triangles, flat = DEVICE_BUILDERS[backend](points, 2 * m, m)
+        triangles, flat = device_triangles(points, 2 * m, m, backend)
     except ValueError:
         return None, None
     except Exception as err:  # noqa: BLE001 - any failure of the backend: the host builds this call

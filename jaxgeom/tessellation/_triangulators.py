@@ -12,7 +12,7 @@
   arrays through DLPack (float32 input gives wrong triangles, cupy#8765); only its simplices
   are read (its `neighbors` are wrong, cupy#9220); its result is checked on the device
   (`_device_check.py`) and a failure falls back to CDT. Its triangles stay on the device
-  (`DEVICE_BUILDERS`): the 2D graph is built there (`_delaunay.planar_graph_on_device`).
+  (`DEVICE_BACKENDS`): the 2D graph is built there (`_delaunay.planar_graph_on_device`).
 - "auto": the fastest installed for the dimension (`AUTO_ORDER`, measured in bench/README.md);
   "cupy" first where JAX's default backend is a CUDA GPU and CuPy imports.
 
@@ -348,22 +348,20 @@ def _shull(x: np.ndarray):
 
 
 def _cupy(x) -> _Triangulation:
-    import cupy
-    from cupyx.scipy.spatial import Delaunay as CupyDelaunay
-
-    return gpu_triangulation(x, CupyDelaunay, cupy)
+    return gpu_triangulation(x, "cupy")
 
 
-def gpu_triangulation(x, delaunay, xp) -> _Triangulation:
-    """A GPU backend's 2D triangulation in scipy's layout, for the host paths (the callback
-    rebuild, periodic images): `device_triangles`, checked and its adjacency derived on the device
-    (`planar_summary`; a failed check raises, and `triangulate` falls back to CDT), then copied to
-    the host. Only the backend's `simplices` are read (counter-clockwise, as CuPy documents)."""
+def gpu_triangulation(x, backend: str) -> _Triangulation:
+    """A device backend's 2D triangulation in scipy's layout, for the host paths (periodic
+    images, `planar_triangles`): `device_triangles`, checked and its adjacency derived on the
+    device (`planar_summary`; a failed check raises, and `triangulate` falls back to CDT), then
+    copied to the host. Only the backend's `simplices` are read (counter-clockwise, as CuPy
+    documents)."""
     import jax
 
     from ._device_check import REASONS, planar_summary
 
-    triangles, flat = device_triangles(x, 2 * len(x), len(x), delaunay, xp)
+    triangles, flat = device_triangles(x, 2 * len(x), len(x), backend)
     (counts, _), adjacency = planar_summary(jax.numpy.asarray(x), triangles, flat, len(x))
     status, count, _ = (int(c) for c in jax.device_get(counts))
     if status:
@@ -377,44 +375,92 @@ def gpu_triangulation(x, delaunay, xp) -> _Triangulation:
 BUILDERS = {"cdt": _cdt, "shull": _shull, "cupy": _cupy}
 
 
-def _cupy_on_device(points, rows: int, sentinel: int):
+# --- backends whose triangles stay on the device ------------------------------------------
+
+
+def _cupy_modules():
     import cupy
     from cupyx.scipy.spatial import Delaunay as CupyDelaunay
 
-    return device_triangles(points, rows, sentinel, CupyDelaunay, cupy)
+    return CupyDelaunay, cupy
 
 
-def device_triangles(points, rows: int, sentinel: int, delaunay, xp):
-    """`(triangles, flat)` as JAX arrays: the (rows, 3) int32 triangles of `delaunay` (a GPU
-    backend of module `xp`; numpy and scipy in the CPU tests) on `points` (N, 2), padded with rows
-    of `sentinel` (>= N), and how many of them are flat or negatively oriented (`_flat`, in float64).
-    A JAX array goes in through DLPack and the triangles come back the same way: the positions
-    never leave the device (a host array is copied in). Raises `ValueError` for non-finite positions
-    and coordinates beyond +-`MAX_COORDINATE` (checked before the backend sees them; the host path
-    says which) and `RuntimeError` for more triangles than `rows`."""
-    import jax
+# name -> () -> (its Delaunay class, its array module); the 2D graph is built on the device
+# (`_delaunay.planar_graph_on_device`, and `traced_device_triangles` inside a trace).
+DEVICE_BACKENDS = {"cupy": _cupy_modules}
 
-    on_device = xp is not np
-    if on_device:
-        p = xp.from_dlpack(points) if isinstance(points, jax.Array) else xp.asarray(points)
-    else:
-        p = np.asarray(points)
-    p = xp.ascontiguousarray(p.astype(xp.float64))
+
+class TooManyTriangles(RuntimeError):
+    """A triangulation with more triangles than the rows it was given."""
+
+
+def padded_triangles(p, rows: int, sentinel: int, delaunay, xp):
+    """`(triangles, flat)` arrays of module `xp`: the (rows, 3) int32 triangles of `delaunay` on
+    the float64 positions `p` (N, 2), padded with rows of `sentinel` (>= N), and how many are
+    flat or negatively oriented (`_flat`, in float64). Raises `ValueError` for non-finite
+    positions and coordinates beyond +-`MAX_COORDINATE` (before the backend sees them; the host
+    path says which) and `TooManyTriangles`."""
     if not bool(xp.all(xp.abs(p) <= MAX_COORDINATE)):  # NaN fails it too
         raise ValueError("walkers with non-finite coordinates or coordinates beyond "
                          f"+-{MAX_COORDINATE:g}, which no triangulator can take")
     simplices = xp.asarray(delaunay(p).simplices).astype(xp.int32)
     if simplices.shape[0] > rows:
-        raise RuntimeError(f"{simplices.shape[0]} triangles for {len(p)} walkers, more than the bound {rows}")
+        raise TooManyTriangles(f"{simplices.shape[0]} triangles for {len(p)} walkers, more than the {rows} rows")
     padded = xp.full((rows, 3), sentinel, xp.int32)
     padded[: simplices.shape[0]] = simplices
-    flat = xp.sum(_flat(p, simplices, xp)).astype(xp.int32).reshape(())
-    to_jax = jax.dlpack.from_dlpack if on_device else jax.numpy.asarray
-    return to_jax(padded), to_jax(flat)
+    return padded, xp.sum(_flat(p, simplices, xp)).astype(xp.int32).reshape(())
 
 
-# Backends whose triangles stay on the device: the 2D graph is then built there (`_delaunay`).
-DEVICE_BUILDERS = {"cupy": _cupy_on_device}
+def device_triangles(points, rows: int, sentinel: int, backend: str):
+    """`padded_triangles` of the device backend `backend` as JAX arrays. A JAX array goes in
+    through DLPack and the triangles come back the same way: the positions never leave the
+    device (a host array is copied in; with numpy standing in for the module, all is host)."""
+    import jax
+
+    delaunay, xp = DEVICE_BACKENDS[backend]()
+    if xp is np:
+        p = np.asarray(points)
+    else:
+        p = xp.from_dlpack(points) if isinstance(points, jax.Array) else xp.asarray(points)
+    triangles, flat = padded_triangles(xp.ascontiguousarray(p.astype(xp.float64)), rows, sentinel, delaunay, xp)
+    to_jax = jax.numpy.asarray if xp is np else jax.dlpack.from_dlpack
+    return to_jax(triangles), to_jax(flat)
+
+
+# What `traced_device_triangles` returns in place of a flat count when it has no triangles.
+REFUSED, TOO_MANY, FAILED = -1, -2, -3
+
+
+def traced_device_triangles(points, rows: int, sentinel: int, backend: str):
+    """`device_triangles` inside a trace (jit, vmap (one swarm after the other), grad of the
+    rest: pass `stop_gradient`ed positions), through `jax.experimental.buffer_callback`: the
+    backend reads the positions' device buffer and writes the triangles into the output's, on
+    XLA's stream, so nothing crosses to the host. Returns `(triangles, code)`: `code` the flat
+    count (>= 0), or `REFUSED` (`padded_triangles` raised ValueError), `TOO_MANY` (more triangles
+    than `rows`: the capacity overflowed) or `FAILED` (the backend raised; triangles unset)."""
+    import contextlib
+
+    import jax
+    from jax.experimental.buffer_callback import buffer_callback
+
+    def fill(ctx, out, x):
+        delaunay, xp = DEVICE_BACKENDS[backend]()
+        triangles, code = (xp.asarray(buffer) for buffer in out)
+        stream = contextlib.nullcontext() if xp is np else xp.cuda.ExternalStream(ctx.stream)
+        with stream:
+            triangles[...] = sentinel  # what a failed call leaves: padding, never stale memory
+            try:
+                padded, flat = padded_triangles(xp.asarray(x).astype(xp.float64), rows, sentinel, delaunay, xp)
+                triangles[...], code[...] = padded, flat
+            except ValueError:
+                code[...] = REFUSED
+            except TooManyTriangles:
+                code[...] = TOO_MANY
+            except Exception:  # noqa: BLE001 - any failure of the backend: the host builds this graph
+                code[...] = FAILED
+
+    shapes = (jax.ShapeDtypeStruct((rows, 3), np.int32), jax.ShapeDtypeStruct((), np.int32))
+    return buffer_callback(fill, shapes, vmap_method="sequential")(points)
 
 
 # --- the check --------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from scipy.spatial import Delaunay
 import jaxgeom
 from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.tessellation import _delaunay as delaunay_module
 from jaxgeom.tessellation._delaunay import CapacityError, planar_graph_on_device
 from jaxgeom.tessellation._device_check import (
     EULER, FLAT, LEFT_OUT, OK, OUT_OF_RANGE, planar_summary, planar_triangulation_status,
@@ -25,9 +26,9 @@ def point_sets(rng):
             "lattice": np.c_[i.ravel(), j.ravel()].astype(float) + 0.25 * (j.ravel() % 2)[:, None]}
 
 
-def test_the_adapter_reads_simplices_checks_them_and_derives_the_adjacency(rng):
+def test_the_adapter_reads_simplices_checks_them_and_derives_the_adjacency(rng, stand_in):
     x = rng.random((2000, 2))
-    tri = triangulators.gpu_triangulation(x, Delaunay, np)
+    tri = triangulators.gpu_triangulation(x, "cupy")
     ref = Delaunay(x)
     np.testing.assert_array_equal(tri.simplices, ref.simplices)
     np.testing.assert_array_equal(tri.neighbors, ref.neighbors)  # our adjacency: scipy's
@@ -79,15 +80,19 @@ def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by():
 
 @pytest.fixture
 def stand_in(monkeypatch):
-    """triangulator="cupy" served by scipy's Qhull through the device path's adapter; per call,
-    whether it was handed a JAX array (the positions where they live) or a host array."""
+    """triangulator="cupy" served by scipy's Qhull and numpy in place of CuPy's gDel2D and CuPy;
+    per call of `device_triangles`, whether it was handed a JAX array (the positions where they
+    live) or a host array."""
     calls = []
+    real = triangulators.device_triangles
 
-    def build(points, rows, sentinel):
+    def spied(points, *args):
         calls.append("jax" if isinstance(points, jax.Array) else "host")
-        return triangulators.device_triangles(points, rows, sentinel, Delaunay, np)
+        return real(points, *args)
 
-    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", build)
+    monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (Delaunay, np))
+    monkeypatch.setattr(triangulators, "device_triangles", spied)
+    monkeypatch.setattr(delaunay_module, "device_triangles", spied)
     monkeypatch.setattr(triangulators, "installed", lambda name: True)
     return calls
 
@@ -121,13 +126,12 @@ def test_the_device_build_keeps_pinned_capacities_and_refuses_too_small_ones(rng
 
 def test_a_failed_device_check_falls_back_to_cdt_and_says_why(rng, stand_in, monkeypatch):
     x = rng.random((400, 2))
-    clockwise = lambda p, rows, sentinel: triangulators.device_triangles(  # noqa: E731
-        p, rows, sentinel, lambda q: type("T", (), {"simplices": Delaunay(q).simplices[:, [0, 2, 1]]}), np)
-    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", clockwise)
+    clockwise = lambda q: type("T", (), {"simplices": Delaunay(q).simplices[:, [0, 2, 1]]})  # noqa: E731
+    monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (clockwise, np))
     with pytest.warns(RuntimeWarning, match="cupy's triangulation failed its check: triangles flat or negatively"):
         tess = jaxgeom.delaunay(x, triangulator="cupy")
     same_graph(tess, jaxgeom.delaunay(x, triangulator="cdt"))
-    monkeypatch.setitem(triangulators.DEVICE_BUILDERS, "cupy", lambda p, rows, sentinel: 1 / 0)
+    monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (lambda q: 1 / 0, np))
     assert planar_graph_on_device(jax.numpy.asarray(x), None, None, "cupy") == (
         None, "cupy raised ZeroDivisionError: division by zero")
 
@@ -186,6 +190,48 @@ def test_simulate_rebuilds_on_the_device_as_cdt_would(rng, stand_in, rebuild_eve
     same_graph(state.tess, ref_state.tess)
 
 
+def callback_run(x, triangulator, nu=0.3, capacity=None):
+    state = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=triangulator, capacity=capacity)
+    return simulate_callback(state, nu)
+
+
+def simulate_callback(state, nu):
+    return jaxgeom.simulate(rastrigin, state, jaxgeom.SwarmParams(dt=0.05, nu=nu), n_steps=4, rebuild="callback",
+                            observe=("mean_fitness", "mean_ricci"))[1]
+
+
+def test_the_callback_rebuild_triangulates_in_a_buffer_callback_under_jit_vmap_and_grad(rng, stand_in, monkeypatch):
+    x = rng.uniform(-3, 3, (200, 2))
+    calls = []
+    real = triangulators.padded_triangles
+    monkeypatch.setattr(triangulators, "padded_triangles", lambda *a: calls.append(1) or real(*a))
+    ours, ref = callback_run(x, "cupy"), callback_run(x, "cdt")
+    assert len(calls) == 5 and int(ours["n_triangulator_fallbacks"]) == 0  # the first graph and 4 rebuilds
+    for name in ("mean_fitness", "mean_ricci"):
+        np.testing.assert_allclose(ours[name], ref[name], rtol=1e-10)
+    swarm = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator="cupy")
+    final = lambda nu: simulate_callback(swarm, nu)["mean_fitness"][-1]  # noqa: E731
+    np.testing.assert_allclose(float(jax.jit(final)(0.3)), float(ref["mean_fitness"][-1]), rtol=1e-10)
+    batched = jax.vmap(final)(jax.numpy.array([0.3, 0.1]))
+    np.testing.assert_allclose(np.asarray(batched), [ref["mean_fitness"][-1], final(0.1)], rtol=1e-10)
+    assert np.isfinite(float(jax.jit(jax.grad(final))(0.3)))
+
+
+@pytest.mark.slow
+def test_the_callback_rebuild_falls_back_to_cdt_counted_and_grows_as_cdt_does(rng, stand_in, monkeypatch):
+    x = rng.uniform(-3, 3, (200, 2))
+    ref = callback_run(x, "cdt")
+    monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (lambda q: 1 / 0, np))
+    failing = callback_run(x, "cupy")
+    assert int(failing["n_triangulator_fallbacks"]) == 5  # the first graph and 4 rebuilds, all by CDT
+    np.testing.assert_allclose(failing["mean_fitness"], ref["mean_fitness"], rtol=1e-10)
+    monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (Delaunay, np))
+    degree = int(np.max(np.sum(np.asarray(jaxgeom.delaunay(x).neighbors) < 200, axis=1)))
+    tight = callback_run(x, "cupy", capacity=(400, degree))  # the rebuilds outgrow it: overflow, grow, rerun
+    assert int(tight["n_reallocations"]) == int(callback_run(x, "cdt", capacity=(400, degree))["n_reallocations"]) > 0
+    np.testing.assert_allclose(tight["mean_fitness"], ref["mean_fitness"], rtol=1e-10)
+
+
 def incircle(a, b, c, d) -> Fraction:
     """> 0 when d lies inside the circle through the counter-clockwise a, b, c; exact."""
     rows = [[Fraction(p[0]) - Fraction(d[0]), Fraction(p[1]) - Fraction(d[1])] for p in (a, b, c)]
@@ -233,4 +279,17 @@ def test_a_cupy_rebuild_keeps_the_positions_on_the_device(rng):
     assert int(rebuilt.n_triangulator_fallbacks) == 0 and separated == 0
     same_graph(rebuilt.tess, jaxgeom.delaunay(np.asarray(moved.positions), triangulator="cdt",
                                               capacity=rebuilt.tess.capacity))
+
+
+@pytest.mark.gpu
+def test_cupy_rebuilds_in_a_trace_on_xlas_stream_as_cdt_does(rng):
+    if not triangulators.cuda_cupy_available():
+        pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
+    x = rng.uniform(-3, 3, (5000, 2))
+    ours, ref = callback_run(x, "cupy"), callback_run(x, "cdt")
+    assert int(ours["n_triangulator_fallbacks"]) == 0
+    np.testing.assert_allclose(ours["mean_fitness"], ref["mean_fitness"], rtol=1e-9)
+    swarm = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator="cupy")
+    batched = jax.jit(jax.vmap(lambda nu: simulate_callback(swarm, nu)["mean_fitness"][-1]))(jax.numpy.array([0.3, 0.1]))
+    np.testing.assert_allclose(float(batched[0]), float(ref["mean_fitness"][-1]), rtol=1e-9)
 
