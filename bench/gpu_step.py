@@ -49,7 +49,7 @@ from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.tessellation._delaunay import (
     _cut_to_walkers, _pad_walkers, _planar_rows, build_delaunay, planar_graph_on_device, planar_triangles,
 )
-from jaxgeom.tessellation._device_check import planar_summary
+from jaxgeom.tessellation._device_check import planar_summary, sort_by_two_keys, sort_in_two_radix_passes
 from jaxgeom.tessellation._graph import bucket_neighbors, bucket_walkers
 
 OBSERVE = ("mean_fitness", "best_fitness", "n_clones")
@@ -126,7 +126,9 @@ def parts(x: np.ndarray, backend: str, repeat: int) -> dict:
 def device_parts(xj, backend: str) -> dict:
     """The steps of `planar_graph_on_device` from the device positions `xj`, one call each, and
     the whole: the backend's padded triangles, `planar_summary` (check, adjacency, degrees: one
-    sort), the fan walk and tiers (`_planar_rows`), the rows cut to the walkers."""
+    sort), the fan walk and tiers (`_planar_rows`), the rows cut to the walkers; and the edge
+    sort both ways (`_device_check`: one sort with two keys, the CPU's choice, against two radix
+    passes, the GPU's)."""
     n = xj.shape[0]
     m = bucket_walkers(n)
     triangles, flat = triangulators.device_triangles(xj, 2 * m, m, backend)
@@ -134,7 +136,12 @@ def device_parts(xj, backend: str) -> dict:
     (counts, _), adjacency = planar_summary(padded, triangles, flat, n_walkers)
     k_cap = bucket_neighbors(int(counts[2]))
     rows = _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)
-    return {"device_triangles": lambda: triangulators.device_triangles(xj, 2 * m, m, backend)[0],
+    a, b = jax.numpy.roll(triangles, -1, axis=1).ravel(), jax.numpy.roll(triangles, -2, axis=1).ravel()
+    lo, hi = jax.numpy.minimum(a, b), jax.numpy.maximum(a, b)
+    one_sort, two_passes = jax.jit(sort_by_two_keys), jax.jit(sort_in_two_radix_passes)
+    return {"edge_sort_two_keys": lambda: one_sort(lo, hi)[2],
+            "edge_sort_two_radix_passes": lambda: two_passes(lo, hi)[2],
+            "device_triangles": lambda: triangulators.device_triangles(xj, 2 * m, m, backend)[0],
             "planar_summary": lambda: planar_summary(padded, triangles, flat, n_walkers)[1],
             "planar_rows": lambda: _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)[0],
             "cut_to_walkers": lambda: _cut_to_walkers(xj, triangles, None, *rows, s_cap=2 * n).neighbors,

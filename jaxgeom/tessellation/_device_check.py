@@ -74,10 +74,27 @@ def _sorted_edges(s, sentinel: int):
     whether each shares its key with the next (both real, not padding rows of the `sentinel`),
     and the number of real edges counted with multiplicity."""
     a, b = jnp.roll(s, -1, axis=1).ravel(), jnp.roll(s, -2, axis=1).ravel()  # edge opposite corner k
-    corner = jnp.arange(a.shape[0], dtype=jnp.int32)
-    lo, hi, corner = jax.lax.sort((jnp.minimum(a, b), jnp.maximum(a, b), corner), num_keys=2)
+    lo, hi, corner = jax.lax.platform_dependent(jnp.minimum(a, b), jnp.maximum(a, b), cpu=sort_by_two_keys,
+                                                default=sort_in_two_radix_passes)
     pair = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1]) & (lo[1:] < sentinel)
     return corner, pair, jnp.sum(lo < sentinel, dtype=jnp.int32)
+
+
+def sort_by_two_keys(lo, hi):
+    """`(lo, hi, position)` sorted by (lo, hi): one sort with two keys (on the CPU 1.4x faster
+    than two passes, bench/README.md)."""
+    return jax.lax.sort((lo, hi, jnp.arange(lo.shape[0], dtype=jnp.int32)), num_keys=2)
+
+
+def sort_in_two_radix_passes(lo, hi):
+    """`sort_by_two_keys` as two stable one-key sorts with an index payload, the less significant
+    key first. On a GPU XLA hands such sorts to CUB's radix sort; a sort of three operands is not
+    CUB-compatible there (XLA's `sort_rewriter`: one or two operands) and runs as XLA's own
+    comparison sort."""
+    index = jnp.arange(lo.shape[0], dtype=jnp.int32)
+    hi, by_hi = jax.lax.sort((hi, index), num_keys=1, is_stable=True)
+    lo, then_by_lo = jax.lax.sort((lo[by_hi], index), num_keys=1, is_stable=True)
+    return lo, hi[then_by_lo], by_hi[then_by_lo]
 
 
 def triangle_adjacency(edges, shape):

@@ -169,6 +169,20 @@ def test_the_device_check_skips_padding_rows_and_walkers(rng):
     assert int(planar_summary(walkers, triangles, 1, 300)[0][0][0]) == FLAT
 
 
+def test_both_edge_sorts_order_the_keys_alike(rng):
+    from jaxgeom.tessellation._device_check import sort_by_two_keys, sort_in_two_radix_passes
+
+    lo, hi = (jax.numpy.asarray(rng.integers(0, 50, 3000), jax.numpy.int32) for _ in range(2))
+    one, two = sort_by_two_keys(lo, hi), sort_in_two_radix_passes(lo, hi)
+    order = np.lexsort((np.asarray(hi), np.asarray(lo)))  # numpy: the last key is the primary one
+    for ours in (one, two):
+        np.testing.assert_array_equal(np.asarray(ours[0]), np.asarray(lo)[order])
+        np.testing.assert_array_equal(np.asarray(ours[1]), np.asarray(hi)[order])
+        np.testing.assert_array_equal(np.asarray(lo)[np.asarray(ours[2])], np.asarray(ours[0]))
+        np.testing.assert_array_equal(np.asarray(hi)[np.asarray(ours[2])], np.asarray(ours[1]))
+    np.testing.assert_array_equal(np.asarray(two[2]), order)  # stable: ties keep their order
+
+
 @pytest.mark.parametrize("rebuild_every, tight", [(1, False), (3, False), (1, True)])
 def test_simulate_rebuilds_on_the_device_as_cdt_would(rng, stand_in, rebuild_every, tight):
     x = rng.uniform(-3, 3, (300, 2))
