@@ -24,7 +24,8 @@ backend, medians (min, max) over `--repeat` calls after a warm-up call (compilat
   with its steps (`device_parts`); the cProfile of the last call goes to stdout.
 
 A row that raises is recorded with its error and the run goes on; the JSON is rewritten after
-each row, so a run cut short keeps the rows it finished.
+each row, so a run cut short keeps the rows it finished. `--stand-in` runs "cupy" on a CPU with
+scipy's Qhull and numpy in place of gDel2D and CuPy: the device path's own cost, without a GPU.
 """
 
 from __future__ import annotations
@@ -90,11 +91,11 @@ def row(n: int, backend: str, steps: int, repeat: int) -> dict:
             "delaunay": summary(build)}
 
 
-def parts(x: np.ndarray, backend: str, repeat: int) -> dict:
+def parts(x: np.ndarray, backend: str, repeat: int, stand_in: bool = False) -> dict:
     calls = {"triangulate": lambda: triangulators.triangulate(x, backend).tri.simplices,
              "planar_triangles": lambda: planar_triangles(x, None, backend)[0],
              "build_delaunay": lambda: build_delaunay(x, triangulator=backend)[0].neighbors}
-    if backend == "cupy":
+    if backend == "cupy" and not stand_in:
         import cupy
         from cupyx.scipy.spatial import Delaunay as CupyDelaunay
 
@@ -154,7 +155,7 @@ def safe_row(n: int, backend: str, args) -> dict:
         out.update(row(n, backend, args.steps, args.repeat))
         if n in args.parts and backend in args.parts_triangulators:
             x = np.random.default_rng(1).uniform(-5.12, 5.12, (n, 2))
-            out["parts"] = parts(x, backend, args.repeat)
+            out["parts"] = parts(x, backend, args.repeat, args.stand_in)
     except Exception as err:  # noqa: BLE001 - a bench run records a failing backend and goes on
         out["error"] = f"{type(err).__name__}: {err}"[:2000]
     return out
@@ -170,7 +171,14 @@ def main() -> None:
                         help="sizes at which to break one rebuild into its parts")
     parser.add_argument("--parts-triangulators", nargs="+", default=["cupy"])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "gpu_step.json")
+    parser.add_argument("--stand-in", action="store_true",
+                        help="scipy and numpy in place of gDel2D and CuPy: a dry run of the device path on a CPU")
     args = parser.parse_args()
+    if args.stand_in:
+        from scipy.spatial import Delaunay
+
+        triangulators.DEVICE_BACKENDS["cupy"] = lambda: (Delaunay, np)
+        triangulators.installed = lambda name: True
     rows, device = [], jax.devices()[0]
     for n in args.sizes:
         for backend in args.triangulators:  # side by side, size by size
@@ -178,7 +186,8 @@ def main() -> None:
             print(json.dumps(rows[-1]), flush=True)
             args.out.write_text(json.dumps({"rows": rows, "device": f"{device.platform}: {device.device_kind}",
                                             "jax": jax.__version__, "machine": platform.machine(),
-                                            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}, indent=1))
+                                            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
+                                            "stand_in": args.stand_in}, indent=1))
 
 
 if __name__ == "__main__":
