@@ -12,6 +12,7 @@ from scipy.spatial import Delaunay
 import jaxgeom
 from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.swarm._rebuild import update_host, update_in_trace
 from jaxgeom.tessellation import _delaunay as delaunay_module
 from jaxgeom.tessellation._delaunay import CapacityError, planar_graph_on_device
 from jaxgeom.tessellation._device_check import (
@@ -219,16 +220,21 @@ def test_the_callback_rebuild_triangulates_in_a_buffer_callback_under_jit_vmap_a
     calls = []
     real = triangulators.padded_triangles
     monkeypatch.setattr(triangulators, "padded_triangles", lambda *a: calls.append(1) or real(*a))
-    ours, ref = callback_run(x, "cupy"), callback_run(x, "cdt")
+    swarm = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator="cupy")
+    run = jax.jit(lambda nu: simulate_callback(swarm, nu))
+    ours, ref = run(0.3), callback_run(x, "cdt")
     assert len(calls) == 5 and int(ours["n_triangulator_fallbacks"]) == 0  # the first graph and 4 rebuilds
     for name in ("mean_fitness", "mean_ricci"):
         np.testing.assert_allclose(ours[name], ref[name], rtol=1e-10)
-    swarm = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator="cupy")
-    final = lambda nu: simulate_callback(swarm, nu)["mean_fitness"][-1]  # noqa: E731
-    np.testing.assert_allclose(float(jax.jit(final)(0.3)), float(ref["mean_fitness"][-1]), rtol=1e-10)
-    batched = jax.vmap(final)(jax.numpy.array([0.3, 0.1]))
-    np.testing.assert_allclose(np.asarray(batched), [ref["mean_fitness"][-1], final(0.1)], rtol=1e-10)
-    assert np.isfinite(float(jax.jit(jax.grad(final))(0.3)))
+    rebuilt = lambda p: update_in_trace(eqx.tree_at(lambda s: s.positions, swarm, p), 8)  # noqa: E731
+    moved = swarm.positions + 0.05 * jax.numpy.sin(3 * swarm.positions)
+    both = jax.vmap(rebuilt)(jax.numpy.stack([moved, swarm.positions]))  # one swarm after the other
+    for k, p in enumerate((moved, swarm.positions)):
+        np.testing.assert_array_equal(np.asarray(both.tess.neighbors[k]), np.asarray(jax.jit(rebuilt)(p).tess.neighbors))
+    np.testing.assert_array_equal(np.asarray(both.tess.neighbors[1]), np.asarray(swarm.tess.neighbors))
+    np.testing.assert_array_equal(np.asarray(both.n_triangulator_fallbacks), [0, 0])
+    gradient = jax.grad(lambda p: jax.numpy.sum(rebuilt(p).positions ** 2))(moved)  # positions pass through
+    np.testing.assert_allclose(np.asarray(gradient), 2 * np.asarray(moved), rtol=1e-14)
 
 
 @pytest.mark.slow
@@ -284,8 +290,6 @@ def test_cupy_gives_cdts_graph_or_an_equally_delaunay_one(rng, name):
 def test_a_cupy_rebuild_keeps_the_positions_on_the_device(rng):
     if not triangulators.cuda_cupy_available():
         pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
-    from jaxgeom.swarm._rebuild import update_host
-
     state = jaxgeom.init_swarm(rastrigin, rng.uniform(-3, 3, (20_000, 2)), triangulator="cupy")
     moved = eqx.tree_at(lambda s: s.positions, state, state.positions + 0.01 * jax.numpy.sin(state.positions * 7))
     with jax.transfer_guard_device_to_host("disallow"):  # an implicit copy of the positions raises
