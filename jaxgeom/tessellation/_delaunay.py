@@ -3,9 +3,9 @@ derived from its simplices.
 
 In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours to
 JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
-same code serves rebuilds inside `jax.pure_callback`). A backend whose triangles stay
-on the device (CuPy) has the whole 2D graph built there (`planar_graph_on_device`). In 3D/4D and on the torus
-the neighbour rows come from numpy index bookkeeping. Geometry derived from the
+same code serves rebuilds inside `jax.pure_callback`); a backend whose triangles stay
+on the device (CuPy) has the whole 2D graph built there (`planar_graph_on_device`).
+In 3D/4D and on the torus the neighbour rows come from numpy index bookkeeping. Geometry derived from the
 simplices (tiers from circumcentres, volumes, angles) is computed in JAX; the one
 geometric test done on the host is the periodic skin check, which decides whether
 Qhull must be run again.
@@ -245,9 +245,9 @@ def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessell
     """The 2D graph of `points` (a JAX array, or a host array copied in once as float64) built
     on the device by a backend whose triangles stay there (`DEVICE_BACKENDS`: CuPy): its
     triangles, their check, adjacency and largest degree (`planar_summary`), the fan walk and
-    tiers (`_planar_rows`), all on the device; the one transfer to the host is a read of a few
-    scalars (the check, the counts, the bounding box).
-    Walkers are padded to `bucket_walkers(N)` as on the host path.
+    tiers (`_planar_rows`), all on the device; what reaches the host is one read of a few
+    scalars (the check, the counts, the bounding box) and the backend's own reads. Walkers are
+    padded to `bucket_walkers(N)` as on the host path.
 
     Returns `(graph, None)`; `(None, why)` when the backend failed or its triangles failed the
     check (the caller builds this graph on the host and counts the fallback); `(None, None)` when
@@ -265,7 +265,7 @@ def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessell
     points = jnp.asarray(points)
     padded, n_walkers = _pad_walkers(points, m), jnp.asarray(n, jnp.int32)
     (counts, corners), adjacency = planar_summary(padded, triangles, flat, n_walkers)
-    (status, count, degree), corners = (np.asarray(a) for a in jax.device_get((counts, corners)))
+    (status, count, degree), corners = jax.device_get((counts, corners))
     spacing = spacing_of_box(corners[:2], corners[2:4], n)
     refuse_unrepresentable_spacing(spacing, points.dtype)
     refuse_unresolved_positions(spacing, float(corners[4]), points.dtype)

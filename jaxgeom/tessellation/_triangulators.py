@@ -435,9 +435,10 @@ def traced_device_triangles(points, rows: int, sentinel: int, backend: str):
     """`device_triangles` inside a trace (jit, vmap (one swarm after the other), grad of the
     rest: pass `stop_gradient`ed positions), through `jax.experimental.buffer_callback`: the
     backend reads the positions' device buffer and writes the triangles into the output's, on
-    XLA's stream, so nothing crosses to the host. Returns `(triangles, code)`: `code` the flat
-    count (>= 0), or `REFUSED` (`padded_triangles` raised ValueError), `TOO_MANY` (more triangles
-    than `rows`: the capacity overflowed) or `FAILED` (the backend raised; triangles unset)."""
+    XLA's stream, so the positions never cross to the host. Returns `(triangles, code)`: `code`
+    the flat count (>= 0), or `REFUSED` (`padded_triangles` raised ValueError), `TOO_MANY` (more
+    triangles than `rows`: the capacity overflowed) or `FAILED` (the backend raised); the
+    triangles are then all padding."""
     import contextlib
 
     import jax
