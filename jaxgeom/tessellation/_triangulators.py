@@ -100,6 +100,13 @@ def resolve_triangulator(name: str, d: int) -> str:
         raise ValueError(f"triangulator={name!r} builds d = {', '.join(map(str, DIMENSIONS[name]))} only; these "
                          f"points have d = {d}. Use triangulator='auto' or 'qhull'.")
     if not installed(name):
+        if name == "cupy" and importlib.util.find_spec("cupy") is not None:
+            import jax
+
+            raise ValueError(f"triangulator='cupy' needs JAX's default backend on a CUDA GPU, where the positions "
+                             f"live; CuPy is installed, but JAX's backend is {jax.default_backend()!r} (or CuPy finds "
+                             "no CUDA device). Install jax with CUDA (pip install \"jax[cuda12]\"), or use "
+                             "triangulator='auto'.")
         raise ValueError(f"triangulator={name!r} is not installed: {INSTALL[name]}. Or use triangulator='auto'.")
     return name
 

@@ -68,11 +68,17 @@ def test_a_failed_gpu_build_falls_back_to_cdt_and_says_so(rng, monkeypatch):
         map(tuple, np.sort(triangulators._cdt(x).simplices, axis=1)))
 
 
-def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by():
+def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by(monkeypatch):
     if triangulators.cuda_cupy_available():
         pytest.skip("this machine has a GPU with CuPy")
+    x = np.random.default_rng(0).random((50, 2))
+    find_spec = triangulators.importlib.util.find_spec
+    monkeypatch.setattr(triangulators.importlib.util, "find_spec", lambda name: None if name == "cupy" else find_spec(name))
     with pytest.raises(ValueError, match=r"triangulator='cupy' is not installed: pip install \"jaxgeom\[cuda12\]\""):
-        jaxgeom.delaunay(np.random.default_rng(0).random((50, 2)), triangulator="cupy")
+        jaxgeom.delaunay(x, triangulator="cupy")
+    monkeypatch.setattr(triangulators.importlib.util, "find_spec", lambda name: object() if name == "cupy" else find_spec(name))
+    with pytest.raises(ValueError, match=r"CuPy is installed, but JAX's backend is 'cpu'"):  # the extra on a CPU
+        jaxgeom.delaunay(x, triangulator="cupy")
     assert triangulators.resolve_triangulator("auto", 2) != "cupy"
 
 
