@@ -300,13 +300,15 @@ def _device_planar_rebuild_in_trace(state: SwarmState) -> SwarmState:
     (counts, _), adjacency = planar_summary(x, triangles, jnp.maximum(code, 0), n)
     overflowed = code == TOO_MANY
     needs_host = ~overflowed & ((code < 0) | (counts[0] != DEVICE_OK))
-    new = planar_tessellation(x, triangles, adjacency, tess.box, k_cap=cap.neighbors)
-    outcome = jnp.where(overflowed | new.overflow, OVERFLOWED, REBUILT)
-    zero = jnp.asarray(0, jnp.int32)
-    on_device = _apply_rebuild(state, new, x, outcome, zero, zero)
+
+    def on_device(s):  # the fan walk and tiers only in this branch: skipped where the host builds
+        new = planar_tessellation(x, triangles, adjacency, tess.box, k_cap=cap.neighbors)
+        outcome = jnp.where(overflowed | new.overflow, OVERFLOWED, REBUILT)
+        zero = jnp.asarray(0, jnp.int32)
+        return _apply_rebuild(s, new, x, outcome, zero, zero)
+
     fallback = FALLBACK[state.triangulator]
-    state = jax.lax.cond(needs_host, lambda s: _callback_planar_rebuild(s, fallback, needs_host), lambda s: on_device,
-                         state)
+    state = jax.lax.cond(needs_host, lambda s: _callback_planar_rebuild(s, fallback, needs_host), on_device, state)
     counted = (needs_host & (code != REFUSED)).astype(jnp.int32)  # refused positions fail on the host too
     return eqx.tree_at(lambda s: s.n_triangulator_fallbacks, state, state.n_triangulator_fallbacks + counted)
 

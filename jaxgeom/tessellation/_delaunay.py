@@ -5,10 +5,10 @@ In 2D (not periodic) the host hands Qhull's triangles and their edge neighbours 
 JAX, which derives neighbour rows, hull flags and tiers (`_planar`, jittable: the
 same code serves rebuilds inside `jax.pure_callback`); a backend whose triangles stay
 on the device (CuPy) has the whole 2D graph built there (`planar_graph_on_device`).
-In 3D/4D and on the torus the neighbour rows come from numpy index bookkeeping. Geometry derived from the
-simplices (tiers from circumcentres, volumes, angles) is computed in JAX; the one
-geometric test done on the host is the periodic skin check, which decides whether
-Qhull must be run again.
+In 3D/4D and on the torus the neighbour rows come from numpy index bookkeeping.
+Geometry derived from the simplices (tiers from circumcentres, volumes, angles) is
+computed in JAX; the one geometric test done on the host is the periodic skin check,
+which decides whether Qhull must be run again.
 """
 
 from __future__ import annotations
