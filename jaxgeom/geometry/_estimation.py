@@ -19,7 +19,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..base._checks import check_choice, check_nonnegative
 from ..base._simplex import safe_sqrt
 from ..tessellation._graph import (
-    Tessellation, neighbor_coord_displacements, neighbor_displacements, padded_points,
+    Tessellation, neighbor_coord_displacements, neighbor_displacements, take_or_zero,
     takes_tessellation,
 )
 from ._metric import emergent_metric
@@ -226,8 +226,8 @@ def _two_ring(tess: Tessellation, values, walkers):
     second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, m*m)
     ring = jnp.concatenate([first, second], axis=1)
     is_self = ring == walkers[:, None]
-    table = padded_points(tess.points).T
-    dxs = [table[k][ring] - table[k][walkers][:, None] for k in range(tess.dim)]
+    dxs = [take_or_zero(tess.points[:, k], ring) - take_or_zero(tess.points[:, k], walkers)[:, None]
+           for k in range(tess.dim)]
     if tess.neighbor_shifts is not None:  # compose the stored image shifts along i -> j -> k
         shifts = jnp.concatenate([tess.neighbor_shifts[:, :width], jnp.zeros((1, width, tess.dim), jnp.int8)])
         shifts = shifts.astype(jnp.int32)

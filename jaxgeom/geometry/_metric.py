@@ -29,7 +29,7 @@ from ..base._checks import (
 )
 from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh, spectral_function
 from ..tessellation._graph import (
-    Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords,
+    Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords, take_or_zero,
     takes_tessellation,
 )
 from ._volumes import voronoi_volumes
@@ -211,8 +211,7 @@ def edge_sq_lengths(tess: Tessellation, metric=None, *, mode: str = "full") -> F
         sq = _quad(_with_mode(_call_metric(metric, _wrap(tess, mid)), mode), dx)
     else:
         g = _with_mode(metric, mode)
-        g_pad = jnp.concatenate([g, jnp.zeros((1,) + g.shape[1:], g.dtype)])
-        sq = 0.5 * (_quad(g[:, None], dx) + _quad(g_pad[tess.neighbors], dx))
+        sq = 0.5 * (_quad(g[:, None], dx) + _quad(take_or_zero(g, tess.neighbors), dx))
     return jnp.where(mask, sq, 0.0)
 
 

@@ -35,7 +35,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ..base._checks import check_choice, check_integer, check_number, check_positive
 from ..base._simplex import safe_sqrt
 from ..tessellation._graph import (Tessellation, bucket_neighbors, bucket_simplices, neighbor_displacements,
-                                   takes_tessellation)
+                                   take_or_zero, takes_tessellation)
 from ._metric import (
     _call_metric, _quad, _with_mode, _wrap, check_metric, edge_sq_lengths, warns_on_defective_metric,
 )
@@ -244,9 +244,8 @@ def two_hop_tables(graph: Tessellation, weights):
     ids1 = jnp.concatenate([jnp.arange(n, dtype=graph.neighbors.dtype)[:, None], graph.neighbors], axis=1)
     w1 = jnp.concatenate([jnp.zeros((n, 1), weights.dtype), jnp.where(graph.neighbor_mask, weights, 0.0)], axis=1)
     ids1_pad = jnp.concatenate([ids1, jnp.full((1, k + 1), n, ids1.dtype)])
-    w1_pad = jnp.concatenate([w1, jnp.zeros((1, k + 1), w1.dtype)])
     ids2 = jnp.where(ids1[:, :, None] < n, ids1_pad[ids1], n).reshape(n, -1)
-    d2 = jnp.where(ids2 < n, (w1[:, :, None] + w1_pad[ids1]).reshape(n, -1), jnp.inf)
+    d2 = jnp.where(ids2 < n, (w1[:, :, None] + take_or_zero(w1, ids1)).reshape(n, -1), jnp.inf)
     ids2, d2 = jax.lax.sort((ids2, d2), dimension=1, num_keys=2)
     first = jnp.concatenate([jnp.ones((n, 1), bool), ids2[:, 1:] != ids2[:, :-1]], axis=1)
     ids2, d2 = jnp.where(first, ids2, n), jnp.where(first, d2, jnp.inf)

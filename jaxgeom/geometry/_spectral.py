@@ -15,7 +15,7 @@ from jaxtyping import Array, Float, Int
 
 from ..base._checks import check_choice, check_integer, check_positive, refuse_unused
 from ..tessellation._triangulators import morton_codes
-from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
+from ..tessellation._graph import Tessellation, padded_to_csr, take_or_zero, takes_tessellation
 from ._weights import (
     check_weights, kernel_arguments, weights_on_graph,
 )
@@ -58,9 +58,8 @@ class GraphLaplacian(eqx.Module):
 
     def adjacency_matvec(self, x):
         """W_sym @ x for x of shape (N,) or (N, m)."""
-        pad = jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
         w = self.weights.reshape(self.weights.shape + (1,) * (x.ndim - 1))
-        out = jnp.sum(w * pad[self.neighbors], axis=1)
+        out = jnp.sum(w * take_or_zero(x, self.neighbors), axis=1)
         if self.symmetric:
             return out
         pushed = (w * x[:, None]).reshape((-1,) + x.shape[1:])

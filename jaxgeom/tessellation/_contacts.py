@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base._simplex import simplex_circumcenter, simplex_circumcenter_and_flat, small_det
-from ._graph import Tessellation, edge_slots, simplex_coords
+from ._graph import Tessellation, edge_slots, simplex_coords, take_or_zero
 
 
 def contact_rtol(dtype) -> float:
@@ -82,7 +82,7 @@ def positive_measure_contacts(tess: Tessellation):
     ids, offset, sq = _directed_edges(tess)
     count = jnp.maximum(jax.ops.segment_sum(jnp.ones_like(sq), ids, num_segments=slots), 1.0)
     mean = jax.ops.segment_sum(offset, ids, num_segments=slots) / count[:, None]
-    centred = offset - jnp.concatenate([mean, jnp.zeros((1, d), mean.dtype)])[ids]
+    centred = offset - take_or_zero(mean, ids)
     cov = jax.ops.segment_sum(centred[:, :, None] * centred[:, None, :], ids, num_segments=slots) / count[:, None, None]
     sq_edge = jax.ops.segment_sum(sq, ids, num_segments=slots) / count
     trace = jnp.trace(cov, axis1=-2, axis2=-1)

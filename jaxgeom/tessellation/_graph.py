@@ -121,9 +121,15 @@ class Tessellation(eqx.Module):
         return None if self.box is None else self.box[1] - self.box[0]
 
 
-def padded_points(points: Float[Array, "N d"]) -> Float[Array, "N1 d"]:
-    """Points with one zero row appended, so that the sentinel index N gathers zeros."""
-    return jnp.concatenate([points, jnp.zeros((1, points.shape[1]), points.dtype)], axis=0)
+def take_or_zero(values: Array, index: Int[Array, "..."]) -> Array:
+    """`values[index]` along the first axis, zero where `index` is the sentinel `len(values)`.
+
+    A gather in mode "fill", never `values` with a zero row concatenated: jaxlib 0.8 and 0.9
+    miscompile that concatenation on x86 CPUs for float64 rows of 4 (4D points): the last
+    row is stored 96 bytes past the buffer, a heap overflow that aborted `delaunay` of 6 to
+    8 walkers in 4D (issue 61; tests/test_smallest_inputs.py checks every compiled kernel).
+    """
+    return values.at[index].get(mode="fill", fill_value=0)
 
 
 def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
@@ -133,11 +139,10 @@ def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
 
 def neighbor_coord_displacements(tess: Tessellation) -> list:
     """`neighbor_displacements` coordinate-major: d arrays (N, K), the fast layout on CPU."""
-    table = padded_points(tess.points).T
     mask = tess.neighbor_mask
     out = []
     for k in range(tess.dim):
-        dx = table[k][tess.neighbors] - tess.points[:, k, None]
+        dx = take_or_zero(tess.points[:, k], tess.neighbors) - tess.points[:, k, None]
         if tess.neighbor_shifts is not None:
             dx = dx + tess.neighbor_shifts[..., k].astype(dx.dtype) * tess.box_lengths[k]
         out.append(jnp.where(mask, dx, 0.0))
@@ -180,8 +185,7 @@ def simplex_coords(tess: Tessellation) -> tuple:
     """
     if tess.simplices is None:
         raise ValueError("this Tessellation has no simplices (a k-NN graph); use jaxgeom.delaunay")
-    table = padded_points(tess.points).T
-    coords = [table[k][tess.simplices] for k in range(tess.dim)]
+    coords = [take_or_zero(tess.points[:, k], tess.simplices) for k in range(tess.dim)]
     if tess.simplex_shifts is not None:
         lengths = tess.box_lengths
         coords = [c + tess.simplex_shifts[..., k].astype(c.dtype) * lengths[k] for k, c in enumerate(coords)]
