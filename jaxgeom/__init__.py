@@ -4,12 +4,14 @@ from .base._sharding import batch_mesh as batch_mesh
 from .base._sharding import shard_batch as shard_batch
 from .base._sharding import walker_mesh as walker_mesh
 from .tessellation._cellclip import rebuild as rebuild
+from .tessellation._delaunay import CapacityError as CapacityError
 from .tessellation._delaunay import delaunay as delaunay
 from .tessellation._graph import Capacity as Capacity
 from .tessellation._graph import Tessellation as Tessellation
 from .tessellation._graph import neighbor_displacements as neighbor_displacements
 from .tessellation._graph import simplex_vertices as simplex_vertices
 from .tessellation._knn import knn_graph as knn_graph
+from .tessellation._triangulators import CoincidentPointsError as CoincidentPointsError
 from .geometry._cells import mean_curvature_estimate as mean_curvature_estimate
 from .geometry._cells import raychaudhuri_expansion as raychaudhuri_expansion
 from .geometry._cells import shape_distortion as shape_distortion
@@ -47,6 +49,8 @@ from .geometry._scutoids import Scutoids as Scutoids
 from .geometry._scutoids import scutoids as scutoids
 from .geometry._volumes import circumcenters as circumcenters
 from .geometry._volumes import voronoi_volumes as voronoi_volumes
+from .swarm._divergence import SimulationDiverged as SimulationDiverged
+from .swarm._drivers import SimulationInterrupted as SimulationInterrupted
 from .swarm._dynamics import SwarmParams as SwarmParams
 from .swarm._dynamics import SwarmState as SwarmState
 from .swarm._observables import ALL_OBSERVABLES as ALL_OBSERVABLES
@@ -57,6 +61,7 @@ from .swarm._swarm_init import init_swarm as init_swarm
 from .swarm._tune import TuneResult as TuneResult
 from .swarm._tune import parameter_errors as parameter_errors
 from .swarm._tune import TuningFailed as TuningFailed
+from .swarm._tune import TuningInterrupted as TuningInterrupted
 from .swarm._tune import tune as tune
 from .swarm._tuning import OBJECTIVES as OBJECTIVES
 from .swarm._tuning import TUNABLE as TUNABLE
