@@ -45,6 +45,7 @@ from .geometry._spectral import graph_laplacian as graph_laplacian
 from .geometry._spectral import spectral_gap as spectral_gap
 from .geometry._facets import VoronoiFacets as VoronoiFacets
 from .geometry._facets import voronoi_facets as voronoi_facets
+from .geometry._scutoids import ScutoidFractions as ScutoidFractions
 from .geometry._scutoids import Scutoids as Scutoids
 from .geometry._scutoids import scutoids as scutoids
 from .geometry._volumes import circumcenters as circumcenters

@@ -22,6 +22,8 @@ and the exact integral of V(t) for a cell that scales uniformly (x -> s x: V_b d
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,16 @@ from ._volumes import voronoi_volumes
 
 PRISM, SIMPLE, COMPLEX = 0, 1, 2
 KINDS = ("prism", "simple", "complex")
+
+
+class ScutoidFractions(NamedTuple):
+    """Fractions of the walkers whose cell is a prism (no neighbour lost or gained), a simple
+    scutoid (at most one lost and one gained) or a complex scutoid (more); they add up to 1, or
+    are all NaN where no walker was counted. A tuple: `np.asarray(fractions)` is the 3-vector."""
+
+    prism: Float[Array, ""]
+    simple: Float[Array, ""]
+    complex: Float[Array, ""]
 
 
 class Scutoids(eqx.Module):
@@ -62,14 +74,15 @@ class Scutoids(eqx.Module):
     hull: Bool[Array, " N"]
     interior: Bool[Array, " N"]
 
-    def fractions(self, mask=None) -> Float[Array, "3"]:
-        """Fractions of prisms, simple and complex scutoids among the walkers in `mask`
-        (default: `interior`); NaN where the mask is empty."""
+    def fractions(self, mask=None) -> ScutoidFractions:
+        """[`jaxgeom.ScutoidFractions`][]: the fractions of prisms, simple and complex scutoids
+        among the walkers in `mask` (default: `interior`); NaN where the mask is empty."""
         mask = self.interior if mask is None else mask
         count = jnp.sum(mask)
-        counts = jnp.stack([jnp.sum(mask & (self.kind == k)) for k in (PRISM, SIMPLE, COMPLEX)])
         dtype = self.bottom_volume.dtype
-        return jnp.where(count > 0, counts.astype(dtype) / jnp.maximum(count, 1).astype(dtype), jnp.nan)
+        share = lambda k: jnp.where(  # noqa: E731
+            count > 0, jnp.sum(mask & (self.kind == k)).astype(dtype) / jnp.maximum(count, 1).astype(dtype), jnp.nan)
+        return ScutoidFractions(share(PRISM), share(SIMPLE), share(COMPLEX))
 
 
 def scutoids(before: Tessellation, after: Tessellation, parents=None, *, dt=1.0, volumes_before=None,

@@ -134,6 +134,11 @@ def test_fractions_and_bad_arguments(rng):
     s = jaxgeom.scutoids(t, jaxgeom.delaunay(x0 + 0.01 * rng.standard_normal((100, 2))))
     fractions = np.asarray(s.fractions())
     assert fractions.sum() == pytest.approx(1.0)
+    named = s.fractions()  # named fields, counted from `kind` independently
+    kind, interior = np.asarray(s.kind), np.asarray(s.interior)
+    for field, k in (("prism", PRISM), ("simple", SIMPLE), ("complex", COMPLEX)):
+        assert float(getattr(named, field)) == pytest.approx(np.mean(kind[interior] == k))
+    assert all(np.isnan(np.asarray(s.fractions(np.zeros(100, bool)))))
     with pytest.raises(ValueError, match="`parents` must hold walker ids"):
         jaxgeom.scutoids(t, t, np.full(100, 100))
     with pytest.raises(ValueError, match="`parents` must be an"):
