@@ -4,10 +4,11 @@ Three rebuild strategies (why, with the measurements: bench/README.md):
 
 - `rebuild="host"` (default) runs `rebuild_every` steps in one jitted `lax.scan` chunk
   (`_steps._host_chunk`, driven by `_drivers._simulate_host`) and rebuilds the graph
-  with Qhull on the host between chunks (`jaxgeom.swarm._rebuild.update_host`). Between chunks
+  with the swarm's triangulator between chunks (`jaxgeom.swarm._rebuild.update_host`; by default CDT
+  in 2D and Qhull in 3D and 4D, shull with the GPL extra: `init_swarm`). Between chunks
   the host first dispatches the work that needs no new graph (the last step's closing
   kick, the next step's opening with its random draws and clone decisions, the
-  observables of the chunk's first state), so XLA computes it while Qhull runs. Only
+  observables of the chunk's first state), so XLA computes it while the triangulator runs. Only
   this loop can grow a too-small capacity (a new bucket, one recompilation) instead of
   truncating, compute the spectral gap every M steps and show a progress bar; it
   compiles per chunk length, not per `n_steps`.
@@ -20,7 +21,7 @@ Three rebuild strategies (why, with the measurements: bench/README.md):
   +inf there).
 - `rebuild="device"` is the same scan with the graph rebuilt in JAX (`jaxgeom.rebuild`,
   2D non-periodic Delaunay swarms): no host round trip on the steps it certifies; a step
-  it cannot certify falls back to the callback's Qhull and is counted (`n_fallbacks`).
+  it cannot certify falls back to the callback's host triangulation and is counted (`n_fallbacks`).
   On CPU it is slower than the callback today (bench/README.md); it is the route to GPUs.
 
 This module is the entry point (argument checks, dispatch, batches of swarms); the drivers
@@ -65,7 +66,7 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     if not _is_traced(state, params):
         check_traceable_fitness(fitness, state.positions.shape[-1], state.positions.dtype)
     if rebuild == "host" and _is_traced(state, params):
-        raise TypeError("simulate(rebuild='host') rebuilds the graph with Qhull on the host between jitted chunks, "
+        raise TypeError("simulate(rebuild='host') rebuilds the graph with a triangulator between jitted chunks, "
                         "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
                         "traceable, differentiable simulation.")
     if rebuild == "device" and not rebuilds_on_device(state.tess):
@@ -97,8 +98,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       from `metric_curvature`, O(d^4) per walker up to d = 16, stochastic above), recorded
       for the state entering every step and for the final state (n_steps + 1 values).
     - `rebuild`: "host" (default: fastest on CPU), "callback" (jittable and differentiable
-      end to end, vmap runs the lanes' Qhull calls one after another) or "device" (the
-      same, with the 2D graph rebuilt in JAX and Qhull only on the steps the device rebuild
+      end to end, vmap runs the lanes' triangulations one after another) or "device" (the
+      same, with the 2D graph rebuilt in JAX and triangulated only on the steps the device rebuild
       cannot certify; module docstring). Host triangulations (every mode) use the swarm's
       `state.triangulator`, chosen in `init_swarm`.
     - `spectral_gap_every`: M > 0 records the spectral gap of the largest connected
@@ -121,7 +122,7 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
       (`jaxgeom.walker_mesh()`, N a multiple of its devices) splits the walkers: each device
       clips its share of the cells in every rebuild and runs the step's per-walker kernels
       for its walkers; the same graphs as one device, positions equal to rounding. Graphs the
-      device rebuild cannot certify are rebuilt by Qhull on the host between scans, so this
+      device rebuild cannot certify are triangulated on the host between scans, so this
       mode cannot run under jax.jit / jax.grad.
 
     **Returns:**
@@ -132,8 +133,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     gap is below float64 resolution, `gap_rounding_level`: read it as "< that level") (one
     entry per gap computed; empty with rebuild="callback");
     `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
-    by Qhull because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
-    (NaN with rebuild="callback"); `n_separated` (walkers moved apart for Qhull);
+    by the host triangulator because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
+    (NaN with rebuild="callback"); `n_separated` (walkers moved apart for the triangulator);
     `n_triangulator_fallbacks` (host triangulations in which `state.triangulator` failed and
     Qhull built the graph; `n_separated` and this count the state's whole life);
     `diverged_step` (-1, or under a trace the first step whose state failed: non-finite,

@@ -74,10 +74,13 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
              spatial_dims: int | None = None) -> Tessellation:
     """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
 
-    Host-only (a host triangulator); not jittable. Qhull gets the points in Morton
-    order, which makes it faster; all indices refer to the original order. In 2D
-    (not periodic) the neighbour rows, hull flags and tiers are derived from Qhull's
-    triangles by the jitted [`planar_tessellation`][jaxgeom.tessellation._delaunay.planar_tessellation].
+    Not jittable: a triangulator builds the graph, on the host or (2D, CuPy) on the GPU.
+    The default (`triangulator="auto"`) per dimension: in 2D CuPy's gDel2D when JAX runs on a
+    CUDA GPU and the `cuda12`/`cuda13` extra is installed, else shull (the GPL extra), else
+    CDT; in 3D shull (GPL extra), else Qhull; in 4D Qhull. Qhull gets the points in Morton
+    order, which makes it faster; all indices refer to the original order. In 2D (not
+    periodic) the neighbour rows, hull flags and tiers are derived from the triangles by the
+    jitted [`planar_tessellation`][jaxgeom.tessellation._delaunay.planar_tessellation].
 
     **Arguments:**
 
@@ -98,11 +101,12 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
       them (neighbours to a multiple of 8, simplices on an 8-steps-per-octave
       ladder; in 2D the exact bound 2N), so rebuilt graphs of a moving swarm
       reuse compiled kernels. A graph that does not fit raises `ValueError`.
-    - `triangulator`: the host backend. "auto" (default) takes the fastest installed for
-      d: "shull" (2D, 3D; the GPL extra `jaxgeom[gpl]`), else "cdt" (2D, pythoncdt),
-      else "qhull" (scipy, the reference, 2D-4D). Every backend gives the same graph on
-      points in general position; a backend that fails (or returns a triangulation that
-      fails a cheap check) is replaced by Qhull for this call with a `RuntimeWarning`.
+    - `triangulator`: the backend. "auto" (default) takes the fastest installed for d:
+      "cupy" (2D, JAX on a CUDA GPU, the `cuda12`/`cuda13` extra), else "shull" (2D, 3D;
+      the GPL extra `jaxgeom[gpl]`), else "cdt" (2D, pythoncdt), else "qhull" (scipy, the
+      reference, 2D-4D). Every backend gives the same graph on points in general position;
+      a backend that fails (or returns a triangulation that fails a cheap check) is
+      replaced for this call, CuPy by CDT and the others by Qhull, with a `RuntimeWarning`.
     - `spatial_dims`: k in [2, d] to tessellate the first k coordinates only (space, when
       the rest are, say, a time or fitness coordinate). The graph and all its geometry are
       k-dimensional; the other coordinates ride along in `Tessellation.carried`
@@ -158,7 +162,8 @@ def _check_delaunay_dim(d: int) -> None:
     if d < 2 or d > MAX_DELAUNAY_DIM:
         raise ValueError(
             f"`points` has dimension d={d}; jaxgeom.delaunay supports d = 2, 3 and 4 "
-            "(Qhull's cost explodes beyond: at d=5, N=1e4 takes 13 s and 155 simplices per point). "
+            "(beyond 3D only Qhull triangulates, and its cost explodes: at d=5, N=1e4 it takes 13 s and "
+            "155 simplices per point). "
             "Use jaxgeom.knn_graph(points, k) instead, which works in any dimension."
         )
 
