@@ -31,7 +31,7 @@ def test_analyze_default_sample_writes_consistent_summary(tmp_path, capsys):
     for proxy in ("ricci_scalar", "shape_distortion", "riemannian_volumes", "deficit_angles", "spectral_gap"):
         assert report["timings_s"][proxy] >= 0
     graph_proxies = report["graph_proxies"]
-    assert 0 < graph_proxies["spectral_gap"] < 1 and graph_proxies["smallest_eigenvalues"][0] < 1e-10
+    assert 0 < graph_proxies["spectral_gap_largest_component"] < 1 and graph_proxies["kernel_graph_components"] == 1
     assert graph_proxies["best_walker_geodesic_eccentricity"] > 0 and graph_proxies["unreachable_walkers"] == 0
     assert graph_proxies["geodesic_method"] == "heat"
     estimation = report["estimation"]
@@ -504,3 +504,32 @@ def test_the_cache_is_pruned_to_half_its_cap_oldest_first(tmp_path):
     assert len(list(tmp_path.iterdir())) == 10, "under the cap: nothing removed"
     prune_cache(tmp_path, cap=600)
     assert sorted(p.name for p in tmp_path.iterdir()) == [f"entry{age}" for age in range(7, 10)]
+
+
+def test_analyze_of_two_separated_blobs_names_the_components_not_a_rounding_gap(tmp_path, capsys):
+    """Issue 63: two Gaussian blobs 100 widths apart printed `spectral_gap 2.5627e-17`. Their
+    kernel graph falls apart into the two blobs: the report names the components and gives the
+    larger blob's gap (against a dense eigensolve of its normalized Laplacian), and a kernel wide
+    enough (`--length-scale`) joins them again."""
+    rng = np.random.default_rng(5)
+    blobs = np.concatenate([rng.normal(0.0, 1.0, (150, 2)), rng.normal(100.0, 1.0, (120, 2))])
+    np.save(tmp_path / "blobs.npy", blobs)
+    assert main(["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "1.0",
+                 "--out", str(tmp_path / "a")]) == 0
+    printed = capsys.readouterr().out
+    proxies = json.loads((tmp_path / "a" / "summary.json").read_text())["graph_proxies"]
+    assert proxies["kernel_graph_components"] == 2 and proxies["walkers_outside_largest_component"] == 120
+    assert re.search(r"kernel_graph_components\s+2\n", printed) and not re.search(r"e-1[5-9]", printed)
+    tess = jaxgeom.delaunay(blobs)
+    nbrs = np.asarray(tess.neighbors)[:150]
+    w = np.asarray(jaxgeom.edge_weights(tess, length_scale=1.0))[:150]
+    dense = np.zeros((150, 150))
+    rows, slots = np.nonzero(nbrs < 150)
+    dense[rows, nbrs[rows, slots]] = w[rows, slots]
+    scale = 1.0 / np.sqrt(dense.sum(axis=1))
+    gap = np.linalg.eigvalsh(np.eye(150) - scale[:, None] * dense * scale[None, :])[1]
+    assert proxies["spectral_gap_largest_component"] == pytest.approx(gap, rel=1e-8) and gap > 1e-3
+    assert main(["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "200",
+                 "--out", str(tmp_path / "b")]) == 0
+    wide = json.loads((tmp_path / "b" / "summary.json").read_text())["graph_proxies"]
+    assert wide["kernel_graph_components"] == 1 and wide["walkers_outside_largest_component"] == 0
