@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base._checks import warn_at_caller
 from ..base._checks import check_choice, check_integer, check_nonnegative
 from ..geometry._estimation import estimate_gradient, estimate_hessian, geometric_hessian
 from ..tessellation._graph import Tessellation
@@ -77,9 +77,9 @@ def warn_if_undetermined(tess: Tessellation, determined: np.ndarray, caller: str
     needed = (d + 1) * (d + 2) // 2
     fix = (f"build the k-NN graph with k >= {2 * needed} (knn_graph(points, k), or analyze's --k)"
            if tess.simplices is None else "use a k-NN graph with more neighbours")
-    warnings.warn(f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
+    warn_at_caller(f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
                   f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
-                  f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning, stacklevel=3)
+                  f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning)
 
 
 def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:

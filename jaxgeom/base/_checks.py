@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
+import sys
+import warnings
 import weakref
 from collections.abc import Iterable
 
@@ -392,3 +396,24 @@ def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
     if value not in valid:
         raise ValueError(f"unknown {name} {value!r}; valid values are {', '.join(map(repr, valid))}.")
     return value
+
+
+def _library_dirs() -> tuple[str, ...]:
+    import equinox
+    import jaxtyping
+
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the jaxgeom package
+    return tuple(os.path.dirname(os.path.abspath(m.__file__)) + os.sep for m in (jax, equinox, jaxtyping)) + (here + os.sep,)
+
+
+_STDLIB_WRAPPERS = (os.path.abspath(contextlib.__file__), os.path.abspath(functools.__file__))
+
+
+def warn_at_caller(message: str, category: type[Warning] = UserWarning) -> None:
+    """`warnings.warn` attributed to the first frame outside jaxgeom, JAX, equinox and jaxtyping:
+    the user's own line, however deep the library's call (decorators, jit tracing) runs."""
+    inside, frame, level = _library_dirs(), sys._getframe(1), 2
+    while frame is not None and (os.path.abspath(frame.f_code.co_filename).startswith(inside)
+                                 or os.path.abspath(frame.f_code.co_filename) in _STDLIB_WRAPPERS):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)

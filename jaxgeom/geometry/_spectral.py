@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 
 import equinox as eqx
 import jax
@@ -13,6 +12,7 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
+from ..base._checks import warn_at_caller
 from ..base._checks import check_choice, check_integer, check_positive, refuse_unused
 from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, take_or_zero, takes_tessellation
@@ -172,9 +172,9 @@ def warn_if_underflowed(lap: GraphLaplacian, tess: Tessellation) -> None:
     construction (the symmetric kernel graph's true limit as l -> 0), which is worth saying."""
     cut = int(np.sum((np.asarray(lap.weights) == 0) & np.asarray(tess.neighbor_mask)))
     if cut:
-        warnings.warn(f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
+        warn_at_caller(f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
                       "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
-                      "construction. Use a larger length_scale, or None for the adaptive rule.", stacklevel=3)
+                      "construction. Use a larger length_scale, or None for the adaptive rule.")
 
 
 @takes_tessellation

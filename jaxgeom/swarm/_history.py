@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import warnings
 
 import jax
 import jax.numpy as jnp
 import scipy.sparse.linalg
 
+from ..base._checks import warn_at_caller
 from ..geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from ..tessellation._graph import Tessellation
 
@@ -40,6 +40,6 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int, bool]:
         gap, n_comp, outside = bulk_spectral_gap(tess)
         return gap, n_comp, bool(gap < gap_rounding_level(tess.n_points - outside))
     except (ArithmeticError, RuntimeError, ValueError, scipy.sparse.linalg.ArpackError) as err:
-        warnings.warn(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
-                      RuntimeWarning, stacklevel=3)
+        warn_at_caller(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
+                      RuntimeWarning)
         return float("nan"), -1, False

@@ -17,7 +17,6 @@ import functools
 import itertools
 import math
 import os
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -27,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..base._checks import warn_at_caller
 from ..base._checks import (
     check_full_rank, check_min_points, check_representable_spacing, check_resolved_positions, host_box, host_points,
     mean_spacing, refuse_unrepresentable_spacing, refuse_unresolved_positions, spacing_of_box,
@@ -127,7 +127,7 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
         tess = eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
                            is_leaf=lambda leaf: leaf is None)
     for reason in fallbacks:
-        warnings.warn(f"jaxgeom.delaunay: {reason}; Qhull built this graph instead.", RuntimeWarning, stacklevel=2)
+        warn_at_caller(f"jaxgeom.delaunay: {reason}; Qhull built this graph instead.", RuntimeWarning)
     return tess
 
 
