@@ -51,6 +51,7 @@ def sweep(cases, kernels, workdir: Path, timeout=900):
 
     Returns (results by case, [(case, exit status, output tail)] of the deaths, IR findings)."""
     results, deaths, findings, pending = {}, [], [], list(cases)
+    read = 0
     while pending:
         dump = workdir / f"xla-{len(results)}"
         proc = subprocess.run([sys.executable, str(CHILD), f"--kernels={kernels}", *pending], env=child_env(dump),
@@ -64,6 +65,7 @@ def sweep(cases, kernels, workdir: Path, timeout=900):
                 results[row["case"]] = row
                 in_flight = None
         findings += check_dir(dump)
+        read += len(list(dump.glob("*ir-with-opt.ll")))
         shutil.rmtree(dump, ignore_errors=True)
         if proc.returncode == 0:
             break
@@ -71,6 +73,7 @@ def sweep(cases, kernels, workdir: Path, timeout=900):
             raise AssertionError(f"the child exited {proc.returncode} outside a case:\n{proc.stderr[-3000:]}")
         deaths.append((in_flight, proc.returncode, proc.stderr[-1500:]))
         pending = pending[pending.index(in_flight) + 1:]
+    assert read > 0, "XLA wrote no optimised LLVM IR (*ir-with-opt.ll) to read: the IR check would pass unread"
     return results, deaths, findings
 
 
