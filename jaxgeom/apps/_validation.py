@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..base._checks import warn_at_caller
-from ..base._checks import check_choice, check_integer, check_nonnegative
+from ..base._checks import check_choice, check_integer, check_nonnegative, warn_at_caller
 from ..geometry._estimation import estimate_gradient, estimate_hessian, geometric_hessian
 from ..tessellation._graph import Tessellation
 from ..tessellation._knn import knn_graph
@@ -78,8 +76,8 @@ def warn_if_undetermined(tess: Tessellation, determined: np.ndarray, caller: str
     fix = (f"build the k-NN graph with k >= {2 * needed} (knn_graph(points, k), or analyze's --k)"
            if tess.simplices is None else "use a k-NN graph with more neighbours")
     warn_at_caller(f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
-                  f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
-                  f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning)
+                   f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
+                   f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning)
 
 
 def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:

@@ -398,12 +398,14 @@ def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
     return value
 
 
+@functools.cache
 def _library_dirs() -> tuple[str, ...]:
     import equinox
     import jaxtyping
 
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the jaxgeom package
-    return tuple(os.path.dirname(os.path.abspath(m.__file__)) + os.sep for m in (jax, equinox, jaxtyping)) + (here + os.sep,)
+    dirs = [os.path.dirname(os.path.abspath(m.__file__)) for m in (jax, equinox, jaxtyping)] + [here]
+    return tuple(d + os.sep for d in dirs)
 
 
 _STDLIB_WRAPPERS = (os.path.abspath(contextlib.__file__), os.path.abspath(functools.__file__))

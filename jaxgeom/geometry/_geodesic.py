@@ -12,8 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.sparse.csgraph import dijkstra
 
-from ..base._checks import warn_at_caller
-from ..base._checks import check_choice, check_positive, refuse_unused
+from ..base._checks import check_choice, check_positive, refuse_unused, warn_at_caller
 from ..tessellation._graph import Tessellation, padded_to_csr, takes_tessellation
 from ._heat import HEAT_BOUNDARIES, HEAT_SOLVERS, heat_distances, heat_operators
 from ._metric import edge_lengths, warns_on_defective_metric
@@ -111,13 +110,13 @@ def _heat(tess: Tessellation, sources, metric, *, mode: str, t, boundary: str, s
     distances, n_open = _heat_jit(tess, sources, metric, mode, t, boundary, solver)
     if not isinstance(n_open, jax.core.Tracer) and int(n_open) > 0:
         warn_at_caller(f"geodesic_distances: in {int(n_open)} of {int(jnp.sum(tess.simplex_mask))} simplices the metric "
-                      "edge lengths do not close (the metric varies faster than the walkers resolve it); those "
-                      "simplices take the mean of their edge metrics and non-negative cotangent weights. Heat "
-                      "distances there are coarse: add walkers, or compare method='dijkstra' (the graph distance, "
-                      "an upper bound).")
+                       "edge lengths do not close (the metric varies faster than the walkers resolve it); those "
+                       "simplices take the mean of their edge metrics and non-negative cotangent weights. Heat "
+                       "distances there are coarse: add walkers, or compare method='dijkstra' (the graph distance, "
+                       "an upper bound).")
     if not isinstance(distances, jax.core.Tracer) and bool(jnp.all(jnp.isnan(distances))):
         warn_at_caller("geodesic_distances: the heat method's linear systems were singular for this metric; every "
-                      "distance is NaN. Use method='dijkstra'.")
+                       "distance is NaN. Use method='dijkstra'.")
     return distances
 
 

@@ -23,9 +23,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ..base._checks import warn_at_caller
 from ..base._checks import (
     check_choice, check_nonnegative, check_walker_mask, metric_defect_masks, real_array, walker_values,
+    warn_at_caller,
 )
 from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh, spectral_function
 from ..tessellation._graph import (
@@ -167,8 +167,8 @@ def warns_on_defective_metric(kernel):
         count = int(_defect_count(tess, metric, mode))
         if count:
             warn_at_caller(f"{kernel.__name__}: the metric callable is NaN, not symmetric or not positive definite "
-                          f"at {count} of {tess.n_points} walkers, so results there are NaN or meaningless; "
-                          "jaxgeom.metric_defects(tess, metric) flags them.", RuntimeWarning)
+                           f"at {count} of {tess.n_points} walkers, so results there are NaN or meaningless; "
+                           "jaxgeom.metric_defects(tess, metric) flags them.", RuntimeWarning)
         if len(_CHECKED_CALLABLES) > 64:
             _CHECKED_CALLABLES.clear()
         try:  # weak references: the cache keeps neither the callable nor the positions alive
@@ -399,8 +399,8 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
     check_nonnegative(eps_sigma, "eps_sigma")  # a spectral floor
     if isinstance(eps_sigma, (int, float)) and eps_sigma == 0:
         warn_at_caller("hessian_metric: eps_sigma = 0 leaves g = floor(H) singular wherever the Hessian has an "
-                      "eigenvalue <= 0 (a zero metric on a linear landscape); lengths, curvatures and metric "
-                      "weights are NaN there. Give eps_sigma > 0 (the spectral floor eps_Sigma).")
+                       "eigenvalue <= 0 (a zero metric on a linear landscape); lengths, curvatures and metric "
+                       "weights are NaN there. Give eps_sigma > 0 (the spectral floor eps_Sigma).")
     if isinstance(eps_sigma, (int, float)):  # the same callable for the same arguments: no recompilation
         return _cached_hessian_metric(fitness, float(eps_sigma), floor)
     return _hessian_metric(fitness, eps_sigma, floor)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,8 +11,7 @@ import scipy.sparse.csgraph
 import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
-from ..base._checks import warn_at_caller
-from ..base._checks import check_choice, check_integer, check_positive, refuse_unused
+from ..base._checks import check_choice, check_integer, check_positive, refuse_unused, warn_at_caller
 from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, take_or_zero, takes_tessellation
 from ._weights import (
@@ -173,8 +171,8 @@ def warn_if_underflowed(lap: GraphLaplacian, tess: Tessellation) -> None:
     cut = int(np.sum((np.asarray(lap.weights) == 0) & np.asarray(tess.neighbor_mask)))
     if cut:
         warn_at_caller(f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
-                      "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
-                      "construction. Use a larger length_scale, or None for the adaptive rule.")
+                       "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
+                       "construction. Use a larger length_scale, or None for the adaptive rule.")
 
 
 @takes_tessellation

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import scipy.sparse.linalg
@@ -41,5 +40,5 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int, bool]:
         return gap, n_comp, bool(gap < gap_rounding_level(tess.n_points - outside))
     except (ArithmeticError, RuntimeError, ValueError, scipy.sparse.linalg.ArpackError) as err:
         warn_at_caller(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
-                      RuntimeWarning)
+                       RuntimeWarning)
         return float("nan"), -1, False

@@ -26,10 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..base._checks import warn_at_caller
 from ..base._checks import (
     check_full_rank, check_min_points, check_representable_spacing, check_resolved_positions, host_box, host_points,
-    mean_spacing, refuse_unrepresentable_spacing, refuse_unresolved_positions, spacing_of_box,
+    mean_spacing, refuse_unrepresentable_spacing, refuse_unresolved_positions, spacing_of_box, warn_at_caller,
 )
 from ..base._simplex import det_entries, simplex_circumcenter
 from ._contacts import (
