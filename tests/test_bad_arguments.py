@@ -360,7 +360,7 @@ def swarm():
     (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), bounds={"nu": ("a", "b")}),
      TypeError, r"bounds for 'nu' must be real numbers or None"),
     (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams())(jnp.zeros(5)), ValueError,
-     r"theta must have shape \(2,\), one entry per tuned parameter"),
+     r"theta must have shape \(1,\), one entry per tuned parameter"),
     (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()), rtol=-1.0),
      ValueError, r"`rtol` must be a finite number > 0"),
     (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()),

@@ -19,6 +19,7 @@ import pytest
 import jaxgeom
 from jaxgeom.base._simplex import small_eigh, spectral_function
 from jaxgeom.geometry._metric import _clip_correction, _softabs
+from jaxgeom.swarm._tuning import ignored_parameter
 
 A3 = np.random.default_rng(0).normal(size=(3, 3))
 
@@ -370,7 +371,8 @@ def simulation_loss(weights, noise, kind, d, floor, landscape, dtype=np.float64,
     state = jaxgeom.init_swarm(fitness, x0, key=0, graph=kind, k=8)
     params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, eps_sigma=0.1, weights=weights,
                                  anisotropic=noise == "aniso", floor=floor, cloning=False)
-    return jaxgeom.simulation_loss(fitness, state, "mean_fitness", n_steps=n_steps, params=params, tuned=FIVE)
+    tuned = tuple(name for name in FIVE if not ignored_parameter(name, params, ("mean_fitness",)))
+    return jaxgeom.simulation_loss(fitness, state, "mean_fitness", n_steps=n_steps, params=params, tuned=tuned)
 
 
 def loss_gradient(loss, theta):
@@ -381,10 +383,10 @@ def check_simulation_gradient(*row):
     loss = simulation_loss(*row)
     theta = loss.to_theta()
     g = loss_gradient(loss, theta)
-    h = 1e-5  # no Delaunay flip inside (checked: the same value at h and h / 10 to 1e-4)
-    steps = np.concatenate([np.eye(5) * h, -np.eye(5) * h])
+    h, p = 1e-5, len(loss.tuned)  # no Delaunay flip inside (checked: the same value at h and h / 10 to 1e-4)
+    steps = np.concatenate([np.eye(p) * h, -np.eye(p) * h])
     values = np.asarray(eqx.filter_jit(lambda l, t: jax.vmap(l)(t))(loss, theta[None] + steps))
-    fd = (values[:5] - values[5:]) / (2 * h)
+    fd = (values[:p] - values[p:]) / (2 * h)
     assert np.isfinite(g).all(), f"{row}: gradient {g}"
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
 
@@ -407,10 +409,10 @@ def test_simulation_gradient_in_float32_equals_central_differences():
     loss = simulation_loss("metric_full", "aniso", "delaunay", 3, "clip", "indefinite", dtype=np.float32)
     theta = loss.to_theta()
     g = loss_gradient(loss, theta)
-    h = 1e-2
-    steps = np.concatenate([np.eye(5) * h, -np.eye(5) * h]).astype(np.float32)
+    h, p = 1e-2, len(loss.tuned)
+    steps = np.concatenate([np.eye(p) * h, -np.eye(p) * h]).astype(np.float32)
     values = np.asarray(eqx.filter_jit(lambda l, t: jax.vmap(l)(t))(loss, theta[None] + steps), np.float64)
-    fd = (values[:5] - values[5:]) / (2 * h)
+    fd = (values[:p] - values[p:]) / (2 * h)
     assert g.dtype == np.float32 and np.isfinite(g).all()
     np.testing.assert_allclose(g, fd, rtol=2e-2, atol=2e-3 * np.abs(fd).max())
 

@@ -188,3 +188,18 @@ def test_every_bench_section_the_readme_cites_exists():
     assert cited, "the README cites no bench section"
     for title in cited:
         assert any(h.startswith(title) for h in headings), f"bench/README.md has no section {title!r}"
+
+
+@pytest.mark.slow
+def test_the_quick_tour_runs_and_tunes_to_the_answer_it_prints():
+    """The quick tour's code block, run as it is; its tuning answer is the one its comment prints,
+    a converged value inside the chapter's range (0.01-0.5) it is bounded to."""
+    block = re.search(r"```python\n(.*?)```", sections()["Quick tour"], flags=re.S).group(1)
+    namespace = {}
+    exec(compile(block, "README.md (quick tour)", "exec"), namespace)
+    result = namespace["result"]
+    printed = eval(re.search(r"^result\.values\s+# (\{[^}]*\})", block, flags=re.M).group(1))
+    assert result.converged and result.zero_gradient == ()
+    assert result.values.keys() == printed.keys()
+    np.testing.assert_allclose(list(result.values.values()), list(printed.values()), rtol=1e-6)
+    assert all(0.01 <= value <= 0.5 for value in result.values.values())

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..base._checks import check_nonnegative, check_positive
+from ..base._checks import check_nonnegative, check_positive, warn_at_caller
 from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
 from ._dynamics import SwarmParams
 from ._tuning import SimulationLoss, _inverse_map, bound_pair
@@ -63,6 +63,8 @@ class TuneResult:
     - `standard_errors`: {name: standard error of the value}, the sandwich (delta-method)
       estimate of a "match" fit (`parameter_errors`); NaN, with the reason in
       `error_note`, where it is not defined. `covariance`: its (p, p) matrix in theta.
+    - `zero_gradient`: the tuned names whose gradient was exactly 0 at every recorded
+      iterate (the loss did not move them; `tune` warns); empty when every one moved.
     """
 
     theta: np.ndarray
@@ -79,6 +81,7 @@ class TuneResult:
     standard_errors: dict = dataclasses.field(default_factory=dict)
     covariance: np.ndarray | None = None
     error_note: str = ""
+    zero_gradient: tuple = ()
 
 
 def _solver_of(solver, rtol: float, atol: float):
@@ -166,9 +169,19 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     finally:
         close_bar(bar, owned)
     best = recorder.iterations[-1]
+    frozen = zero_gradient(recorder.iterations, loss.tuned)
+    if frozen:
+        warn_at_caller(f"tune: the gradient in {list(frozen)} was exactly 0 at every iterate, so the solver never "
+                       "moved them: the loss does not depend on them here (result.zero_gradient). Leave them out "
+                       "of `tuned`, or make the loss read them.", RuntimeWarning)
     return TuneResult(np.asarray(theta), loss.values(theta), loss.to_params(jnp.asarray(theta)), best["loss"],
                       recorder.iterations, name, n_steps, converged, message, time.perf_counter() - began,
-                      float(scale), errors, covariance, note)
+                      float(scale), errors, covariance, note, frozen)
+
+
+def zero_gradient(iterations: list, tuned: tuple) -> tuple:
+    """The tuned names whose recorded gradient is exactly 0 at every iterate."""
+    return tuple(name for name in tuned if all(record["gradient"][name] == 0.0 for record in iterations))
 
 
 def parameter_errors(loss: SimulationLoss, theta, target_seeds: int | None = None):
@@ -257,7 +270,8 @@ class _Recorder:
         theta, record = self.thetas[-1], self.iterations[-1]
         return TuneResult(theta, record["values"], self.loss.to_params(jnp.asarray(theta)), record["loss"],
                           self.iterations, self.name, len(self.iterations), False, message, seconds, float("nan"),
-                          error_note=f"the run stopped ({message}) before it converged")
+                          error_note=f"the run stopped ({message}) before it converged",
+                          zero_gradient=zero_gradient(self.iterations, self.loss.tuned))
 
 
 @eqx.filter_jit

@@ -39,7 +39,7 @@ from ._dynamics import SwarmParams, SwarmState
 from ._observables import ALL_OBSERVABLES
 from ._simulate import REBUILD_MODES, simulate
 
-TUNABLE = ("nu", "eps_sigma", "dt", "gamma", "temperature", "alpha", "clone_rate", "clone_jitter", "nu_initial")
+TUNABLE = ("nu", "eps_sigma", "dt", "gamma", "temperature", "alpha", "clone_jitter", "nu_initial")
 OBJECTIVES = ("final_fitness", "mean_fitness", "best_fitness", "match")
 DEFAULT_OBSERVE = ("mean_fitness", "best_fitness", "velocity_variance")
 
@@ -207,7 +207,7 @@ def _check_inside(name: str, value: float, lower, upper) -> None:
 
 
 def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_steps: int, params: SwarmParams,
-                    tuned=("nu", "eps_sigma"), n_seeds: int = 1, key=None, targets: dict | None = None,
+                    tuned=("nu",), n_seeds: int = 1, key=None, targets: dict | None = None,
                     bounds: dict | None = None, window: float | None = None, observe=None, rebuild: str = "callback",
                     rebuild_every: int = 1, checkpoint: bool = True, mesh=None) -> SimulationLoss:
     """A differentiable loss of the swarm's parameters: theta -> objective of whole simulations.
@@ -224,7 +224,11 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
       with the observables `observe`, without the unmeasured `seconds_*`). The loss is the
       mean over seeds of the objective (for "match": of the seed-averaged observables).
     - `n_steps`, `params`: the run and the [`jaxgeom.SwarmParams`][] whose fields `tuned`
-      (names in `TUNABLE`) are replaced by the map of theta.
+      (names in `TUNABLE`; default: nu) are replaced by the map of theta. A tuned name the
+      loss cannot depend on under `params` is refused with the reason (`ignored_parameter`):
+      eps_sigma without a metric in the dynamics (weights "metric_*", `anisotropic=True`) or
+      in an observed quantity, alpha without the adaptive "kernel" width, nu_initial without
+      `anneal_nu`, clone_jitter without cloning, temperature at gamma = 0.
     - `n_seeds`: runs averaged (>= 1), vmapped; their keys are `jax.random.split(key,
       n_seeds)` with `key` (int or key) defaulting to `state.key`.
     - `bounds`: {name: (lower, upper)} (either may be None): the parameter is `lower +
@@ -255,6 +259,10 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     bounds = _bounds_of(tuned, bounds)
     targets = tuple((str(name), float(value)) for name, value in (targets or {}).items())
     observe = _observables_for(objective, targets, observe)
+    for name in tuned:
+        reason = ignored_parameter(name, params, observe, tuned)
+        if reason:
+            raise ValueError(f"`tuned` names {name!r}, on which this loss cannot depend: {reason}")
     base = state.key if key is None else _key_like(key, state.key)
     keys = jax.random.split(base, n_seeds)
     check_mesh(mesh, n_seeds, "`n_seeds`")
@@ -280,6 +288,10 @@ def _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets,
     if isinstance(tuned, str) or not tuned or len(set(tuned)) != len(tuple(tuned)):
         raise ValueError(f"`tuned` must be a non-empty tuple of distinct names from {TUNABLE}; got {tuned!r}.")
     for name in tuned:
+        if name == "clone_rate":
+            raise ValueError("`clone_rate` cannot be tuned by gradient: it changes only the discrete clone "
+                             "decisions, which the pathwise gradient holds fixed, so its gradient is exactly 0. "
+                             "Choose it by a sweep of simulate runs.")
         check_choice(name, "tuned parameter", TUNABLE)
     if (objective == "match") != bool(targets):
         raise ValueError("objective='match' needs `targets` ({observable: value}), and `targets` needs "
@@ -292,6 +304,42 @@ def _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets,
         raise ValueError(f"`window` must be in (0, 1]; got {window!r}.")
     if rebuild not in REBUILD_MODES[1:]:
         raise ValueError(f"`rebuild` must be 'callback' or 'device' (a loss is traced); got {rebuild!r}.")
+
+
+METRIC_OBSERVABLES = ("mean_ricci", "ricci_resolution", "mean_metric_curvature", "eps_sigma")
+
+
+def ignored_parameter(name: str, params: SwarmParams, observe: tuple, tuned: tuple = ()) -> str:
+    """Why a loss of runs under `params` that reads the observables `observe` cannot depend on
+    the parameter `name` ("" when it can). `tuned`: the parameters tuned with it."""
+    if name == "eps_sigma" and not (_dynamics_use_metric(params) or set(observe) & set(METRIC_OBSERVABLES)):
+        return (f"eps_Sigma enters only the Hessian metric g = floor(H) + eps_Sigma I, and these runs never use g "
+                f"(weights={params.weights!r}, isotropic noise) nor does the loss read it (observables "
+                f"{list(observe)}). Tune it with weights='metric_full' or 'metric_diagonal' or anisotropic=True, "
+                "or leave it out of `tuned`.")
+    if name == "alpha" and (params.weights != "kernel" or params.length_scale is not None):
+        return (f"alpha sets the adaptive width of weights='kernel' without a length_scale; these runs use "
+                f"weights={params.weights!r}, length_scale={_shown(params.length_scale)}. Leave it out of `tuned`.")
+    if name == "nu_initial" and not params.anneal_nu:
+        return "nu_initial starts the annealing schedule of anneal_nu=True; these runs keep nu constant."
+    if name == "clone_jitter" and not params.cloning:
+        return "clone_jitter places cloned walkers; these runs have cloning=False."
+    if (name == "temperature" and "gamma" not in tuned and not isinstance(params.gamma, jax.core.Tracer)
+            and float(params.gamma) == 0.0):
+        return ("at gamma = 0 the Ornstein-Uhlenbeck step has no noise (its variance is T (1 - exp(-2 gamma dt))), "
+                "so the temperature does not enter. Set gamma > 0 or tune gamma with it.")
+    return ""
+
+
+def _dynamics_use_metric(params: SwarmParams) -> bool:
+    """Whether a step reads the Hessian metric: noise g^-1, metric weights, or volume weights by
+    sqrt(det g) (g is computed whenever the parameters need it)."""
+    return params.anisotropic or params.weights.startswith("metric") or (params.needs_metric
+                                                                         and params.volume_weighting)
+
+
+def _shown(value) -> str:
+    return "None" if value is None else f"{float(value):g}"
 
 
 def _bounds_of(tuned: tuple, bounds: dict | None) -> tuple:

@@ -11,6 +11,7 @@ import pytest
 import jaxgeom
 from jaxgeom.swarm._steps import checkpointed_scan
 from jaxgeom.swarm._tune import _theta_bounds, scaled
+from jaxgeom.swarm._tuning import ignored_parameter
 
 
 def V(x):
@@ -44,7 +45,8 @@ FIVE = ("nu", "eps_sigma", "dt", "gamma", "temperature")
 def check_gradient(graph, weights, objective="mean_fitness"):
     params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, eps_sigma=0.1, weights=weights,
                                  cloning=False)
-    loss = jaxgeom.simulation_loss(V, swarm(graph=graph), objective, n_steps=30, params=params, tuned=FIVE)
+    tuned = tuple(name for name in FIVE if not ignored_parameter(name, params, ("mean_fitness",)))
+    loss = jaxgeom.simulation_loss(V, swarm(graph=graph), objective, n_steps=30, params=params, tuned=tuned)
     theta = loss.to_theta()
     g = gradient(loss, theta)
     fd = central_differences(loss, theta)
@@ -296,3 +298,64 @@ def test_a_graph_outgrowing_its_capacity_under_a_trace_is_an_infinite_loss():
     assert overflowed.any() and (np.asarray(histories["diverged_step"])[overflowed] >= 0).all()
     per_seed = np.asarray(eqx.filter_jit(lambda l, t: l.per_seed(t))(loss, loss.to_theta()))
     assert np.isinf(per_seed[overflowed]).all() and np.isinf(float(loss(loss.to_theta())))
+
+
+IGNORED = [  # (tuned name, SwarmParams fields, another value): the loss cannot depend on the name
+    ("eps_sigma", dict(weights="kernel"), 0.7),
+    ("eps_sigma", dict(weights="uniform", adapt_eps_sigma=True), 0.7),
+    ("alpha", dict(weights="inverse_distance"), 5.0),
+    ("alpha", dict(weights="kernel", length_scale=0.5), 5.0),
+    ("nu_initial", dict(), 0.2),
+    ("clone_jitter", dict(cloning=False), 0.4),
+    ("temperature", dict(gamma=0.0), 0.9),
+]
+
+
+@pytest.mark.parametrize("name, fields, other", IGNORED, ids=lambda v: str(v))
+def test_a_parameter_the_loss_cannot_depend_on_is_refused_and_truly_unused(name, fields, other):
+    """The rule's claim, checked independently: the runs at two values of the parameter are
+    identical to the bit, so its gradient is exactly 0 and tuning it would be a no-op."""
+    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, nu=0.3, eps_sigma=0.1, **{"cloning": False, **fields})
+    state = swarm(n=40)
+    with pytest.raises(ValueError, match=f"`tuned` names '{name}', on which this loss cannot depend"):
+        jaxgeom.simulation_loss(V, state, "mean_fitness", n_steps=2, params=params, tuned=("nu", name))
+    runs = [jaxgeom.simulate(V, state, eqx.tree_at(lambda p: getattr(p, name), params, jnp.asarray(value)),
+                             n_steps=6, rebuild="callback", observe=("mean_fitness", "velocity_variance"))[1]
+            for value in (getattr(params, name), other)]
+    for key in ("mean_fitness", "velocity_variance"):
+        np.testing.assert_array_equal(runs[0][key], runs[1][key])
+
+
+@pytest.mark.parametrize("fields, objective, observe", [
+    (dict(weights="metric_full"), "mean_fitness", None),
+    (dict(weights="kernel", anisotropic=True), "mean_fitness", None),
+    (dict(weights="kernel"), lambda h: h["mean_ricci"][-1], ("mean_ricci",))])
+def test_eps_sigma_is_tunable_where_the_metric_is_read(fields, objective, observe):
+    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, nu=0.3, eps_sigma=0.1, cloning=False, **fields)
+    loss = jaxgeom.simulation_loss(V, swarm(n=40), objective, n_steps=2, params=params, tuned=("eps_sigma",),
+                                   observe=observe)
+    assert gradient(loss, loss.to_theta())[0] != 0.0
+
+
+def test_the_quick_tours_old_tuning_is_refused_with_the_reason():
+    """The README once tuned eps_Sigma with kernel weights and isotropic noise: a gradient of
+    exactly 0 at every iteration, said nowhere."""
+    params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=0.5, nu=0.1, weights="kernel")
+    with pytest.raises(ValueError, match="eps_Sigma enters only the Hessian metric.*weights='kernel'"):
+        jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=20, params=params, n_seeds=4,
+                                tuned=("nu", "eps_sigma"))
+    with pytest.raises(ValueError, match="clone_rate.*gradient is exactly 0"):
+        jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=2, params=params, tuned=("clone_rate",))
+
+
+def test_a_gradient_that_stays_zero_is_reported_and_warned():
+    """A callable objective can ignore a parameter no rule sees: here the initial fitness."""
+    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, nu=0.3, cloning=False)
+    loss = jaxgeom.simulation_loss(V, swarm(n=40), lambda h: h["mean_fitness"][0], n_steps=2, params=params,
+                                   tuned=("nu", "dt"), observe=("mean_fitness",))
+    with pytest.warns(RuntimeWarning, match=r"gradient in \['nu', 'dt'\] was exactly 0") as record:
+        result = jaxgeom.tune(loss, max_steps=3)
+    assert result.zero_gradient == ("nu", "dt")
+    assert all(w.filename == __file__ for w in record)
+    moving = jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=2, params=params, tuned=("nu",))
+    assert jaxgeom.tune(moving, max_steps=2).zero_gradient == ()
