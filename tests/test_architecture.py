@@ -49,7 +49,7 @@ LAYERS = {
         ("_validation", "_plots"),
     ],
     "cli": [  # one unit: its modules import each other freely
-        ("__init__", "__main__", "_analyze", "_simulate", "_tune"),
+        ("__init__", "__main__", "_analyze", "_simulate", "_tune", "_legend"),
     ],
 }
 FOLDERS = list(LAYERS)

@@ -22,6 +22,7 @@ from ..swarm._drivers import SimulationInterrupted
 from ..swarm._dynamics import metric_field
 from ..swarm._swarm_init import check_traceable_fitness
 from ..swarm._observables import OBSERVABLE_TABLE, SCUTOID_OBSERVABLES
+from ._legend import UNITS, simulate_definition
 from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
@@ -78,6 +79,7 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
                      help="host Delaunay backend (auto: the fastest installed; jaxgeom.delaunay)")
     sim.add_argument("--rebuild-every", type=int, default=1, help="steps between graph rebuilds")
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
+    sim.add_argument("--explain", action="store_true", help="define every row of the table, with its unit")
     sim.add_argument("--scutoids", action="store_true",
                      help="also observe each step's scutoids (jaxgeom.scutoids): the fractions of prisms, simple "
                           "and complex scutoids among the walkers tier 2 at both steps, and their mean neighbour "
@@ -216,27 +218,34 @@ def _merge(parts, dt: float) -> dict:
             "seconds_steps": float(sum(h["seconds_steps"] for _, h in parts))}
 
 
-def summary_table(result: dict) -> str:
+def summary_table(result: dict, explain: bool = False) -> str:
+    """The table `jaxgeom simulate` prints: one row per observable (initial, final, min, max),
+    the spectral gap's rows, notes, a footer; with `explain`, every row's definition and unit."""
     skipped = delaunay_only(result)
-    rows = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"]
+    rows, names = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"], []
     for name, values in result["series"].items():
         if name == "time" or name in skipped:
             continue
         finite = values[np.isfinite(values)]
         cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
         rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
+        names.append(name)
     if result["spectral_gap"].size:
         rows += _gap_rows(result)
+        names += ["spectral_gap", "kernel_graph_components"]
     if skipped:
         rows.append(f"Not reported on a k-NN graph (they need Voronoi cells, --graph delaunay): {', '.join(skipped)}.")
-    if "mean_expansion" in result["series"] and "mean_expansion" not in skipped:
-        rows.append("mean_expansion = d ln(sum V_i)/dt over the walkers tier 2 at both steps (volume-weighted); "
-                    "NaN at step 0, which has no previous step.")
-    if "ricci_resolution" in result["series"] and "ricci_resolution" not in skipped:
-        rows.append("ricci_resolution: |mean_ricci| below it is rounding (jaxgeom.ricci_resolution).")
+    if result["spectral_gap"].size:
+        rows.append(f"spectral_gap and kernel_graph_components measured at steps {_steps(result['spectral_gap_step'])}"
+                    + (f"; at rounding level at steps {_steps(result['spectral_gap_step'][result['spectral_gap_rounding']])}"
+                       if result["spectral_gap_rounding"].any() else "") + ".")
     rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
                 f"capacity reallocations {result['n_reallocations']}, "
                 f"time {result['seconds_total']:.1f} s = {timing_breakdown(result)}")
+    if explain:
+        rows += ["", "Rows:"] + [f"  {name:<26}{simulate_definition(name)}" for name in names] + [UNITS]
+    else:
+        rows.append("--explain defines every row and its unit.")
     return "\n".join(rows)
 
 
@@ -248,15 +257,21 @@ def delaunay_only(result: dict) -> list[str]:
 
 
 def _gap_rows(result: dict) -> list[str]:
+    """The spectral gap (largest component of the kernel graph; "rounding" at rounding level) and
+    that graph's component count, at the first and last measured step and their extremes."""
     gaps, comps, rounding = result["spectral_gap"], result["spectral_components"], result["spectral_gap_rounding"]
-    shown = [f"{'rounding':>12}" if r else f"{g:>12.5g}" for g, r in zip(gaps[[0, -1]], rounding[[0, -1]])]
-    rows = [f"{'spectral_gap (largest comp.)':<26}" + "".join(shown),
-            f"{'graph components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}",
-            f"spectral gap at steps {result['spectral_gap_step'].tolist()}"]
-    if rounding.any():
-        rows.append(f"spectral gap at rounding level (below 2 n eps, float64) at steps "
-                    f"{result['spectral_gap_step'][rounding].tolist()}")
-    return rows
+    resolved = gaps[~rounding & np.isfinite(gaps)]
+    low = "rounding" if rounding.any() else (f"{resolved.min():.5g}" if resolved.size else "nan")
+    high = f"{resolved.max():.5g}" if resolved.size else ("rounding" if rounding.any() else "nan")
+    ends = ["rounding" if r else f"{g:.5g}" for g, r in zip(gaps[[0, -1]], rounding[[0, -1]])]
+    return [f"{'spectral_gap':<26}" + "".join(f"{c:>12}" for c in ends + [low, high]),
+            f"{'kernel_graph_components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}"]
+
+
+def _steps(steps) -> str:
+    """A list of steps, the middle of a long one elided."""
+    steps = [int(s) for s in steps]
+    return str(steps) if len(steps) <= 8 else f"[{', '.join(map(str, steps[:3]))}, ..., {', '.join(map(str, steps[-2:]))}]"
 
 
 def timing_breakdown(result: dict) -> str:
@@ -306,7 +321,7 @@ def simulate_main(args) -> int:
         return 2
     except KeyboardInterrupt:  # before the first step: nothing ran
         return say_interrupted("simulate", "step", 0, args.steps, None)
-    print(summary_table(result))
+    print(summary_table(result, args.explain))
     if args.out is not None:
         for name, path in write_outputs(result, args.out).items():
             print(f"wrote {name}: {path}")
