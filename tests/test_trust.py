@@ -260,31 +260,39 @@ def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(save
 
 
 @pytest.mark.parametrize("layout", ["one cluster", "three wells"])
-def test_swarm_panels_share_one_frame_and_a_zoomed_one(saved_figures, tmp_path, layout):
-    """Top row: one frame holding every walker (comparable panels). Bottom row: one frame zoomed
-    on the later walkers (once: a few black dots in the whole box), holding 95% of them and at
-    most 10x their spread wide."""
+def test_swarm_panels_show_every_walker_then_the_largest_cluster_then_the_distribution(saved_figures, tmp_path,
+                                                                                      layout):
+    """Top row: one frame holding every walker (comparable panels). Middle row: each snapshot
+    zoomed on its most populated cluster (once: a few dots in the whole box), holding 95% of
+    it and at most 10x its spread wide; a uniform swarm gets a window a quarter of the frame
+    wide. Bottom row: the distribution of the colour (shares summing to 1)."""
     from jaxgeom.apps._plots import plot_swarm_snapshots
 
     rng = np.random.default_rng(0)
     centres = np.array([[0.0, 0.0]]) if layout == "one cluster" else np.array([[-3.0, 2.0], [1.0, 1.0], [2.5, -3.0]])
-    later = [centres[rng.integers(0, len(centres), 300)] + 0.05 * rng.normal(size=(300, 2)) for _ in range(2)]
+    weights = np.array([1.0]) if layout == "one cluster" else np.array([0.2, 0.5, 0.3])
+    later = [centres[rng.choice(len(centres), 300, p=weights)] + 0.05 * rng.normal(size=(300, 2)) for _ in range(2)]
     snaps = [{"step": 0, "positions": rng.uniform(-5, 5, (300, 2)), "ricci": None}]
     snaps += [{"step": 9 * (k + 1), "positions": x, "ricci": None} for k, x in enumerate(later)]
     plot_swarm_snapshots(bowl, snaps, (-5.0, 5.0), tmp_path / "swarm.png")
     figure = saved_figures[-1]
-    top = [ax for ax in figure.axes if ax.get_title().startswith("step") and "zoomed" not in ax.get_title()]
-    zoomed = [ax for ax in figure.axes if ax.get_title().endswith("zoomed")]
-    assert len(top) == len(zoomed) == 3
-    for row in (top, zoomed):
-        assert len({ax.get_xlim() for ax in row}) == 1 and len({ax.get_ylim() for ax in row}) == 1
+    top = [ax for ax in figure.axes if ax.get_title().startswith("step")]
+    zoomed = [ax for ax in figure.axes if ax.get_title().startswith("zoom:")]
+    histograms = [ax for ax in figure.axes if ax.get_title().startswith("median")]
+    assert len(top) == len(zoomed) == len(histograms) == 3
+    assert len({ax.get_xlim() for ax in top}) == 1 and len({ax.get_ylim() for ax in top}) == 1
+    frame = max(np.ptp(top[0].get_xlim()), np.ptp(top[0].get_ylim()))
     (x0, x1), (y0, y1) = zoomed[0].get_xlim(), zoomed[0].get_ylim()
-    walkers = np.concatenate(later)
-    inside = (walkers[:, 0] >= x0) & (walkers[:, 0] <= x1) & (walkers[:, 1] >= y0) & (walkers[:, 1] <= y1)
-    assert inside.mean() >= 0.95
-    assert max(x1 - x0, y1 - y0) <= 10 * np.max(np.std(walkers, axis=0))
-    assert max(x1 - x0, y1 - y0) < 0.5 * (top[0].get_xlim()[1] - top[0].get_xlim()[0]) or layout == "three wells"
-    assert "zoom" in zoomed[0].get_ylabel() and "wide" in zoomed[0].get_ylabel()
+    assert max(x1 - x0, y1 - y0) <= 0.25 * frame + 1e-9, "a uniform swarm: a window, not the whole frame"
+    biggest = centres[np.argmax(weights)]
+    for ax, walkers in zip(zoomed[1:], later):
+        cluster = walkers[np.all(np.abs(walkers - biggest) < 0.5, axis=1)]
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        inside = (cluster[:, 0] >= x0) & (cluster[:, 0] <= x1) & (cluster[:, 1] >= y0) & (cluster[:, 1] <= y1)
+        assert inside.mean() >= 0.95
+        assert max(x1 - x0, y1 - y0) <= 10 * np.max(np.std(cluster, axis=0))
+    for ax in histograms:
+        assert sum(patch.get_height() for patch in ax.patches) == pytest.approx(1.0)
 
 
 def test_analyze_figures_are_labelled(saved_figures, tmp_path, capsys):
@@ -294,8 +302,32 @@ def test_analyze_figures_are_labelled(saved_figures, tmp_path, capsys):
     assert all(ax.get_xlabel() == "x_1" and ax.get_ylabel() == "x_2" for ax in maps[:2])
     assert all(ax.get_ylabel() for ax in proxies.axes if ax not in maps)  # the colour bars
     assert "double_well" in proxies.get_suptitle() and "projected on (x_1, x_2)" in proxies.get_suptitle()
-    low, high = estimation.axes[2].get_ylim()  # the error against k: whole decades, a flat line drawn flat
+    low, high = estimation.axes[2].get_ylim()  # the convergence panel: whole decades, a flat line drawn flat
     assert high / low >= 10 - 1e-9
+    assert "exact Hessian" in estimation.get_suptitle(), "a known landscape: errors against its exact Hessian"
+    convergence = estimation.axes[2]
+    assert convergence.get_title().startswith("convergence with walkers")
+    errors = convergence.lines[0].get_ydata()
+    assert len(errors) >= 2 and errors[-1] < errors[0], "the fit converges as the walkers get denser"
+    eigen = estimation.axes[0]  # robust axes: the central 98% of the eigenvalues, outliers counted
+    assert "beyond the axes" in eigen.get_title() and eigen.get_xlim() == eigen.get_ylim()
+    capsys.readouterr()
+
+
+def test_proxies_figure_has_no_all_zero_panel(saved_figures, tmp_path, capsys):
+    """Without a metric the Ricci scalar is 0 at every walker: its panel gives way to the cells'
+    volumes and the title says why."""
+    np.save(tmp_path / "pts.npy", np.random.default_rng(0).random((200, 2)))
+    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--box", "0", "1", "--out", str(tmp_path)]) == 0
+    proxies = next(fig for fig in saved_figures if fig.get_suptitle().startswith(str(tmp_path / "pts.npy")))
+    titles = [ax.get_title() for ax in proxies.axes if ax.get_title()]
+    assert not any("Ricci" in title for title in titles) and "Voronoi cell volume (log10)" in titles
+    assert "no Ricci panel: R = 0 at every walker" in proxies.get_suptitle()
+    for ax in proxies.axes:
+        for collection in ax.collections:
+            values = collection.get_array()
+            if values is not None and len(values) > 1:
+                assert np.ptp(np.asarray(values)) > 0, f"a constant panel: {ax.get_title()}"
     capsys.readouterr()
 
 

@@ -30,13 +30,18 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     **Arguments:**
 
     - `result`: the dict of [`jaxgeom.compare_estimation_methods`][], or of
-      [`jaxgeom.validate_on_synthetic_function`][] (then errors are against the
-      analytic Hessian; otherwise against the geometric Hessian).
+      [`jaxgeom.validate_on_synthetic_function`][], or `{"comparison": <the former>,
+      "true_hessian": (N, d, d)}` for any landscape whose Hessian is known. With a true Hessian
+      the errors are against it (exact); otherwise against the geometric Hessian, which
+      measures the walkers' spacing, not V (the figure says so).
     - `dpi`: resolution of the PNG.
 
-    Panels: FD vs geometric eigenvalues; spatial map of the per-walker relative
-    error; median error against the number of k-NN neighbours (the fit redone on
-    k-NN graphs); histogram of the per-walker errors.
+    Panels: least-squares (FD) eigenvalues against the reference's, on axes holding the
+    central 98% of both (the points beyond are counted in the title); the spatial map of
+    the per-walker relative error; with a true Hessian, the median error of the k-NN fit on
+    random subsets of the walkers against their number (the fit converges as the spacing
+    h ~ N^(-1/d) shrinks), otherwise against the number of neighbours k; the histogram of
+    the per-walker errors.
     """
     _check_estimation_result(result)
     plt = pyplot()
@@ -44,30 +49,91 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     truth = result.get("true_hessian")
     points, valid = comparison["points"], comparison["valid"]
     h_fd = np.asarray(comparison["hessian_fd"])
-    reference = truth if truth is not None else np.asarray(comparison["hessian_geometric"])
-    label = "analytic" if truth is not None else "geometric"
+    reference = np.asarray(truth) if truth is not None else np.asarray(comparison["hessian_geometric"])
+    label = "exact" if truth is not None else "geometric"
     error = _relative_error(h_fd, reference)
     fig, axes = plt.subplots(2, 2, figsize=(11, 9))
-    e_fd, e_geo = np.asarray(comparison["eigenvalues_fd"])[valid], np.asarray(comparison["eigenvalues_geometric"])[valid]
-    axes[0, 0].scatter(e_geo.ravel(), e_fd.ravel(), s=3, alpha=0.5)
-    rho = comparison["metrics"]["eigenvalue_correlation"]
-    axes[0, 0].set(xlabel="geometric eigenvalue", ylabel="finite-difference eigenvalue", title=f"eigenvalues, rho = {rho:.2f}")
+    e_fd = np.asarray(comparison["eigenvalues_fd"])[valid]
+    e_ref = np.linalg.eigvalsh(reference[valid]) if truth is not None else \
+        np.asarray(comparison["eigenvalues_geometric"])[valid]
+    _eigenvalue_panel(axes[0, 0], e_ref.ravel(), e_fd.ravel(), label)
     ok = valid & np.isfinite(error)
     sc = axes[0, 1].scatter(points[ok, 0], points[ok, 1], c=np.log10(error[ok] + 1e-16), s=4, cmap="magma")
     fig.colorbar(sc, ax=axes[0, 1], label=f"log10 relative error vs {label}")
-    axes[0, 1].set(title="spatial quality map (first two coordinates)")
-    ks, medians = _error_by_neighbour_count(points, comparison["values"], reference, valid)
-    axes[1, 0].loglog(ks, medians, "o-")
-    axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="convergence with neighbours")
+    axes[0, 1].set(title="spatial quality map (first two coordinates)", xlabel="x_1", ylabel="x_2")
+    if truth is not None:
+        sizes, medians = _error_by_walker_count(points, comparison["values"], reference)
+        axes[1, 0].loglog(sizes, medians, "o-", label="k-NN fit on random subsets")
+        if len(sizes) > 1:
+            d = points.shape[1]
+            slope = medians[-1] * (np.asarray(sizes, float) / sizes[-1]) ** (-1.0 / d)
+            axes[1, 0].loglog(sizes, slope, "k--", lw=0.8, label=f"~ h ~ N^(-1/{d})")
+        axes[1, 0].legend(fontsize=8)
+        axes[1, 0].set(xlabel="walkers N", ylabel="median relative error vs exact",
+                       title=f"convergence with walkers (k = {subset_neighbours(points.shape[1])})")
+    else:
+        sizes, medians = _error_by_neighbour_count(points, comparison["values"], reference, valid)
+        axes[1, 0].loglog(sizes, medians, "o-")
+        axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}",
+                       title="error against neighbours")
     if medians:
         axes[1, 0].set_ylim(*_decade_limits(medians))
+    else:
+        axes[1, 0].text(0.5, 0.5, f"too few walkers ({len(points)}) to refit on subsets", ha="center",
+                        transform=axes[1, 0].transAxes)
     axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
-    axes[1, 1].set(xlabel="log10 relative Hessian error", ylabel="walkers", title="error distribution")
+    axes[1, 1].set(xlabel=f"log10 relative Hessian error vs {label}", ylabel="walkers",
+                   title=f"error distribution (median {np.median(error[ok]) if ok.any() else np.nan:.2g})")
     if truth is None:
         fig.suptitle("reference: the geometric Hessian C^-1 - eps_Sigma I, which measures walker spacing (~1/h^2), "
                      "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
                      "errors are expected", fontsize=9)
+    else:
+        fig.suptitle("least-squares Hessian estimated from the fitness values at the walkers, against the "
+                     "landscape's exact Hessian (autodiff)", fontsize=10)
     return save_figure(fig, path, dpi=dpi)
+
+
+def subset_neighbours(d: int) -> int:
+    """Neighbours of the convergence panel's k-NN fits: twice a quadratic fit's coefficients."""
+    return max(12, (d + 1) * (d + 2))
+
+
+def _eigenvalue_panel(ax, reference, estimate, label: str) -> None:
+    """FD eigenvalues against the reference's with the diagonal, on axes holding the central
+    98% of both: a few outliers (a geometric eigenvalue of 8e5) would flatten the rest."""
+    finite = np.isfinite(reference) & np.isfinite(estimate)
+    reference, estimate = reference[finite], estimate[finite]
+    both = np.concatenate([reference, estimate]) if reference.size else np.zeros(1)
+    low, high = np.percentile(both, [1, 99])
+    pad = 0.05 * max(high - low, 1e-12)
+    low, high = low - pad, high + pad
+    outside = int(np.sum((reference < low) | (reference > high) | (estimate < low) | (estimate > high)))
+    ax.scatter(reference, estimate, s=3, alpha=0.5)
+    ax.plot([low, high], [low, high], "k--", lw=0.8, label="equal")
+    rho = float(np.corrcoef(reference, estimate)[0, 1]) if reference.size > 1 else float("nan")
+    ax.set(xlim=(low, high), ylim=(low, high), xlabel=f"{label} eigenvalue", ylabel="least-squares eigenvalue",
+           title=f"eigenvalues, rho = {rho:.2f} ({outside} beyond the axes)")
+    ax.legend(fontsize=8, loc="upper left")
+
+
+def _error_by_walker_count(points, values, reference):
+    """Median relative error of the k-NN least-squares Hessian on random subsets of N/8, N/4,
+    N/2 and all walkers (those of at least 5 k walkers), against the reference at
+    those walkers; the fit's error shrinks with the spacing."""
+    from ..geometry._estimation import estimate_hessian
+    from ..tessellation._knn import knn_graph
+
+    n, d = points.shape
+    k = subset_neighbours(d)
+    rng = np.random.default_rng(0)
+    sizes = [n // 2**j for j in (3, 2, 1, 0) if n // 2**j >= 5 * k]
+    medians = []
+    for size in sizes:
+        pick = np.sort(rng.choice(n, size, replace=False))
+        est = np.asarray(estimate_hessian(knn_graph(points[pick], k), np.asarray(values)[pick]))
+        medians.append(float(np.nanmedian(_relative_error(est, reference[pick]))))
+    return sizes, medians
 
 
 def _decade_limits(values) -> tuple[float, float]:
@@ -148,7 +214,7 @@ OBSERVABLE_LABELS = {
     "n_clones": ("clones per step", "walkers cloned"),
     "nu": ("viscous coupling", "nu"),
     "eps_sigma": ("metric floor", "eps_Sigma"),
-    "spectral_gap": ("spectral gap (largest component)", "lambda_2 of the graph Laplacian"),
+    "spectral_gap": ("spectral gap (kernel graph, largest component)", "lambda_2 of the normalized Laplacian"),
     "prism_fraction": ("prisms (no neighbour lost or gained)", "fraction, tier 2 at both steps"),
     "simple_scutoid_fraction": ("simple scutoids (<= 1 lost, <= 1 gained)", "fraction, tier 2 at both steps"),
     "complex_scutoid_fraction": ("complex scutoids (>= 2 lost or gained)", "fraction, tier 2 at both steps"),
@@ -186,11 +252,13 @@ def _frame(positions, box):
 
 
 def _shared_ricci_norm(snapshots):
-    """One symmetric-log colour scale for every panel: the uniform start has |R| orders of
-    magnitude above a settled swarm, so linear scales per panel cannot be compared."""
+    """One symmetric-log colour scale for every panel, spanning the values of the snapshots
+    after the first: the uniform start has |R| orders of magnitude above a settled swarm and
+    would leave it grey; the start's larger values saturate (the colour bar's arrows)."""
     from matplotlib.colors import SymLogNorm
 
-    pooled = np.concatenate([np.abs(s["ricci"][np.isfinite(s["ricci"])]) for s in snapshots
+    later = [s for s in snapshots[1:] if s["ricci"] is not None and np.isfinite(s["ricci"]).any()] or snapshots
+    pooled = np.concatenate([np.abs(s["ricci"][np.isfinite(s["ricci"])]) for s in later
                              if s["ricci"] is not None] or [np.ones(1)])
     top = max(float(np.percentile(pooled, 99)), 1e-12)
     return SymLogNorm(linthresh=max(float(np.percentile(pooled, 25)), 1e-4 * top), vmin=-top, vmax=top, base=10)
@@ -205,72 +273,137 @@ def _symlog_ticks(norm):
 
 
 def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
-    """Walkers coloured by their Ricci scalar (one symmetric-log colour scale for every panel)
-    over contours of V, one column per snapshot `{"step", "positions", "ricci"}` (ricci None on
-    a k-NN graph: walkers coloured by V instead). The top row shares one frame that holds
-    every walker, so the panels compare; the bottom row shares a frame zoomed on where the
-    walkers of the later snapshots are (`zoom_frame`), drawn as a dashed box above and its
-    width written. Beyond 2D the panels show the projection on (x_1, x_2) and the contours
-    V(x_1, x_2, 0, ..., 0); the figure says so."""
+    """Three rows, one column per snapshot `{"step", "positions", "ricci"}` (ricci None on a
+    k-NN graph: walkers coloured by V instead), one symmetric-log colour scale for every panel:
+
+    - top: every walker, in one frame shared by the columns, over light contours of V; a
+      dashed square marks the middle row's frame;
+    - middle: zoomed on the snapshot's most populated cluster (`cluster_frame`), walkers drawn
+      large enough that each one's colour shows;
+    - bottom: the distribution of the colour's values over the walkers that have one, bars in
+      the same colours, with its median and the count of walkers without a value (hull tiers).
+
+    Beyond 2D the panels show the projection on (x_1, x_2) and the contours V(x_1, x_2, 0, ...,
+    0); the figure says so."""
     plt = pyplot()
     from matplotlib.patches import Rectangle
     from matplotlib.ticker import MaxNLocator
 
     d = snapshots[0]["positions"].shape[1]
     has_ricci = any(s["ricci"] is not None for s in snapshots)
-    norm = _shared_ricci_norm(snapshots) if has_ricci else None
-    fig, axes = plt.subplots(2, len(snapshots), figsize=(3.4 * len(snapshots) + 1.4, 7.2), squeeze=False,
-                             layout="constrained")
-    lo, hi = _frame(np.concatenate([snap["positions"] for snap in snapshots]), box)  # one frame: comparable
-    later = snapshots[1:] or snapshots
-    zoom_lo, zoom_hi = zoom_frame(np.concatenate([snap["positions"] for snap in later]))
-    for row, (flo, fhi) in enumerate(((lo, hi), (zoom_lo, zoom_hi))):
-        gx, gy, values = _landscape_grid(fitness, flo, fhi, d)
-        for ax, snap in zip(axes[row], snapshots):
-            mapped = _draw_snapshot(ax, fitness, snap, gx, gy, values, norm, has_ricci, size=4 if row else 3)
-            ax.set(xlim=(flo[0], fhi[0]), ylim=(flo[1], fhi[1]), xlabel="x_1")
+    colours = [_colour_values(fitness, snap, has_ricci) for snap in snapshots]
+    norm = _shared_ricci_norm(snapshots) if has_ricci else _value_norm(colours[1:] or colours)
+    cmap = "coolwarm" if has_ricci else "viridis"
+    n = len(snapshots)
+    fig, axes = plt.subplots(3, n, figsize=(3.7 * n + 1.2, 11.0), squeeze=False, layout="constrained",
+                             gridspec_kw={"height_ratios": [1.0, 1.0, 0.7]})
+    lo, hi = _frame(np.concatenate([snap["positions"] for snap in snapshots]), box)
+    gx, gy, values = _landscape_grid(fitness, lo, hi, d)
+    for col, (snap, c) in enumerate(zip(snapshots, colours)):
+        x = snap["positions"]
+        zoom_lo, zoom_hi = cluster_frame(x, max_width=0.25 * float(np.max(hi - lo)))
+        top, mid, bottom = axes[:, col]
+        mapped = _draw_walkers(top, x, c, gx, gy, values, norm, cmap, size=3.0)
+        top.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"step {snap['step']}", xlabel="x_1")
+        top.add_patch(Rectangle(zoom_lo, *(zoom_hi - zoom_lo), fill=False, ls="--", lw=1.0, ec="k"))
+        zx, zy, zvalues = _landscape_grid(fitness, zoom_lo, zoom_hi, d)
+        inside = np.all((x[:, :2] >= zoom_lo) & (x[:, :2] <= zoom_hi), axis=1)
+        _draw_walkers(mid, x, c, zx, zy, zvalues, norm, cmap, size=float(np.clip(3000.0 / max(inside.sum(), 1), 6, 40)))
+        width = float(np.max(zoom_hi - zoom_lo))
+        mid.set(xlim=(zoom_lo[0], zoom_hi[0]), ylim=(zoom_lo[1], zoom_hi[1]), xlabel="x_1")
+        mid.set_title(f"zoom: {inside.sum()} walkers in a {width:.3g}-wide square", fontsize=9)
+        for ax in (top, mid):
             ax.xaxis.set_major_locator(MaxNLocator(4))
             ax.yaxis.set_major_locator(MaxNLocator(5))
-            if row == 0:
-                ax.set_title(f"step {snap['step']}")
-                ax.add_patch(Rectangle(zoom_lo, *(zoom_hi - zoom_lo), fill=False, ls="--", lw=1.0, ec="k"))
-            else:
-                ax.set_title(f"step {snap['step']}, zoomed", fontsize=9)
+            ax.set_aspect("equal", adjustable="box")
+        _draw_histogram(bottom, c, norm, cmap, has_ricci)
     axes[0, 0].set_ylabel("x_2")
-    width = float(np.max(zoom_hi - zoom_lo))
-    axes[1, 0].set_ylabel(f"x_2   (zoom: frame {width:.3g} wide)")
+    axes[1, 0].set_ylabel("x_2")
+    axes[2, 0].set_ylabel("share of the walkers with a value")
     label = "Ricci scalar R (symmetric log scale)" if has_ricci else "V(x)"
-    bar = fig.colorbar(mapped, ax=axes.ravel().tolist(), label=label, fraction=0.03, pad=0.01)
+    bar = fig.colorbar(mapped, ax=axes[:2].ravel().tolist(), label=label, fraction=0.03, pad=0.01, extend="both")
     if has_ricci:
         bar.set_ticks(_symlog_ticks(norm))
-    what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull "
-            "tiers, no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
+    what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull tiers, "
+            "no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
     where = (f"{d}D swarm projected on (x_1, x_2), contours of V(x_1, x_2, 0, ..., 0)" if d > 2
              else "contours of V")
-    fig.suptitle(f"{what}\n{where}; top: one frame holding every walker; bottom: one frame {width:.3g} wide "
-                 "zoomed on the later walkers (dashed box above)", fontsize=9)
-    return save_figure(fig, path, dpi=72, layout=False)
+    fig.suptitle(f"{what}; {where}\ntop: every walker, one frame; middle: the most populated cluster (dashed "
+                 "square above); bottom: the distribution of the colour over the walkers", fontsize=10)
+    return save_figure(fig, path, dpi=100, layout=False)
 
 
-def zoom_frame(positions, share: float = 0.97):
-    """A square frame (lower, upper) of the first two coordinates about the median walker that
-    holds `share` of the walkers, with a 10% margin: the bottom row of `plot_swarm_snapshots`."""
-    xy = positions[:, :2]
-    centre = np.median(xy, axis=0)
-    radius = float(np.quantile(np.max(np.abs(xy - centre), axis=1), share))
-    radius = 1.1 * max(radius, 1e-6 * max(float(np.max(np.abs(xy))), 1.0))
+def cluster_frame(positions, max_width: float):
+    """A square frame (lower, upper) of the first two coordinates on the most populated cluster:
+    the largest group of walkers linked by steps shorter than 3x the median nearest-neighbour
+    distance, with the walkers within 1.5x its extent (its sparser outskirts), framed about its
+    median to hold 97% of them with a 10% margin, and at most
+    `max_width` wide (a swarm spread over its box: a window about its median)."""
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(positions, np.float64)[:, :2]
+    tree = cKDTree(xy)
+    spacing = float(np.median(tree.query(xy, k=2)[0][:, 1])) if len(xy) > 1 else 1.0
+    links = tree.sparse_distance_matrix(tree, 3.0 * max(spacing, 1e-12), output_type="coo_matrix")
+    _, labels = connected_components(links, directed=False)
+    cluster = xy[labels == np.argmax(np.bincount(labels))]
+    centre = np.median(cluster, axis=0)
+    reach = np.max(np.abs(xy - centre), axis=1)
+    near = reach[reach <= 1.5 * np.max(np.abs(cluster - centre))]  # with its sparser outskirts
+    radius = float(np.quantile(near, 0.97))
+    radius = min(1.1 * max(radius, 5.0 * spacing, 1e-9), 0.5 * max_width)
     return centre - radius, centre + radius
 
 
-def _draw_snapshot(ax, fitness, snap, gx, gy, values, norm, has_ricci: bool, size: float):
-    x = snap["positions"]
-    ax.contour(gx, gy, values, levels=_contour_levels(values), colors="0.55", linewidths=0.5)
+def _colour_values(fitness, snap, has_ricci: bool) -> np.ndarray:
     if has_ricci:
-        ok = np.isfinite(snap["ricci"]) if snap["ricci"] is not None else np.zeros(len(x), bool)
-        ax.scatter(x[~ok, 0], x[~ok, 1], s=size / 3, c="k")
-        return ax.scatter(x[ok, 0], x[ok, 1], s=size, c=snap["ricci"][ok], cmap="coolwarm", norm=norm)
-    v = np.asarray(_fitness_at(fitness, x))
-    return ax.scatter(x[:, 0], x[:, 1], s=size, c=v, cmap="viridis", vmin=0.0 if v.min() >= 0 else None)
+        ricci = snap["ricci"]
+        return np.full(len(snap["positions"]), np.nan) if ricci is None else np.asarray(ricci, np.float64)
+    return np.asarray(_fitness_at(fitness, snap["positions"]), np.float64)
+
+
+def _value_norm(colours):
+    """A linear scale over the 1st-99th percentiles of the values (of the snapshots after the
+    first, as the Ricci scale)."""
+    from matplotlib.colors import Normalize
+
+    pooled = np.concatenate([c[np.isfinite(c)] for c in colours] or [np.zeros(1)])
+    low, high = np.percentile(pooled, [1, 99]) if pooled.size else (0.0, 1.0)
+    return Normalize(vmin=float(low), vmax=float(max(high, low + 1e-12)))
+
+
+def _draw_walkers(ax, x, c, gx, gy, values, norm, cmap: str, size: float):
+    """Light contours of V, walkers without a value in black, the others coloured."""
+    ax.contour(gx, gy, values, levels=_contour_levels(values, 10), colors="0.78", linewidths=0.4, zorder=0)
+    ok = np.isfinite(c)
+    ax.scatter(x[~ok, 0], x[~ok, 1], s=size / 3, c="k", lw=0, zorder=1)
+    return ax.scatter(x[ok, 0], x[ok, 1], s=size, c=c[ok], cmap=cmap, norm=norm, lw=0, zorder=2)
+
+
+def _draw_histogram(ax, c, norm, cmap: str, symlog: bool):
+    """The share of the walkers with a value in each of 40 bins spread evenly in the colour
+    scale, each bar in its bin's colour (values off the scale in the end bars); the median dashed."""
+    import matplotlib
+
+    ok = c[np.isfinite(c)]
+    edges = np.asarray(norm.inverse(np.linspace(0.0, 1.0, 41)), np.float64)
+    counts, _ = np.histogram(np.clip(ok, edges[0], edges[-1]), bins=edges)
+    share = counts / max(ok.size, 1)
+    centres = np.asarray(norm.inverse(np.linspace(0.0, 1.0, 81)[1::2]), np.float64)
+    ax.bar(edges[:-1], share, width=np.diff(edges), align="edge",
+           color=matplotlib.colormaps[cmap](norm(centres)), edgecolor="none")
+    if symlog:
+        ax.set_xscale("symlog", linthresh=norm.linthresh)
+        ax.set_xticks(_symlog_ticks(norm))
+    ax.set_xlim(edges[0], edges[-1])
+    if ok.size:
+        median = float(np.median(ok))
+        ax.axvline(median, color="k", ls="--", lw=0.8)
+        beyond = int(np.sum((ok < edges[0]) | (ok > edges[-1])))
+        ax.set_title(f"median {median:.3g}; {int(c.size - ok.size)} without a value, {beyond} off the scale",
+                     fontsize=9)
+    ax.set_xlabel("Ricci scalar R" if symlog else "V")
 
 
 def _fitness_at(fitness, x):

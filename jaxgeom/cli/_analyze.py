@@ -312,21 +312,26 @@ def section_graph_proxies(a: Analysis) -> dict:
 
 
 def section_estimation(a: Analysis) -> dict:
-    """Gradient and Hessian of the fitness field estimated from its values at the walkers,
-    and their agreement with the geometric (emergent-metric) Hessian."""
+    """Gradient and Hessian of the fitness field estimated from its values at the walkers: the
+    Hessian's error against the landscape's exact one (autodiff), and its agreement with the
+    geometric (emergent-metric) Hessian."""
 
     if a.fitness is None:
         return {"skipped": f"needs fitness values: {NO_LANDSCAPE}"}
     values = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
     result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
                    eps_sigma=a.args.eps_sigma)
-    a.cache["estimation"] = result
+    exact = np.asarray(jax.vmap(jax.hessian(a.fitness))(np.asarray(a.points)))  # the landscape's own Hessian
+    a.cache["estimation"] = {"comparison": result, "true_hessian": exact}
     valid = result["valid"]
     out = {"walkers_with_hessian": int(valid.sum()), "walkers": len(valid)}
     out |= _stats(np.linalg.norm(np.asarray(result["gradient"])[valid], axis=1), "tier2_gradient_norm")
     eig = np.asarray(result["eigenvalues_fd"])[valid]
     out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))
     out.update(_stats(eig[:, -1], "tier2_hessian_max_eigenvalue"))
+    h_fd = np.asarray(result["hessian_fd"])[valid]
+    error = np.linalg.norm(h_fd - exact[valid], axis=(1, 2)) / np.linalg.norm(exact[valid], axis=(1, 2))
+    out.update(_stats(error, "tier2_hessian_error_vs_exact"))
     out.update({f"agreement_{k}": v for k, v in result["metrics"].items()})
     out["geometric_reference"] = GEOMETRIC_REFERENCE_NOTE
     return out
@@ -352,14 +357,20 @@ REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
 
 
 def write_maps(a: Analysis, path: Path) -> None:
-    """PNG: walkers coloured by Ricci scalar and by shape distortion (first two coordinates;
-    the title says so beyond 2D), with labelled axes and colour bars."""
+    """PNG: walkers coloured by the Ricci scalar and by the shape distortion (first two
+    coordinates; the title says so beyond 2D), with labelled axes and colour bars. Where the
+    Ricci scalar is 0 at every walker (the Euclidean metric is flat) its panel gives way to
+    the cells' volumes, and the title says why."""
     fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
     metric = a.args.metric + (f" of {a.args.landscape}" if a.args.metric == "hessian" else "")
-    for ax, key, title, cmap in [(axes[0], "ricci", f"Ricci scalar R (metric: {metric})", "coolwarm"),
-                                 (axes[1], "shape", "shape distortion r_in / r_circ (1: round)", "viridis")]:
-        values = a.cache[key]
+    ricci = a.cache["ricci"]
+    flat = not np.any(ricci[np.isfinite(ricci)])
+    first = (("volumes", "Voronoi cell volume (log10)", "cividis", np.log10) if flat
+             else ("ricci", f"Ricci scalar R (metric: {metric})", "coolwarm", None))
+    for ax, (key, title, cmap, transform) in zip(axes, [first, ("shape", "shape distortion r_in / r_circ (1: round)",
+                                                                 "viridis", None)]):
+        values = a.cache[key] if transform is None else transform(a.cache[key])
         ok = np.isfinite(values)
         ax.scatter(pts[~ok, 0], pts[~ok, 1], s=3, c="k", label="no value (hull tiers)")
         lo, hi = np.percentile(values[ok], [2, 98]) if ok.any() else (0, 1)
@@ -371,7 +382,8 @@ def write_maps(a: Analysis, path: Path) -> None:
         ax.legend(loc="upper right", fontsize=7)
     d = pts.shape[1]
     where = f"{d}D walkers projected on (x_1, x_2)" if d > 2 else "2D walkers"
-    fig.suptitle(f"{a.source}: {where}; landscape: {a.args.landscape or 'none'}", fontsize=9)
+    why = f"; no Ricci panel: R = 0 at every walker (metric {metric}: flat)" if flat else ""
+    fig.suptitle(f"{a.source}: {where}; landscape: {a.args.landscape or 'none'}{why}", fontsize=9)
     save_figure(fig, path, dpi=110)
 
 

@@ -28,8 +28,8 @@ SIMULATE_ROWS = {
     "mean_metric_curvature": "exact Ricci scalar of the Hessian metric (metric_curvature), Riemannian-volume mean "
                              "over tier-2 walkers [1/g^2]",
     "prism_fraction": "share of the walkers tier 2 at both steps whose cell kept its neighbours [1]",
-    "simple_scutoid_fraction": "share whose cell gained or lost neighbours at one side of the step [1]",
-    "complex_scutoid_fraction": "share whose cell both gained and lost neighbours [1]",
+    "simple_scutoid_fraction": "share whose cell lost at most one neighbour and gained at most one, not none [1]",
+    "complex_scutoid_fraction": "share whose cell lost or gained two neighbours or more [1]",
     "mean_neighbor_change": "mean number of neighbours lost plus gained over the step [count]",
     "spectral_gap": "second-smallest eigenvalue of the normalized Laplacian of the largest connected component "
                     f"of {KERNEL_GRAPH}; measured every --gap-every steps; 'rounding' below 2 n eps [1]",
@@ -51,6 +51,8 @@ ANALYZE_STATS = {  # analyze rows `<base>_<suffix>` with a suffix of STAT_SUFFIX
     "tier2_gradient_norm": "|grad V| estimated by local least squares at walkers with a fit [V/x]",
     "tier2_hessian_min_eigenvalue": "smallest eigenvalue of the estimated Hessian of V [V/x^2]",
     "tier2_hessian_max_eigenvalue": "largest eigenvalue of the estimated Hessian of V [V/x^2]",
+    "tier2_hessian_error_vs_exact": "relative error |H_fd - H|_F / |H|_F of the estimated Hessian against the "
+                                    "landscape's exact one [1]",
 }
 
 ANALYZE_ROWS = {
