@@ -55,7 +55,8 @@ def test_singular_heat_systems(tess, monkeypatch):
 
 
 def test_a_triangulator_replaced_by_qhull(tess, monkeypatch):
-    monkeypatch.setattr(delaunay_module, "build_delaunay", lambda *a, **k: (tess, ("the backend failed its check",)))
+    monkeypatch.setattr(delaunay_module, "build_delaunay", lambda *a, **k: (
+        tess, ("the backend failed its check; Qhull built this graph instead",)))
     with pytest.warns(RuntimeWarning, match="Qhull built this graph") as record:
         jaxgeom.delaunay(np.asarray(tess.points))
     attributed_here(record, "Qhull built this graph")

@@ -66,7 +66,7 @@ class RawGraph(NamedTuple):
     nbr_shifts: np.ndarray | None  # (E, d)
     hull: np.ndarray  # (N,) bool
     adjacency: np.ndarray | None = None  # (S, d + 1) simplex across the face opposite each vertex, -1 on the hull
-    fallbacks: tuple[str, ...] = ()  # why the asked-for triangulator was replaced by Qhull, per call
+    fallbacks: tuple[str, ...] = ()  # why the asked-for triangulator was replaced, and by which, per call
 
 
 def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto",
@@ -126,7 +126,7 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
         tess = eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
                            is_leaf=lambda leaf: leaf is None)
     for reason in fallbacks:
-        warn_at_caller(f"jaxgeom.delaunay: {reason}; Qhull built this graph instead.", RuntimeWarning)
+        warn_at_caller(f"jaxgeom.delaunay: {reason}.", RuntimeWarning)
     return tess
 
 
@@ -148,7 +148,9 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
         tess, reason = planar_graph_on_device(x, box_arr, capacity, backend)
         if tess is not None:
             return tess, ()
-        backend, device_failure = FALLBACK[backend], () if reason is None else (reason,)
+        replaced = "CDT" if FALLBACK[backend] == "cdt" else FALLBACK[backend]
+        backend, device_failure = FALLBACK[backend], () if reason is None else (
+            f"{reason}; {replaced} built this graph instead",)
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
         return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), device_failure + fallbacks

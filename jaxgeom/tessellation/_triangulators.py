@@ -152,13 +152,13 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
         reason = f"{name}'s triangulation failed its check: {reason}"
     if FALLBACK.get(name) == "cdt":
         try:
-            return Triangulated(_cdt(x), None, reason)
+            return Triangulated(_cdt(x), None, f"{reason}; CDT built this graph instead")
         except CoincidentPointsError:
             raise
         except Exception:  # noqa: BLE001 - then Qhull, as for the other backends
             pass
     try:
-        return Triangulated(*qhull(x), reason)
+        return Triangulated(*qhull(x), f"{reason}; Qhull built this graph instead")
     except ValueError as err:
         advice = f" Use triangulator='{name}' (exact predicates), or"  # it was used: not advice
         raise ValueError(f"{reason}, and its fallback: {err}".replace(advice, "")) from None
