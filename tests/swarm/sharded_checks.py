@@ -67,7 +67,7 @@ def check_loss_and_gradient():
     results = []
     for mesh in (None, jaxgeom.batch_mesh()):
         loss = jaxgeom.simulation_loss(rastrigin, swarm(0), "mean_fitness", params=params, n_steps=5, n_seeds=8,
-                                       mesh=mesh)
+                                       tuned=("nu", "eps_sigma"), mesh=mesh)
         value, grad = eqx.filter_jit(lambda f, t: jax.value_and_grad(f)(t))(loss, loss.to_theta())
         results.append((float(value), np.asarray(grad)))
     (v1, g1), (v4, g4) = results

@@ -100,7 +100,8 @@ def test_seeds_are_vmapped_runs_and_the_loss_is_their_mean():
 
 
 def test_parameter_map_round_trips_and_respects_bounds():
-    loss = jaxgeom.simulation_loss(V, swarm(n=30), n_steps=2, params=jaxgeom.SwarmParams(nu=0.2, eps_sigma=0.05),
+    params = jaxgeom.SwarmParams(nu=0.2, eps_sigma=0.05, weights="metric_full")
+    loss = jaxgeom.simulation_loss(V, swarm(n=30), n_steps=2, params=params, tuned=("nu", "eps_sigma"),
                                    bounds={"eps_sigma": (0.01, 0.5)})
     theta = loss.to_theta({"nu": 0.7, "eps_sigma": 0.3})
     assert loss.values(theta) == pytest.approx({"nu": 0.7, "eps_sigma": 0.3}, rel=1e-12)
