@@ -25,6 +25,7 @@ LAYERS = {
     ],
     "geometry": [
         ("_boxclip", "_transport"),  # Voronoi cells clipped to the box; exact small transport problems
+        ("_dual",),  # 3D faces, volumes, centroids and vertex counts from the Delaunay dual
         ("_volumes", "_facets"),  # cell volumes; the faces, centroids and vertex counts of the cells
         ("_metric",),
         ("_cells", "_curvature", "_heat", "_metric_curvature", "_ollivier", "_scutoids"),  # ..., the curvature of a callable

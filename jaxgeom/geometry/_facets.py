@@ -1,9 +1,11 @@
 """Voronoi facets: the (d-1)-volume of the face each walker shares with each neighbour, the
 faces on the box walls, the cells' centroids and their vertex counts, in 2D and 3D.
 
-Each cell is the polytope {y : n_f . (y - x_i) <= c_f} of its neighbours' bisectors and, with a
-(non-periodic) box, of the 2d walls, as in `_boxclip`: the same half-spaces give the same
-cells as `voronoi_volumes`. A face's measure comes from intervals on lines, as the volume does
+3D: from the Delaunay dual in O(simplices) (`_dual`: signed orthoschemes of each simplex,
+no polytope per cell), and with a (non-periodic) box the tier-0 cells, those that reach it,
+clipped from their half-spaces as below. 2D, and 3D's clipped cells: each cell is the
+polytope {y : n_f . (y - x_i) <= c_f} of its neighbours' bisectors and, with a box, of the 2d
+walls, as in `_boxclip`; a face's measure comes from intervals on lines, as the volume does
 there (no polygon is built):
 
 - 2D: face f is the interval of its line inside every other half-plane; L_f its length, m_f
@@ -15,9 +17,9 @@ there (no polygon is built):
 First moments follow from the same signed decomposition (a cone from x_i over a face has its
 centroid d / (d + 1) of the way to the face's centroid; a triangle (p_f, edge) has its centroid
 at (p_f + 2 m_fg) / 3), so centroid_i = x_i + sum_f c_f M_f / ((d + 1) V_i). Vertices: a polygon
-has as many as edges; a convex polyhedron E - F + 2 (Euler). Every cell costs O(F^d),
-F = K + 2d: on 2 cores, float32, ~5-9 ms per 1000 walkers in 2D (N = 1e4-1e5) and ~0.8 s
-per 1000 in 3D (K = 40) (bench/README.md, "Scutoids").
+has as many as edges; a clipped polyhedron E - F + 2 (Euler). A clipped cell costs O(F^d),
+F = K + 2d (~1 ms per 3D cell at K = 40 on 2 cores); the dual, ~60 us per 3D cell at N = 1e4
+(bench/cells_3d.py).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, takes_tessellation
-from ._boxclip import ROUNDING_ULPS, line_interval, plane_line
+from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, plane_line
+from ._dual import dual_faces_3d
 
 FACET_CHUNK = 64  # cells per chunk of `lax.map` (bounds the O(F^d) temporaries)
 
@@ -49,7 +52,8 @@ class VoronoiFacets(eqx.Module):
     - `centroids`: (N, d) the cells' centroids (NaN for an unbounded cell; in the box frame
       for a periodic graph, possibly outside the box by up to a cell's size).
     - `n_vertices`: (N,) the number of vertices of each cell (clipped to the box), -1 for an
-      unbounded cell.
+      unbounded cell (and, 3D, for a walker with more incident simplices than 2K + 8, the table
+      that counts its distinct circumcentres: `_dual`).
     """
 
     areas: Float[Array, "N K"]
@@ -132,8 +136,11 @@ def _polyhedron_faces(normals, offsets, active):
     area, moment, unbounded, edges = jax.vmap(face)(normals, offsets, eye)
     area = jnp.where(active, area, 0.0)
     unbounded = active & unbounded
-    faces = jnp.sum(area > tol * size)
-    vertices = jnp.sum(jnp.where(active, edges, 0)) // 2 - faces + 2
+    real_face = active & (area > tol * size)
+    faces = jnp.sum(real_face)
+    # edges on faces of positive area only: a zero-area plane through an edge (a lattice's
+    # diagonal contact between hull walkers) would count it a third time
+    vertices = jnp.sum(jnp.where(real_face, edges, 0)) // 2 - faces + 2
     moment = jnp.sum(offsets[:, None] * jnp.where(active[:, None], moment, 0.0), axis=0)
     return area, moment, unbounded, vertices
 
@@ -159,10 +166,11 @@ def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
     n, d = tess.points.shape
     if d not in (2, 3):
         raise ValueError(f"voronoi_facets measures faces in 2D and 3D; this graph has d = {d}.")
+    if d == 3:
+        return _facets_3d(tess)
     n_chunks = -(-n // FACET_CHUNK)
     rows = jnp.minimum(jnp.arange(n_chunks * FACET_CHUNK, dtype=jnp.int32), n - 1).reshape(n_chunks, FACET_CHUNK)
-    faces = _polygon_faces if d == 2 else _polyhedron_faces
-    measured = jax.lax.map(lambda ids: jax.vmap(faces)(*_cell_planes(tess, ids)), rows)
+    measured = jax.lax.map(lambda ids: jax.vmap(_polygon_faces)(*_cell_planes(tess, ids)), rows)
     area, moment, unbounded, vertices = (a.reshape((n_chunks * FACET_CHUNK,) + a.shape[2:])[:n] for a in measured)
     k = tess.neighbors.shape[1]
     _, offsets, _ = _cell_planes(tess, jnp.arange(n, dtype=jnp.int32))
@@ -175,5 +183,48 @@ def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
         wall_areas=area[:, k:],
         volumes=jnp.where(bounded, volumes, jnp.nan),
         centroids=jnp.where(bounded[:, None], centroids, jnp.nan),
+        n_vertices=jnp.where(bounded, vertices, -1).astype(jnp.int32),
+    )
+
+
+def _facets_3d(tess: Tessellation) -> VoronoiFacets:
+    """3D: every cell from the Delaunay dual (`_dual`, O(simplices)); with a (non-periodic) box,
+    the tier-0 cells (those reaching the box) clipped to it from their half-spaces (intervals on
+    lines, `_polyhedron_faces`), chunks past their count skipped as in `clip_to_box`."""
+    n, k = tess.neighbors.shape
+    areas, unbounded, volumes, moments, vertices, _ = dual_faces_3d(tess)
+    if tess.periodic:
+        unbounded = jnp.zeros_like(unbounded)
+    bounded = ~tess.hull
+    wall_areas = jnp.zeros((n, 6), areas.dtype)
+    if tess.box is not None and not tess.periodic:
+        n_chunks = -(-n // FACET_CHUNK)
+        rows = jnp.nonzero(tess.tier == 0, size=n_chunks * FACET_CHUNK, fill_value=n)[0].astype(jnp.int32)
+
+        def chunk(ids):
+            def clipped():
+                normals, offsets, active = cell_planes(tess, ids)
+                area, moment, _, count = jax.vmap(_polyhedron_faces)(normals, offsets, active)
+                return area, jnp.sum(offsets * area, axis=1) / 3.0, moment / 4.0, count.astype(vertices.dtype)
+
+            empty = (jnp.zeros((len(ids), k + 6), areas.dtype), jnp.zeros(len(ids), areas.dtype),
+                     jnp.zeros((len(ids), 3), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
+            return jax.lax.cond(ids[0] < n, clipped, lambda: empty)
+
+        c_area, c_volume, c_moment, c_count = (a.reshape((-1,) + a.shape[2:]) for a in
+                                               jax.lax.map(chunk, rows.reshape(n_chunks, FACET_CHUNK)))
+        areas = areas.at[rows].set(c_area[:, :k], mode="drop")
+        wall_areas = wall_areas.at[rows].set(c_area[:, k:], mode="drop")
+        volumes = volumes.at[rows].set(c_volume, mode="drop")
+        moments = moments.at[rows].set(c_moment, mode="drop")
+        vertices = vertices.at[rows].set(c_count.astype(vertices.dtype), mode="drop")
+        unbounded = jnp.zeros_like(unbounded)
+        bounded = jnp.ones(n, bool)
+    safe = jnp.where(bounded & (volumes > 0), volumes, 1.0)
+    return VoronoiFacets(
+        areas=jnp.where(unbounded, jnp.inf, jnp.where(tess.neighbor_mask, areas, 0.0)),
+        wall_areas=wall_areas,
+        volumes=jnp.where(bounded, volumes, jnp.nan),
+        centroids=jnp.where(bounded[:, None], tess.points + moments / safe[:, None], jnp.nan),
         n_vertices=jnp.where(bounded, vertices, -1).astype(jnp.int32),
     )

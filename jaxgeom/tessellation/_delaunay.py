@@ -49,7 +49,7 @@ SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
 SKIN_ATTEMPTS = 12
-TIE_BREAK = 1e-9  # periodic symbolic perturbation, in mean spacings
+TIE_BREAKS = (1e-9, 1e-8, 1e-7)  # periodic symbolic perturbation, in mean spacings; the next if the box is not tiled
 
 
 class CapacityError(ValueError):
@@ -343,7 +343,29 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray, triangulator: str) -> RawGra
     # makes co-circular input (lattices) generic, so every translate of a periodic simplex is
     # triangulated alike and the canonical-vertex rule keeps each exactly once.
     y0 = x - box[0]
-    y = y0 + TIE_BREAK * spacing * np.random.default_rng(0).uniform(-1.0, 1.0, (n, d))
+    jitter = np.random.default_rng(0).uniform(-1.0, 1.0, (n, d))
+    for tie_break in TIE_BREAKS:  # a larger one where Qhull could not resolve the smaller (tiling check)
+        raw = _periodic_raw(y0 + tie_break * spacing * jitter, y0, lengths, spacing, triangulator)
+        if _tiles_the_box(raw, x, lengths):
+            return raw
+    raise RuntimeError("periodic Delaunay: the simplices do not tile the box after the largest tie-break; please "
+                       "report this input.")
+
+
+def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
+    """Whether the periodic simplices' volumes add up to the box's (to 1e-9): co-spherical walkers
+    (an 8^3 cubic lattice) whose tie-break Qhull did not resolve were triangulated unalike in two
+    slabs, leaving a gap at the seam."""
+    corners = np.asarray(x, np.float64)[raw.simplices] + raw.simplex_shifts * np.asarray(lengths, np.float64)
+    edges = corners[:, 1:] - corners[:, :1]
+    total = np.sum(np.abs(np.linalg.det(edges))) / math.factorial(x.shape[1])
+    box_volume = float(np.prod(np.asarray(lengths, np.float64)))
+    return abs(total - box_volume) <= 1e-9 * box_volume
+
+
+def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> RawGraph:
+    """`_periodic_graph` for one tie-break: `y` the perturbed walkers, `y0` the plain ones."""
+    n, d = y.shape
     skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
     # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.

@@ -1,0 +1,91 @@
+"""3D Voronoi cells against freud (voro++), side by side in one process (issue 62).
+
+For uniform walkers in the unit cube at each N: freud's periodic Voronoi (volumes and the
+face areas of every neighbour pair), and jaxgeom's `delaunay` + `voronoi_facets` (periodic,
+boxed) and `delaunay` + clipped `voronoi_volumes` (boxed), with `delaunay` alone and bare
+Qhull (scipy) on the same walkers as the floors. Medians (min, max) of warm calls; ratios
+against freud at the same N. Writes bench/results/cells_3d.json.
+
+Run alone (2 cores: anything beside it skews the ratios):
+    .venv/bin/python bench/cells_3d.py [--n 10000 100000] [--repeat 5] [--dtype float64]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import scipy.spatial
+
+from _timing import summary, timed
+
+
+def cases(x, dtype):
+    import freud
+
+    import jaxgeom
+
+    box = freud.box.Box.cube(1.0)
+    centred = (x - 0.5).astype(np.float64)
+
+    def freud_voronoi():
+        voro = freud.locality.Voronoi()
+        voro.compute((box, centred))
+        return voro.volumes, voro.nlist.weights
+
+    xd = x.astype(dtype)
+    return {
+        "freud periodic (volumes + face areas)": freud_voronoi,
+        "qhull alone (scipy)": lambda: scipy.spatial.Delaunay(x).simplices,
+        "delaunay open": lambda: jaxgeom.delaunay(xd).neighbors,
+        "delaunay periodic": lambda: jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True).neighbors,
+        "delaunay periodic + voronoi_facets": lambda: jaxgeom.voronoi_facets(
+            jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True)).areas,
+        "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(
+            jaxgeom.delaunay(xd, box=(0.0, 1.0))).areas,
+        "delaunay boxed + voronoi_volumes (clipped)": lambda: jaxgeom.voronoi_volumes(
+            jaxgeom.delaunay(xd, box=(0.0, 1.0))),
+    }
+
+
+def row(n: int, repeat: int, dtype) -> dict:
+    x = np.random.default_rng(n).random((n, 3))
+    fns = cases(x, dtype)
+    for fn in fns.values():  # compile and warm
+        timed(fn)
+    times = {name: [] for name in fns}
+    for _ in range(repeat):
+        for name, fn in fns.items():  # interleaved: the ratios are measured side by side
+            times[name].append(timed(fn))
+    freud_median = float(np.median(times["freud periodic (volumes + face areas)"]))
+    return {"n": n, "dtype": str(np.dtype(dtype)), "seconds": {k: summary(v) for k, v in times.items()},
+            "over_freud": {k: float(np.median(v)) / freud_median for k, v in times.items()}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--n", type=int, nargs="+", default=[10_000, 100_000])
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    args = parser.parse_args()
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    rows = [row(n, args.repeat, np.dtype(args.dtype)) for n in args.n]
+    for r in rows:
+        print(f"N = {r['n']} ({r['dtype']})")
+        for name, s in r["seconds"].items():
+            print(f"  {name:<46} {s['median']:8.3f} s ({s['min']:.3f}-{s['max']:.3f})  {r['over_freud'][name]:6.2f}x freud")
+    out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}.json"
+    out.write_text(json.dumps({"rows": rows, "machine": platform.processor() or platform.machine(),
+                               "cores": len(__import__("os").sched_getaffinity(0)), "jax": jax.__version__,
+                               "date": time.strftime("%Y-%m-%d")}, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

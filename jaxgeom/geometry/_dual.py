@@ -1,0 +1,241 @@
+"""Voronoi faces from the Delaunay dual, in O(simplices): 3D facet areas, cell volumes,
+centroids and vertex counts without building a polytope per cell.
+
+Every simplex s is cut into signed orthoschemes (x_a, m_ab, c_T, C_s), one per flag
+(vertex a, edge ab, triangle T ⊃ ab, s), with m_ab the edge's midpoint, c_T the triangle's
+circumcentre and C_s the simplex's. Their legs are orthogonal: r_ab / 2 along the edge, the
+signed height h = (c_T - m_ab) . w (w: in T's plane, across ab, towards T's third vertex) and
+the signed piece p = (C_s - c_T) . u (u: T's normal, towards s's fourth vertex). So
+
+- the Voronoi edge dual to T has length p_s + p_t, summed over T's two simplices;
+- the face shared by a and b (on their bisector plane) has area 1/2 sum_T h L_T, a signed
+  decomposition about m_ab that needs no cyclic order of its vertices;
+- the cell of a has volume sum r h p / 12 over its flags and first moment sum over the
+  orthoschemes of their volume times their centroid (the mean of their four vertices).
+
+A triangle with one simplex lies on the hull: its Voronoi edge, and every face around it, is
+unbounded. Faces are paired by sorting their vertex ids (and, on a torus, their images).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ._boxclip import ROUNDING_ULPS
+
+# A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
+# vertex count: co-spherical walkers' coplanar quadruples (a lattice's) have ~1e-17 from
+# rounding, and their computed centres are anywhere; a Delaunay simplex inside the hull that
+# flat would have its centre 1e10 cells away, which only a degenerate input allows.
+COUNTED_FLATNESS = 1e-10
+FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
+
+
+def _unit(v):
+    norm_sq = jnp.sum(v * v)
+    ok = norm_sq > 0
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, norm_sq, 1.0)), 0.0), ok
+
+
+def _circumcentre_3d(p):
+    """Circumcentre of a tetrahedron (rows p, relative to p[0]), whether it is not flat (to
+    rounding), and whether it is a vertex of its own (`COUNTED_FLATNESS`)."""
+    e = p[1:] - p[0]
+    det = jnp.linalg.det(e)
+    scale = jnp.max(jnp.sum(e * e, axis=1)) ** 1.5
+    ok = jnp.abs(det) > 10.0 * jnp.finfo(p.dtype).eps * scale
+    rhs = 0.5 * jnp.sum(e * e, axis=1)
+    centre = jnp.linalg.solve(jnp.where(ok, e, jnp.eye(3, dtype=p.dtype)), rhs)
+    return p[0] + jnp.where(ok, centre, 0.0), ok, jnp.abs(det) > COUNTED_FLATNESS * scale
+
+
+def _triangle_circumcentre(a, b, c):
+    """Circumcentre of triangle abc in 3D and whether it is not flat."""
+    u, v = b - a, c - a
+    n = jnp.cross(u, v)
+    n_sq = jnp.sum(n * n)
+    scale = jnp.maximum(jnp.sum(u * u), jnp.sum(v * v)) ** 2
+    ok = n_sq > 100.0 * jnp.finfo(a.dtype).eps ** 2 * scale
+    safe = jnp.where(ok, n_sq, 1.0)
+    offset = (jnp.sum(u * u) * jnp.cross(v, n) + jnp.sum(v * v) * jnp.cross(n, u)) / (2.0 * safe)
+    return a + jnp.where(ok, offset, 0.0), ok
+
+
+def simplex_flags_3d(p):
+    """The flags of one tetrahedron p (4, 3), coordinates relative to its first vertex.
+
+    Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
+    face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
+    of the edge's two ends gets it), `moment_a`, `moment_b` (4, 3, 3) the orthoschemes' volume
+    times (centroid - end), for the edge's first and second end; the circumcentre (3,) and
+    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`)."""
+    centre, ok, counted = _circumcentre_3d(p)
+    pieces, heights, volumes, moments_a, moments_b = [], [], [], [], []
+    for o, face in enumerate(FACES_3D):
+        a, b, c = (p[v] for v in face)
+        c_t, tri_ok = _triangle_circumcentre(a, b, c)
+        normal, _ = _unit(jnp.cross(b - a, c - a))
+        normal = jnp.where(normal @ (p[o] - a) < 0, -normal, normal)
+        piece = jnp.where(ok & tri_ok, (centre - c_t) @ normal, 0.0)
+        pieces.append(piece)
+        h_row, v_row, ma_row, mb_row = [], [], [], []
+        for e in range(3):  # edge opposite the face's e-th vertex: (face[e+1], face[e+2])
+            x, y, k = p[face[(e + 1) % 3]], p[face[(e + 2) % 3]], p[face[e]]
+            edge = y - x
+            direction, _ = _unit(edge)
+            across = (k - x) - ((k - x) @ direction) * direction
+            w, _ = _unit(across)
+            middle = 0.5 * (x + y)
+            height = (c_t - middle) @ w
+            volume = jnp.sqrt(jnp.sum(edge * edge)) * height * piece / 12.0
+            h_row.append(height)
+            v_row.append(volume)
+            ma_row.append(volume * (middle + c_t + centre - 3.0 * x) / 4.0)
+            mb_row.append(volume * (middle + c_t + centre - 3.0 * y) / 4.0)
+        heights.append(jnp.stack(h_row))
+        volumes.append(jnp.stack(v_row))
+        moments_a.append(jnp.stack(ma_row))
+        moments_b.append(jnp.stack(mb_row))
+    return (jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(moments_a), jnp.stack(moments_b),
+            centre, counted)
+
+
+FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
+# edge e of face f joins FACE_VERTS[f, (e + 1) % 3] and FACE_VERTS[f, (e + 2) % 3]
+EDGE_ENDS = jnp.asarray([[[FACES_3D[f][(e + 1) % 3], FACES_3D[f][(e + 2) % 3]] for e in range(3)]
+                         for f in range(4)], jnp.int32)  # (4, 3, 2)
+
+
+def _face_keys(tess: Tessellation):
+    """(4S, m) int32 keys identifying each simplex face (sorted vertex ids, and on a torus the
+    images of the second and third relative to the first); padding faces get key N."""
+    n = tess.n_points
+    ids = tess.simplices[:, FACE_VERTS]  # (S, 4, 3)
+    order = jnp.argsort(ids, axis=-1)
+    sorted_ids = jnp.take_along_axis(ids, order, axis=-1)
+    keys = [sorted_ids[..., 0], sorted_ids[..., 1], sorted_ids[..., 2]]
+    if tess.simplex_shifts is not None:
+        shifts = tess.simplex_shifts[:, FACE_VERTS].astype(jnp.int32)  # (S, 4, 3, d)
+        shifts = jnp.take_along_axis(shifts, order[..., None], axis=-2)
+        rel = shifts[..., 1:, :] - shifts[..., :1, :] + 1  # in {0, 1, 2} (images of a neighbour)
+        code = rel[..., 0] * 9 + rel[..., 1] * 3 + rel[..., 2]  # (S, 4, 2)
+        keys += [code[..., 0], code[..., 1]]
+    valid = jnp.broadcast_to(tess.simplex_mask[:, None], ids.shape[:2])
+    return jnp.stack([jnp.where(valid, k, n) for k in keys], axis=-1).reshape(-1, len(keys))
+
+
+def paired_edge_lengths(tess: Tessellation, pieces):
+    """(4S,) the length of the Voronoi edge dual to each simplex face (p_s + p_t over the
+    face's two simplices), and (4S,) whether the face lies on the hull (one simplex: unbounded)."""
+    keys = _face_keys(tess)
+    order = jnp.lexsort(tuple(keys[:, k] for k in reversed(range(keys.shape[1]))))
+    sorted_keys = keys[order]
+    flat = pieces.reshape(-1)[order]
+    same_next = jnp.all(sorted_keys[1:] == sorted_keys[:-1], axis=1)
+    same_prev = jnp.concatenate([jnp.zeros(1, bool), same_next])
+    same_next = jnp.concatenate([same_next, jnp.zeros(1, bool)])
+    partner = jnp.where(same_next, jnp.roll(flat, -1), jnp.where(same_prev, jnp.roll(flat, 1), 0.0))
+    alone = ~(same_next | same_prev)
+    real = sorted_keys[:, 0] < tess.n_points
+    lengths = jnp.zeros_like(flat).at[order].set(flat + partner)
+    hull = jnp.zeros(flat.shape, bool).at[order].set(alone & real)
+    return lengths, hull
+
+
+def neighbor_slots(tess: Tessellation, rows, targets, shifts):
+    """The slot of `targets` (with periodic `shifts` relative to `rows`) in `rows`' neighbour
+    rows, and whether it is there (a zero-measure contact is not a neighbour)."""
+    nbrs = tess.neighbors[rows]  # (..., K)
+    match = nbrs == targets[..., None]
+    if tess.neighbor_shifts is not None:
+        match = match & jnp.all(tess.neighbor_shifts[rows] == shifts[..., None, :], axis=-1)
+    return jnp.argmax(match, axis=-1).astype(jnp.int32), jnp.any(match, axis=-1)
+
+
+def dual_faces_3d(tess: Tessellation):
+    """Per walker and neighbour slot: (areas (N, K), unbounded (N, K)); per walker: volumes
+    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N,) and whether its
+    count overflowed its table (N,), from the Delaunay dual (module docstring). Hull cells'
+    volumes, moments and counts are meaningless (callers mask them with `tess.hull`), and so
+    are those of cells reaching a box (callers clip them)."""
+    n, k = tess.neighbors.shape
+    verts = simplex_vertices(tess)  # (S, 4, 3), images applied
+    rel = verts - verts[:, :1]
+    pieces, heights, volumes, moment_a, moment_b, centres, proper = jax.vmap(simplex_flags_3d)(rel)
+    mask = tess.simplex_mask
+    pieces = jnp.where(mask[:, None], pieces, 0.0)
+    if tess.box is None:  # open: the hull's faces bound the unbounded cells (a torus or a box has none)
+        hull_face = paired_edge_lengths(tess, pieces)[1].reshape(-1, 4)
+    else:
+        hull_face = jnp.zeros(pieces.shape, bool)
+    ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
+    # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
+    contrib = jnp.where(mask[:, None, None], 0.5 * heights * pieces[:, :, None], 0.0)
+    index, values, flags = [], [], []
+    for side in (0, 1):
+        rows, targets = ends[..., side], ends[..., 1 - side]
+        rel_shift = None
+        if tess.simplex_shifts is not None:
+            sh = tess.simplex_shifts[:, EDGE_ENDS]  # (S, 4, 3, 2, d)
+            rel_shift = sh[..., 1 - side, :] - sh[..., side, :]
+        safe_rows = jnp.minimum(rows, n - 1)
+        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
+        keep = found & mask[:, None, None] & (rows < n)
+        index.append(jnp.where(keep, safe_rows * k + slot, n * k).ravel())
+        values.append(contrib.ravel())
+        flags.append(jnp.broadcast_to(hull_face[:, :, None], contrib.shape).ravel())
+    index = jnp.concatenate(index)
+    areas = jax.ops.segment_sum(jnp.concatenate(values), index, num_segments=n * k + 1)[:-1].reshape(n, k)
+    unbounded = jax.ops.segment_max(jnp.concatenate(flags).astype(jnp.int32), index,
+                                    num_segments=n * k + 1)[:-1].reshape(n, k) > 0
+    # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
+    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
+    vol = jnp.where(mask[:, None, None], volumes, 0.0).ravel()
+    cell_volume = jax.ops.segment_sum(jnp.concatenate([vol, vol]), ids, num_segments=n + 1)[:n]
+    mom = jnp.concatenate([moment_a.reshape(-1, 3), moment_b.reshape(-1, 3)])
+    mom = jnp.where(jnp.concatenate([vol, vol])[:, None] != 0, mom, 0.0)
+    moments = jax.ops.segment_sum(mom, ids, num_segments=n + 1)[:n]
+    vertices, overflow = _vertex_counts(tess, centres[:, None, :] - rel, mask & proper)
+    return areas, unbounded, cell_volume, moments, vertices, overflow
+
+
+# circumcentres of co-spherical walkers' simplices closer than this many epsilons of the cell's
+# size are one vertex: a thin simplex's centre carries rounding of ~1/its flatness (measured:
+# up to ~1e-13 of the cell on a cubic lattice), far below a 1e-9 jitter's split vertices
+MERGE_ULPS = 4096
+VERTEX_CHUNK = 256  # cells per chunk of the distinct-vertex count (bounds its cap^2 comparisons)
+
+
+def _vertex_counts(tess: Tessellation, offsets, proper):
+    """(N,) the distinct Voronoi vertices of every cell (-1 where a walker has more incident
+    simplices than the table holds), and (N,) those walkers. A vertex is the circumcentre of an incident simplex that
+    is not flat (`offsets` (S, 4, 3): circumcentre minus each vertex, images applied), and
+    co-spherical walkers (a lattice's) share one among several simplices: centres closer than
+    rounding of the cell's size count once. The incident simplices of a walker are at most
+    2 deg - 4 (its link is a triangulated sphere); the table holds 2 K + 8."""
+    n, k = tess.neighbors.shape
+    cap = 2 * k + 8
+    cells = jnp.where(proper[:, None], tess.simplices, n).ravel()
+    order = jnp.argsort(cells, stable=True)
+    sorted_cells = cells[order]
+    slot = jnp.arange(cells.shape[0], dtype=jnp.int32) - jnp.searchsorted(sorted_cells, sorted_cells).astype(jnp.int32)
+    table = jnp.full((n + 1, cap, 3), jnp.nan, offsets.dtype)
+    table = table.at[sorted_cells, slot].set(offsets.reshape(-1, 3)[order], mode="drop")[:n]
+    overflow = jax.ops.segment_max((slot >= cap).astype(jnp.int32), sorted_cells, num_segments=n + 1)[:n] > 0
+    eps = jnp.finfo(offsets.dtype).eps
+    n_chunks = -(-n // VERTEX_CHUNK)
+    padded = jnp.concatenate([table, jnp.full((n_chunks * VERTEX_CHUNK - n, cap, 3), jnp.nan, table.dtype)])
+
+    def count(rows):
+        valid = jnp.isfinite(rows[..., 0])
+        size = jnp.max(jnp.where(valid, jnp.max(jnp.abs(rows), axis=-1), 0.0), axis=1)
+        close = jnp.max(jnp.abs(rows[:, :, None, :] - rows[:, None, :, :]), axis=-1) <= (
+            MERGE_ULPS * eps * size)[:, None, None]
+        earlier = jnp.tril(jnp.ones((cap, cap), bool), -1)
+        repeated = jnp.any(close & earlier & valid[:, None, :], axis=2)
+        return jnp.sum(valid & ~repeated, axis=1, dtype=jnp.int32)
+
+    counts = jax.lax.map(count, padded.reshape(n_chunks, VERTEX_CHUNK, cap, 3)).ravel()[:n]
+    return jnp.where(overflow, -1, counts), overflow
