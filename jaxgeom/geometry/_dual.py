@@ -22,7 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices, take_or_zero
 from ._boxclip import ROUNDING_ULPS
 
 # A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
@@ -156,8 +156,9 @@ def neighbor_slots(tess: Tessellation, rows, targets, shifts):
 
 def dual_faces_3d(tess: Tessellation):
     """Per walker and neighbour slot: (areas (N, K), unbounded (N, K)); per walker: volumes
-    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N,) and whether its
-    count overflowed its table (N,), from the Delaunay dual (module docstring). Hull cells'
+    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N,), whether its
+    count overflowed its table (N,), and (N,) False (3D keeps flat simplices: they add
+    nothing), from the Delaunay dual (module docstring). Hull cells'
     volumes, moments and counts are meaningless (callers mask them with `tess.hull`), and so
     are those of cells reaching a box (callers clip them)."""
     n, k = tess.neighbors.shape
@@ -198,7 +199,7 @@ def dual_faces_3d(tess: Tessellation):
     mom = jnp.where(jnp.concatenate([vol, vol])[:, None] != 0, mom, 0.0)
     moments = jax.ops.segment_sum(mom, ids, num_segments=n + 1)[:n]
     vertices, overflow = _vertex_counts(tess, centres[:, None, :] - rel, mask & proper)
-    return areas, unbounded, cell_volume, moments, vertices, overflow
+    return areas, unbounded, cell_volume, moments, vertices, overflow, jnp.zeros(n, bool)
 
 
 # circumcentres of co-spherical walkers' simplices closer than this many epsilons of the cell's
@@ -221,12 +222,13 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     order = jnp.argsort(cells, stable=True)
     sorted_cells = cells[order]
     slot = jnp.arange(cells.shape[0], dtype=jnp.int32) - jnp.searchsorted(sorted_cells, sorted_cells).astype(jnp.int32)
-    table = jnp.full((n + 1, cap, 3), jnp.nan, offsets.dtype)
-    table = table.at[sorted_cells, slot].set(offsets.reshape(-1, 3)[order], mode="drop")[:n]
+    d = offsets.shape[-1]
+    table = jnp.full((n + 1, cap, d), jnp.nan, offsets.dtype)
+    table = table.at[sorted_cells, slot].set(offsets.reshape(-1, d)[order], mode="drop")[:n]
     overflow = jax.ops.segment_max((slot >= cap).astype(jnp.int32), sorted_cells, num_segments=n + 1)[:n] > 0
     eps = jnp.finfo(offsets.dtype).eps
     n_chunks = -(-n // VERTEX_CHUNK)
-    padded = jnp.concatenate([table, jnp.full((n_chunks * VERTEX_CHUNK - n, cap, 3), jnp.nan, table.dtype)])
+    padded = jnp.concatenate([table, jnp.full((n_chunks * VERTEX_CHUNK - n, cap, d), jnp.nan, table.dtype)])
 
     def count(rows):
         valid = jnp.isfinite(rows[..., 0])
@@ -237,5 +239,119 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
         repeated = jnp.any(close & earlier & valid[:, None, :], axis=2)
         return jnp.sum(valid & ~repeated, axis=1, dtype=jnp.int32)
 
-    counts = jax.lax.map(count, padded.reshape(n_chunks, VERTEX_CHUNK, cap, 3)).ravel()[:n]
+    counts = jax.lax.map(count, padded.reshape(n_chunks, VERTEX_CHUNK, cap, d)).ravel()[:n]
     return jnp.where(overflow, -1, counts), overflow
+
+
+# --- 2D ----------------------------------------------------------------------------------
+
+EDGES_2D = ((1, 2, 0), (2, 0, 1), (0, 1, 2))  # (a, b, the third vertex k) of each triangle edge
+
+
+def triangle_flags_2d(p):
+    """The flags of one triangle p (3, 2), coordinates relative to its first vertex: per edge
+    (EDGES_2D order) the signed distance s = (c - m_ab) . w from the edge's midpoint to the
+    circumcentre c (w across the edge towards the third vertex), the orthoschemes' area r s / 4
+    (each end of the edge gets one), their moments about the first and second end; the
+    circumcentre and whether the triangle is not flat."""
+    e1, e2 = p[1] - p[0], p[2] - p[0]
+    cross = e1[0] * e2[1] - e1[1] * e2[0]
+    scale = jnp.maximum(jnp.sum(e1 * e1), jnp.sum(e2 * e2))
+    ok = jnp.abs(cross) > 10.0 * jnp.finfo(p.dtype).eps * scale
+    safe = jnp.where(ok, cross, 1.0)
+    offset = jnp.stack([e2[1] * jnp.sum(e1 * e1) - e1[1] * jnp.sum(e2 * e2),
+                        e1[0] * jnp.sum(e2 * e2) - e2[0] * jnp.sum(e1 * e1)]) / (2.0 * safe)
+    centre = p[0] + jnp.where(ok, offset, 0.0)
+    heights, areas, moments_a, moments_b = [], [], [], []
+    for a, b, k in EDGES_2D:
+        edge = p[b] - p[a]
+        direction, _ = _unit(edge)
+        w, _ = _unit((p[k] - p[a]) - ((p[k] - p[a]) @ direction) * direction)
+        middle = 0.5 * (p[a] + p[b])
+        height = jnp.where(ok, (centre - middle) @ w, 0.0)
+        area = jnp.sqrt(jnp.sum(edge * edge)) * height / 4.0
+        heights.append(height)
+        areas.append(area)
+        moments_a.append(area * (middle + centre - 2.0 * p[a]) / 3.0)
+        moments_b.append(area * (middle + centre - 2.0 * p[b]) / 3.0)
+    return jnp.stack(heights), jnp.stack(areas), jnp.stack(moments_a), jnp.stack(moments_b), centre, ok
+
+
+RAY_CHUNK = 64  # hull walkers per chunk of the ray test (chunks past their count are skipped)
+
+
+def _unbounded_slots_2d(tess: Tessellation):
+    """(N, K) the faces that are rays: a hull walker's two extreme neighbours, those with every
+    other neighbour on one side of them (the outside lies beyond), share a ray with it. Only
+    the hull walkers are tested, in chunks (`clip_to_box`'s pattern): the cost follows them."""
+    n, k = tess.neighbors.shape
+    n_chunks = -(-n // RAY_CHUNK)
+    rows = jnp.nonzero(tess.hull, size=n_chunks * RAY_CHUNK, fill_value=n)[0].astype(jnp.int32)
+
+    def extreme(ids):
+        safe = jnp.minimum(ids, n - 1)
+        dx = _row_displacements(tess, safe)
+        mask = tess.neighbor_mask[safe]
+        cross = dx[:, :, None, 0] * dx[:, None, :, 1] - dx[:, :, None, 1] * dx[:, None, :, 0]
+        scale = jnp.max(jnp.sum(dx * dx, axis=-1), axis=1)[:, None, None]
+        tol = ROUNDING_ULPS * jnp.finfo(dx.dtype).eps * scale
+        others = mask[:, None, :]
+        left = jnp.all(~others | (cross >= -tol), axis=2)
+        right = jnp.all(~others | (cross <= tol), axis=2)
+        return mask & (left | right) & (ids < n)[:, None]
+
+    def chunk(ids):
+        return jax.lax.cond(ids[0] < n, extreme, lambda ids: jnp.zeros((len(ids), k), bool), ids)
+
+    rays = jax.lax.map(chunk, rows.reshape(n_chunks, RAY_CHUNK)).reshape(-1, k)
+    return jnp.zeros((n, k), bool).at[rows].set(rays, mode="drop")
+
+
+def _row_displacements(tess: Tessellation, rows):
+    """x_j - x_i for the neighbour slots of `rows` (periodic images applied)."""
+    nbrs = tess.neighbors[rows]
+    dx = take_or_zero(tess.points, nbrs) - tess.points[rows][:, None, :]
+    if tess.neighbor_shifts is not None:
+        dx = dx + tess.neighbor_shifts[rows].astype(dx.dtype) * tess.box_lengths
+    return jnp.where(tess.neighbor_mask[rows][..., None], dx, 0.0)
+
+
+def dual_faces_2d(tess: Tessellation):
+    """`dual_faces_3d` in 2D: per walker and slot the face lengths and whether they are
+    unbounded; per walker areas, first moments, vertex counts, their overflow, and whether the
+    walker is beside a triangle within rounding of flat (its cell's sign is not decided)."""
+    n, k = tess.neighbors.shape
+    verts = simplex_vertices(tess)  # (S, 3, 2)
+    heights, areas, moment_a, moment_b, _, proper = jax.vmap(triangle_flags_2d)(verts - verts[:, :1])
+    mask = tess.simplex_mask
+    ends = tess.simplices[:, jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)]  # (S, 3, 2)
+    lengths = jnp.where(mask[:, None], heights, 0.0)
+    index, values = [], []
+    for side in (0, 1):
+        rows, targets = ends[..., side], ends[..., 1 - side]
+        rel_shift = None
+        if tess.simplex_shifts is not None:
+            sh = tess.simplex_shifts[:, jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)]
+            rel_shift = sh[..., 1 - side, :] - sh[..., side, :]
+        safe_rows = jnp.minimum(rows, n - 1)
+        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
+        keep = found & mask[:, None] & (rows < n)
+        index.append(jnp.where(keep, safe_rows * k + slot, n * k).ravel())
+        values.append(lengths.ravel())
+    index = jnp.concatenate(index)
+    faces = jax.ops.segment_sum(jnp.concatenate(values), index, num_segments=n * k + 1)[:-1].reshape(n, k)
+    unbounded = _unbounded_slots_2d(tess) if tess.box is None else jnp.zeros((n, k), bool)
+    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
+    area = jnp.where(mask[:, None], areas, 0.0).ravel()
+    cell_area = jax.ops.segment_sum(jnp.concatenate([area, area]), ids, num_segments=n + 1)[:n]
+    mom = jnp.where(jnp.concatenate([area, area])[:, None] != 0,
+                    jnp.concatenate([moment_a.reshape(-1, 2), moment_b.reshape(-1, 2)]), 0.0)
+    moments = jax.ops.segment_sum(mom, ids, num_segments=n + 1)[:n]
+    # a polygon has as many vertices as edges: the faces of positive length
+    eps = jnp.finfo(verts.dtype).eps
+    r = jnp.sqrt(jnp.sum(jnp.square(neighbor_displacements(tess)), axis=-1))
+    vertices = jnp.sum(faces > ROUNDING_ULPS * eps * r, axis=1, dtype=jnp.int32)
+    overflow = jnp.zeros(n, bool)
+    flat = jnp.repeat(mask & ~proper, 3).astype(jnp.int32)
+    beside_flat = jax.ops.segment_max(flat, tess.simplices.ravel(), num_segments=n + 1)[:n] > 0
+    return faces, unbounded, cell_area, moments, vertices, overflow, beside_flat

@@ -1,12 +1,10 @@
 """Voronoi facets: the (d-1)-volume of the face each walker shares with each neighbour, the
 faces on the box walls, the cells' centroids and their vertex counts, in 2D and 3D.
 
-3D: from the Delaunay dual in O(simplices) (`_dual`: signed orthoschemes of each simplex,
-no polytope per cell), and with a (non-periodic) box the tier-0 cells, those that reach it,
-clipped from their half-spaces as below. 2D, and 3D's clipped cells: each cell is the
-polytope {y : n_f . (y - x_i) <= c_f} of its neighbours' bisectors and, with a box, of the 2d
-walls, as in `_boxclip`; a face's measure comes from intervals on lines, as the volume does
-there (no polygon is built):
+Every cell from the Delaunay dual in O(simplices) (`_dual`: signed orthoschemes of each
+simplex, no polytope per cell). With a (non-periodic) box the tier-0 cells, those that reach
+it, are clipped from their half-spaces: the polytope {y : n_f . (y - x_i) <= c_f} of the
+neighbours' bisectors and the 2d walls, as in `_boxclip`, measured by intervals on lines:
 
 - 2D: face f is the interval of its line inside every other half-plane; L_f its length, m_f
   its midpoint.
@@ -29,9 +27,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ..tessellation._graph import Tessellation, neighbor_displacements, takes_tessellation
+from ..tessellation._graph import Tessellation, takes_tessellation
 from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, plane_line
-from ._dual import dual_faces_3d
+from ._dual import dual_faces_2d, dual_faces_3d
 
 FACET_CHUNK = 64  # cells per chunk of `lax.map` (bounds the O(F^d) temporaries)
 
@@ -61,29 +59,6 @@ class VoronoiFacets(eqx.Module):
     volumes: Float[Array, " N"]
     centroids: Float[Array, "N d"]
     n_vertices: Int[Array, " N"]
-
-
-def _cell_planes(tess: Tessellation, rows):
-    """Half-spaces (normals (M, F, d), offsets (M, F), active (M, F)) of the cells of `rows` in
-    their own frames: the K bisectors, then 2d walls (inactive without a box or on a torus)."""
-    n, d = tess.points.shape
-    dx = neighbor_displacements(tess)[rows]
-    real = tess.neighbors[rows] < n
-    r_sq = jnp.sum(jnp.where(real[..., None], dx, 1.0) ** 2, axis=-1)
-    r = jnp.sqrt(r_sq)
-    normals = jnp.where(real[..., None], dx / r[..., None], 0.0)
-    x = tess.points[rows]
-    eye = jnp.eye(d, dtype=x.dtype)
-    walls = jnp.broadcast_to(jnp.concatenate([eye, -eye]), (len(rows), 2 * d, d))
-    if tess.box is None or tess.periodic:
-        wall_offsets = jnp.ones((len(rows), 2 * d), x.dtype)
-        wall_active = jnp.zeros((len(rows), 2 * d), bool)
-    else:
-        box = tess.box.astype(x.dtype)
-        wall_offsets = jnp.concatenate([box[1] - x, x - box[0]], axis=1)
-        wall_active = jnp.ones((len(rows), 2 * d), bool)
-    return (jnp.concatenate([normals, walls], axis=1), jnp.concatenate([0.5 * r, wall_offsets], axis=1),
-            jnp.concatenate([real, wall_active], axis=1))
 
 
 def _polygon_faces(normals, offsets, active):
@@ -166,37 +141,23 @@ def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
     n, d = tess.points.shape
     if d not in (2, 3):
         raise ValueError(f"voronoi_facets measures faces in 2D and 3D; this graph has d = {d}.")
-    if d == 3:
-        return _facets_3d(tess)
-    n_chunks = -(-n // FACET_CHUNK)
-    rows = jnp.minimum(jnp.arange(n_chunks * FACET_CHUNK, dtype=jnp.int32), n - 1).reshape(n_chunks, FACET_CHUNK)
-    measured = jax.lax.map(lambda ids: jax.vmap(_polygon_faces)(*_cell_planes(tess, ids)), rows)
-    area, moment, unbounded, vertices = (a.reshape((n_chunks * FACET_CHUNK,) + a.shape[2:])[:n] for a in measured)
-    k = tess.neighbors.shape[1]
-    _, offsets, _ = _cell_planes(tess, jnp.arange(n, dtype=jnp.int32))
-    bounded = ~jnp.any(unbounded, axis=1)
-    volumes = jnp.sum(offsets * jnp.where(unbounded, 0.0, area), axis=1) / d
-    safe = jnp.where(bounded & (volumes > 0), volumes, 1.0)
-    centroids = tess.points + moment / ((d + 1) * safe[:, None])
-    return VoronoiFacets(
-        areas=jnp.where(unbounded[:, :k], jnp.inf, area[:, :k]),
-        wall_areas=area[:, k:],
-        volumes=jnp.where(bounded, volumes, jnp.nan),
-        centroids=jnp.where(bounded[:, None], centroids, jnp.nan),
-        n_vertices=jnp.where(bounded, vertices, -1).astype(jnp.int32),
-    )
+    return _facets_from_dual(tess)
 
 
-def _facets_3d(tess: Tessellation) -> VoronoiFacets:
-    """3D: every cell from the Delaunay dual (`_dual`, O(simplices)); with a (non-periodic) box,
-    the tier-0 cells (those reaching the box) clipped to it from their half-spaces (intervals on
-    lines, `_polyhedron_faces`), chunks past their count skipped as in `clip_to_box`."""
+def _facets_from_dual(tess: Tessellation) -> VoronoiFacets:
+    """Every cell from the Delaunay dual (`_dual`, O(simplices)); with a (non-periodic) box, the
+    tier-0 cells (those reaching the box) clipped to it from their half-spaces (intervals on
+    lines), chunks past their count skipped as in `clip_to_box`. 2D cells beside a triangle
+    within rounding of flat are unbounded-like (NaN), as in `voronoi_volumes`."""
     n, k = tess.neighbors.shape
-    areas, unbounded, volumes, moments, vertices, _ = dual_faces_3d(tess)
+    d = tess.dim
+    dual = dual_faces_2d if d == 2 else dual_faces_3d
+    areas, unbounded, volumes, moments, vertices, _, undecided = dual(tess)
     if tess.periodic:
         unbounded = jnp.zeros_like(unbounded)
-    bounded = ~tess.hull
-    wall_areas = jnp.zeros((n, 6), areas.dtype)
+    bounded = ~tess.hull & ~undecided
+    wall_areas = jnp.zeros((n, 2 * d), areas.dtype)
+    measure = _polygon_faces if d == 2 else _polyhedron_faces
     if tess.box is not None and not tess.periodic:
         n_chunks = -(-n // FACET_CHUNK)
         rows = jnp.nonzero(tess.tier == 0, size=n_chunks * FACET_CHUNK, fill_value=n)[0].astype(jnp.int32)
@@ -204,11 +165,11 @@ def _facets_3d(tess: Tessellation) -> VoronoiFacets:
         def chunk(ids):
             def clipped():
                 normals, offsets, active = cell_planes(tess, ids)
-                area, moment, _, count = jax.vmap(_polyhedron_faces)(normals, offsets, active)
-                return area, jnp.sum(offsets * area, axis=1) / 3.0, moment / 4.0, count.astype(vertices.dtype)
+                area, moment, _, count = jax.vmap(measure)(normals, offsets, active)
+                return area, jnp.sum(offsets * area, axis=1) / d, moment / (d + 1), count.astype(vertices.dtype)
 
-            empty = (jnp.zeros((len(ids), k + 6), areas.dtype), jnp.zeros(len(ids), areas.dtype),
-                     jnp.zeros((len(ids), 3), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
+            empty = (jnp.zeros((len(ids), k + 2 * d), areas.dtype), jnp.zeros(len(ids), areas.dtype),
+                     jnp.zeros((len(ids), d), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
             return jax.lax.cond(ids[0] < n, clipped, lambda: empty)
 
         c_area, c_volume, c_moment, c_count = (a.reshape((-1,) + a.shape[2:]) for a in
@@ -218,8 +179,9 @@ def _facets_3d(tess: Tessellation) -> VoronoiFacets:
         volumes = volumes.at[rows].set(c_volume, mode="drop")
         moments = moments.at[rows].set(c_moment, mode="drop")
         vertices = vertices.at[rows].set(c_count.astype(vertices.dtype), mode="drop")
-        unbounded = jnp.zeros_like(unbounded)
-        bounded = jnp.ones(n, bool)
+        clipped = jnp.zeros(n, bool).at[rows].set(True, mode="drop")
+        unbounded = unbounded & ~clipped[:, None]
+        bounded = bounded | clipped
     safe = jnp.where(bounded & (volumes > 0), volumes, 1.0)
     return VoronoiFacets(
         areas=jnp.where(unbounded, jnp.inf, jnp.where(tess.neighbor_mask, areas, 0.0)),
