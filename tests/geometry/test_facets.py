@@ -169,15 +169,16 @@ def test_facet_areas_are_freuds_voronoi_neighbour_weights(rng, d):
         assert ours[pair] == pytest.approx(w, rel=1e-5, abs=1e-6)
 
 
+@pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("kind", ["periodic", "open"])
-def test_3d_facet_gradients_equal_central_differences(rng, kind):
+def test_facet_gradients_equal_central_differences(rng, kind, d):
     """The dual's areas, volumes and centroids are smooth in the positions on a fixed graph:
     jax.grad of a weighted sum of them equals central differences (bounded cells only)."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
 
-    x = rng.random((150, 3))
+    x = rng.random((150, d))
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True) if kind == "periodic" else jaxgeom.delaunay(x)
     inside = ~np.asarray(tess.hull)
     mask = np.asarray(tess.neighbor_mask) & inside[:, None] & ~np.asarray(tess.hull)[
@@ -191,7 +192,7 @@ def test_3d_facet_gradients_equal_central_differences(rng, kind):
 
     p = jnp.asarray(x)
     grad = np.asarray(jax.grad(total)(p))
-    picks = [(i, c) for i in np.flatnonzero(inside)[:6] for c in range(3)]
+    picks = [(i, c) for i in np.flatnonzero(inside)[:6] for c in range(d)]
     h = 1e-6
     for i, c in picks:
         step = jnp.zeros_like(p).at[i, c].set(h)
