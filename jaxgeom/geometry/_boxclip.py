@@ -135,17 +135,21 @@ def cell_planes(tess: Tessellation, rows):
             jnp.concatenate([real, wall_active], axis=1))
 
 
+def map_flagged_rows(flags, size: int, fn, empty):
+    """(rows, outputs): `fn(ids)` over the walkers where `flags` holds, `size` per chunk (rows
+    padded with N), stacked along the rows; chunks past their count give `empty(ids)` without
+    running `fn` (`lax.cond` inside `lax.map`), so the cost follows the flagged walkers."""
+    n = flags.shape[0]
+    n_chunks = -(-n // size)
+    rows = jnp.nonzero(flags, size=n_chunks * size, fill_value=n)[0].astype(jnp.int32)
+    out = jax.lax.map(lambda ids: jax.lax.cond(ids[0] < n, fn, empty, ids), rows.reshape(n_chunks, size))
+    return rows, jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
+
+
 def clip_to_box(tess: Tessellation, volumes: Float[Array, " N"]) -> Float[Array, " N"]:
     """`volumes` with every tier-0 walker's cell (unbounded or reaching the box) replaced by
     its volume inside `tess.box` (2D and 3D, non-periodic)."""
-    n, d = tess.points.shape
-    measure = polygon_area if d == 2 else polyhedron_volume
-    n_chunks = -(-n // CLIP_CHUNK)
-    rows = jnp.nonzero(tess.tier == 0, size=n_chunks * CLIP_CHUNK, fill_value=n)[0].astype(jnp.int32)
-
-    def chunk(ids):
-        clipped = lambda: jax.vmap(measure)(*cell_planes(tess, ids))
-        return jax.lax.cond(ids[0] < n, clipped, lambda: jnp.zeros(ids.shape, volumes.dtype))
-
-    clipped = jax.lax.map(chunk, rows.reshape(n_chunks, CLIP_CHUNK)).ravel()
+    measure = polygon_area if tess.dim == 2 else polyhedron_volume
+    rows, clipped = map_flagged_rows(tess.tier == 0, CLIP_CHUNK, lambda ids: jax.vmap(measure)(*cell_planes(tess, ids)),
+                                     lambda ids: jnp.zeros(ids.shape, volumes.dtype))
     return volumes.at[rows].set(clipped, mode="drop")

@@ -14,7 +14,8 @@ the signed piece p = (C_s - c_T) . u (u: T's normal, towards s's fourth vertex).
   orthoschemes of their volume times their centroid (the mean of their four vertices).
 
 A triangle with one simplex lies on the hull: its Voronoi edge, and every face around it, is
-unbounded. Faces are paired by sorting their vertex ids (and, on a torus, their images).
+unbounded. Open 3D graphs find those by sorting the faces' vertex ids (`hull_faces`); 2D
+graphs at the hull walkers' extreme neighbours.
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices, take_or_zero
-from ._boxclip import ROUNDING_ULPS
+from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ._boxclip import ROUNDING_ULPS, map_flagged_rows
 
 # A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
 # vertex count: co-spherical walkers' coplanar quadruples (a lattice's) have ~1e-17 from
@@ -126,22 +127,16 @@ def _face_keys(tess: Tessellation):
     return jnp.stack([jnp.where(valid, k, n) for k in keys], axis=-1).reshape(-1, len(keys))
 
 
-def paired_edge_lengths(tess: Tessellation, pieces):
-    """(4S,) the length of the Voronoi edge dual to each simplex face (p_s + p_t over the
-    face's two simplices), and (4S,) whether the face lies on the hull (one simplex: unbounded)."""
+def hull_faces(tess: Tessellation):
+    """(S, 4) whether each simplex face lies on the hull: the only simplex with its key
+    (`_face_keys`) in a sort of all of them."""
     keys = _face_keys(tess)
     order = jnp.lexsort(tuple(keys[:, k] for k in reversed(range(keys.shape[1]))))
     sorted_keys = keys[order]
-    flat = pieces.reshape(-1)[order]
-    same_next = jnp.all(sorted_keys[1:] == sorted_keys[:-1], axis=1)
-    same_prev = jnp.concatenate([jnp.zeros(1, bool), same_next])
-    same_next = jnp.concatenate([same_next, jnp.zeros(1, bool)])
-    partner = jnp.where(same_next, jnp.roll(flat, -1), jnp.where(same_prev, jnp.roll(flat, 1), 0.0))
-    alone = ~(same_next | same_prev)
-    real = sorted_keys[:, 0] < tess.n_points
-    lengths = jnp.zeros_like(flat).at[order].set(flat + partner)
-    hull = jnp.zeros(flat.shape, bool).at[order].set(alone & real)
-    return lengths, hull
+    same = jnp.all(sorted_keys[1:] == sorted_keys[:-1], axis=1)
+    paired = jnp.concatenate([same, jnp.zeros(1, bool)]) | jnp.concatenate([jnp.zeros(1, bool), same])
+    alone = ~paired & (sorted_keys[:, 0] < tess.n_points)
+    return jnp.zeros(alone.shape, bool).at[order].set(alone).reshape(-1, 4)
 
 
 def neighbor_slots(tess: Tessellation, rows, targets, shifts):
@@ -154,52 +149,66 @@ def neighbor_slots(tess: Tessellation, rows, targets, shifts):
     return jnp.argmax(match, axis=-1).astype(jnp.int32), jnp.any(match, axis=-1)
 
 
+def _slot_index(tess: Tessellation, ends, shifts):
+    """(2 E,) the flat slot (row * K + slot) of every edge `ends` (..., 2) seen from its first
+    end, then from its second; N * K where the other end is not a neighbour (a zero-measure
+    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None."""
+    n, k = tess.neighbors.shape
+    index = []
+    for side in (0, 1):
+        rows, targets = ends[..., side], ends[..., 1 - side]
+        rel_shift = None if shifts is None else shifts[..., 1 - side, :] - shifts[..., side, :]
+        safe_rows = jnp.minimum(rows, n - 1)
+        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
+        index.append(jnp.where(found & (rows < n), safe_rows * k + slot, n * k).ravel())
+    return jnp.concatenate(index)
+
+
+def _sum_into_slots(values, index, n: int, k: int):
+    """(N, K) sums of `values` (the same for both ends of each edge) at `_slot_index`."""
+    both = jnp.concatenate([values.ravel(), values.ravel()])
+    return jax.ops.segment_sum(both, index, num_segments=n * k + 1)[:-1].reshape(n, k)
+
+
+def _sum_at_ends(ends, values, moment_a, moment_b, n: int):
+    """Per walker: the sum of `values` (..., one per edge, counted at both ends) and of the
+    moments about the first and the second end, (N,) and (N, d)."""
+    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
+    both = jnp.concatenate([values.ravel(), values.ravel()])
+    d = moment_a.shape[-1]
+    moments = jnp.concatenate([moment_a.reshape(-1, d), moment_b.reshape(-1, d)])
+    moments = jnp.where(both[:, None] != 0, moments, 0.0)
+    return (jax.ops.segment_sum(both, ids, num_segments=n + 1)[:n],
+            jax.ops.segment_sum(moments, ids, num_segments=n + 1)[:n])
+
+
 def dual_faces_3d(tess: Tessellation):
     """Per walker and neighbour slot: (areas (N, K), unbounded (N, K)); per walker: volumes
-    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N,), whether its
-    count overflowed its table (N,), and (N,) False (3D keeps flat simplices: they add
-    nothing), from the Delaunay dual (module docstring). Hull cells'
-    volumes, moments and counts are meaningless (callers mask them with `tess.hull`), and so
-    are those of cells reaching a box (callers clip them)."""
+    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N, -1 where the count's
+    table overflowed), and (N,) False (3D keeps flat simplices: they add nothing), from the
+    Delaunay dual (module docstring). Hull cells' volumes, moments and counts are meaningless
+    (callers mask them with `tess.hull`), and so are those of cells reaching a box (callers
+    clip them)."""
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     rel = verts - verts[:, :1]
     pieces, heights, volumes, moment_a, moment_b, centres, proper = jax.vmap(simplex_flags_3d)(rel)
     mask = tess.simplex_mask
     pieces = jnp.where(mask[:, None], pieces, 0.0)
-    if tess.box is None:  # open: the hull's faces bound the unbounded cells (a torus or a box has none)
-        hull_face = paired_edge_lengths(tess, pieces)[1].reshape(-1, 4)
-    else:
-        hull_face = jnp.zeros(pieces.shape, bool)
+    # open: the hull's faces bound the unbounded cells (a torus or a box has none)
+    hull_face = hull_faces(tess) if tess.box is None else jnp.zeros(pieces.shape, bool)
     ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
+    shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, EDGE_ENDS]
+    index = _slot_index(tess, ends, shifts)
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
-    contrib = jnp.where(mask[:, None, None], 0.5 * heights * pieces[:, :, None], 0.0)
-    index, values, flags = [], [], []
-    for side in (0, 1):
-        rows, targets = ends[..., side], ends[..., 1 - side]
-        rel_shift = None
-        if tess.simplex_shifts is not None:
-            sh = tess.simplex_shifts[:, EDGE_ENDS]  # (S, 4, 3, 2, d)
-            rel_shift = sh[..., 1 - side, :] - sh[..., side, :]
-        safe_rows = jnp.minimum(rows, n - 1)
-        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
-        keep = found & mask[:, None, None] & (rows < n)
-        index.append(jnp.where(keep, safe_rows * k + slot, n * k).ravel())
-        values.append(contrib.ravel())
-        flags.append(jnp.broadcast_to(hull_face[:, :, None], contrib.shape).ravel())
-    index = jnp.concatenate(index)
-    areas = jax.ops.segment_sum(jnp.concatenate(values), index, num_segments=n * k + 1)[:-1].reshape(n, k)
-    unbounded = jax.ops.segment_max(jnp.concatenate(flags).astype(jnp.int32), index,
+    areas = _sum_into_slots(jnp.where(mask[:, None, None], 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
+    ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
+    unbounded = jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index,
                                     num_segments=n * k + 1)[:-1].reshape(n, k) > 0
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
-    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
-    vol = jnp.where(mask[:, None, None], volumes, 0.0).ravel()
-    cell_volume = jax.ops.segment_sum(jnp.concatenate([vol, vol]), ids, num_segments=n + 1)[:n]
-    mom = jnp.concatenate([moment_a.reshape(-1, 3), moment_b.reshape(-1, 3)])
-    mom = jnp.where(jnp.concatenate([vol, vol])[:, None] != 0, mom, 0.0)
-    moments = jax.ops.segment_sum(mom, ids, num_segments=n + 1)[:n]
-    vertices, overflow = _vertex_counts(tess, centres[:, None, :] - rel, mask & proper)
-    return areas, unbounded, cell_volume, moments, vertices, overflow, jnp.zeros(n, bool)
+    cell_volume, moments = _sum_at_ends(ends, jnp.where(mask[:, None, None], volumes, 0.0), moment_a, moment_b, n)
+    vertices = _vertex_counts(tess, centres[:, None, :] - rel, mask & proper)
+    return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool)
 
 
 # circumcentres of co-spherical walkers' simplices closer than this many epsilons of the cell's
@@ -210,8 +219,8 @@ VERTEX_CHUNK = 256  # cells per chunk of the distinct-vertex count (bounds its c
 
 
 def _vertex_counts(tess: Tessellation, offsets, proper):
-    """(N,) the distinct Voronoi vertices of every cell (-1 where a walker has more incident
-    simplices than the table holds), and (N,) those walkers. A vertex is the circumcentre of an incident simplex that
+    """(N,) the distinct Voronoi vertices of every cell, -1 where a walker has more incident
+    simplices than the table holds. A vertex is the circumcentre of an incident simplex that
     is not flat (`offsets` (S, 4, 3): circumcentre minus each vertex, images applied), and
     co-spherical walkers (a lattice's) share one among several simplices: centres closer than
     rounding of the cell's size count once. The incident simplices of a walker are at most
@@ -240,7 +249,7 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
         return jnp.sum(valid & ~repeated, axis=1, dtype=jnp.int32)
 
     counts = jax.lax.map(count, padded.reshape(n_chunks, VERTEX_CHUNK, cap, d)).ravel()[:n]
-    return jnp.where(overflow, -1, counts), overflow
+    return jnp.where(overflow, -1, counts)
 
 
 # --- 2D ----------------------------------------------------------------------------------
@@ -280,78 +289,46 @@ def triangle_flags_2d(p):
 RAY_CHUNK = 64  # hull walkers per chunk of the ray test (chunks past their count are skipped)
 
 
-def _unbounded_slots_2d(tess: Tessellation):
+def _unbounded_slots_2d(tess: Tessellation, dx):
     """(N, K) the faces that are rays: a hull walker's two extreme neighbours, those with every
     other neighbour on one side of them (the outside lies beyond), share a ray with it. Only
-    the hull walkers are tested, in chunks (`clip_to_box`'s pattern): the cost follows them."""
+    the hull walkers are tested (`map_flagged_rows`): the cost follows them. `dx`: the
+    neighbour displacements (`neighbor_displacements`)."""
     n, k = tess.neighbors.shape
-    n_chunks = -(-n // RAY_CHUNK)
-    rows = jnp.nonzero(tess.hull, size=n_chunks * RAY_CHUNK, fill_value=n)[0].astype(jnp.int32)
 
     def extreme(ids):
         safe = jnp.minimum(ids, n - 1)
-        dx = _row_displacements(tess, safe)
-        mask = tess.neighbor_mask[safe]
-        cross = dx[:, :, None, 0] * dx[:, None, :, 1] - dx[:, :, None, 1] * dx[:, None, :, 0]
-        scale = jnp.max(jnp.sum(dx * dx, axis=-1), axis=1)[:, None, None]
+        rows, mask = dx[safe], tess.neighbor_mask[safe]
+        cross = rows[:, :, None, 0] * rows[:, None, :, 1] - rows[:, :, None, 1] * rows[:, None, :, 0]
+        scale = jnp.max(jnp.sum(rows * rows, axis=-1), axis=1)[:, None, None]
         tol = ROUNDING_ULPS * jnp.finfo(dx.dtype).eps * scale
         others = mask[:, None, :]
         left = jnp.all(~others | (cross >= -tol), axis=2)
         right = jnp.all(~others | (cross <= tol), axis=2)
         return mask & (left | right) & (ids < n)[:, None]
 
-    def chunk(ids):
-        return jax.lax.cond(ids[0] < n, extreme, lambda ids: jnp.zeros((len(ids), k), bool), ids)
-
-    rays = jax.lax.map(chunk, rows.reshape(n_chunks, RAY_CHUNK)).reshape(-1, k)
+    rows, rays = map_flagged_rows(tess.hull, RAY_CHUNK, extreme, lambda ids: jnp.zeros((len(ids), k), bool))
     return jnp.zeros((n, k), bool).at[rows].set(rays, mode="drop")
-
-
-def _row_displacements(tess: Tessellation, rows):
-    """x_j - x_i for the neighbour slots of `rows` (periodic images applied)."""
-    nbrs = tess.neighbors[rows]
-    dx = take_or_zero(tess.points, nbrs) - tess.points[rows][:, None, :]
-    if tess.neighbor_shifts is not None:
-        dx = dx + tess.neighbor_shifts[rows].astype(dx.dtype) * tess.box_lengths
-    return jnp.where(tess.neighbor_mask[rows][..., None], dx, 0.0)
 
 
 def dual_faces_2d(tess: Tessellation):
     """`dual_faces_3d` in 2D: per walker and slot the face lengths and whether they are
-    unbounded; per walker areas, first moments, vertex counts, their overflow, and whether the
+    unbounded; per walker areas, first moments, vertex counts, and whether the
     walker is beside a triangle within rounding of flat (its cell's sign is not decided)."""
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 3, 2)
     heights, areas, moment_a, moment_b, _, proper = jax.vmap(triangle_flags_2d)(verts - verts[:, :1])
     mask = tess.simplex_mask
-    ends = tess.simplices[:, jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)]  # (S, 3, 2)
-    lengths = jnp.where(mask[:, None], heights, 0.0)
-    index, values = [], []
-    for side in (0, 1):
-        rows, targets = ends[..., side], ends[..., 1 - side]
-        rel_shift = None
-        if tess.simplex_shifts is not None:
-            sh = tess.simplex_shifts[:, jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)]
-            rel_shift = sh[..., 1 - side, :] - sh[..., side, :]
-        safe_rows = jnp.minimum(rows, n - 1)
-        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
-        keep = found & mask[:, None] & (rows < n)
-        index.append(jnp.where(keep, safe_rows * k + slot, n * k).ravel())
-        values.append(lengths.ravel())
-    index = jnp.concatenate(index)
-    faces = jax.ops.segment_sum(jnp.concatenate(values), index, num_segments=n * k + 1)[:-1].reshape(n, k)
-    unbounded = _unbounded_slots_2d(tess) if tess.box is None else jnp.zeros((n, k), bool)
-    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
-    area = jnp.where(mask[:, None], areas, 0.0).ravel()
-    cell_area = jax.ops.segment_sum(jnp.concatenate([area, area]), ids, num_segments=n + 1)[:n]
-    mom = jnp.where(jnp.concatenate([area, area])[:, None] != 0,
-                    jnp.concatenate([moment_a.reshape(-1, 2), moment_b.reshape(-1, 2)]), 0.0)
-    moments = jax.ops.segment_sum(mom, ids, num_segments=n + 1)[:n]
+    pairs = jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)
+    ends = tess.simplices[:, pairs]  # (S, 3, 2)
+    shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
+    faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), _slot_index(tess, ends, shifts), n, k)
+    dx = neighbor_displacements(tess)
+    unbounded = _unbounded_slots_2d(tess, dx) if tess.box is None else jnp.zeros((n, k), bool)
+    cell_area, moments = _sum_at_ends(ends, jnp.where(mask[:, None], areas, 0.0), moment_a, moment_b, n)
     # a polygon has as many vertices as edges: the faces of positive length
-    eps = jnp.finfo(verts.dtype).eps
-    r = jnp.sqrt(jnp.sum(jnp.square(neighbor_displacements(tess)), axis=-1))
-    vertices = jnp.sum(faces > ROUNDING_ULPS * eps * r, axis=1, dtype=jnp.int32)
-    overflow = jnp.zeros(n, bool)
+    r = jnp.sqrt(jnp.sum(jnp.square(dx), axis=-1))
+    vertices = jnp.sum(faces > ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * r, axis=1, dtype=jnp.int32)
     flat = jnp.repeat(mask & ~proper, 3).astype(jnp.int32)
     beside_flat = jax.ops.segment_max(flat, tess.simplices.ravel(), num_segments=n + 1)[:n] > 0
-    return faces, unbounded, cell_area, moments, vertices, overflow, beside_flat
+    return faces, unbounded, cell_area, moments, vertices, beside_flat

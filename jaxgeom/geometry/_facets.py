@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..tessellation._graph import Tessellation, takes_tessellation
-from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, plane_line
+from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows, plane_line
 from ._dual import dual_faces_2d, dual_faces_3d
 
 FACET_CHUNK = 64  # cells per chunk of `lax.map` (bounds the O(F^d) temporaries)
@@ -152,36 +152,27 @@ def _facets_from_dual(tess: Tessellation) -> VoronoiFacets:
     n, k = tess.neighbors.shape
     d = tess.dim
     dual = dual_faces_2d if d == 2 else dual_faces_3d
-    areas, unbounded, volumes, moments, vertices, _, undecided = dual(tess)
-    if tess.periodic:
-        unbounded = jnp.zeros_like(unbounded)
+    areas, unbounded, volumes, moments, vertices, undecided = dual(tess)  # no ray on a torus or in a box
     bounded = ~tess.hull & ~undecided
     wall_areas = jnp.zeros((n, 2 * d), areas.dtype)
     measure = _polygon_faces if d == 2 else _polyhedron_faces
     if tess.box is not None and not tess.periodic:
-        n_chunks = -(-n // FACET_CHUNK)
-        rows = jnp.nonzero(tess.tier == 0, size=n_chunks * FACET_CHUNK, fill_value=n)[0].astype(jnp.int32)
+        def clipped(ids):
+            normals, offsets, active = cell_planes(tess, ids)
+            area, moment, _, count = jax.vmap(measure)(normals, offsets, active)
+            return area, jnp.sum(offsets * area, axis=1) / d, moment / (d + 1), count.astype(vertices.dtype)
 
-        def chunk(ids):
-            def clipped():
-                normals, offsets, active = cell_planes(tess, ids)
-                area, moment, _, count = jax.vmap(measure)(normals, offsets, active)
-                return area, jnp.sum(offsets * area, axis=1) / d, moment / (d + 1), count.astype(vertices.dtype)
+        def empty(ids):
+            return (jnp.zeros((len(ids), k + 2 * d), areas.dtype), jnp.zeros(len(ids), areas.dtype),
+                    jnp.zeros((len(ids), d), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
 
-            empty = (jnp.zeros((len(ids), k + 2 * d), areas.dtype), jnp.zeros(len(ids), areas.dtype),
-                     jnp.zeros((len(ids), d), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
-            return jax.lax.cond(ids[0] < n, clipped, lambda: empty)
-
-        c_area, c_volume, c_moment, c_count = (a.reshape((-1,) + a.shape[2:]) for a in
-                                               jax.lax.map(chunk, rows.reshape(n_chunks, FACET_CHUNK)))
+        rows, (c_area, c_volume, c_moment, c_count) = map_flagged_rows(tess.tier == 0, FACET_CHUNK, clipped, empty)
         areas = areas.at[rows].set(c_area[:, :k], mode="drop")
         wall_areas = wall_areas.at[rows].set(c_area[:, k:], mode="drop")
         volumes = volumes.at[rows].set(c_volume, mode="drop")
         moments = moments.at[rows].set(c_moment, mode="drop")
-        vertices = vertices.at[rows].set(c_count.astype(vertices.dtype), mode="drop")
-        clipped = jnp.zeros(n, bool).at[rows].set(True, mode="drop")
-        unbounded = unbounded & ~clipped[:, None]
-        bounded = bounded | clipped
+        vertices = vertices.at[rows].set(c_count, mode="drop")
+        bounded = bounded | jnp.zeros(n, bool).at[rows].set(True, mode="drop")
     safe = jnp.where(bounded & (volumes > 0), volumes, 1.0)
     return VoronoiFacets(
         areas=jnp.where(unbounded, jnp.inf, jnp.where(tess.neighbor_mask, areas, 0.0)),
