@@ -51,7 +51,7 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     h_fd = np.asarray(comparison["hessian_fd"])
     reference = np.asarray(truth) if truth is not None else np.asarray(comparison["hessian_geometric"])
     label = "exact" if truth is not None else "geometric"
-    error = _relative_error(h_fd, reference)
+    error = relative_error(h_fd, reference)
     fig, axes = plt.subplots(2, 2, figsize=(11, 9))
     e_fd = np.asarray(comparison["eigenvalues_fd"])[valid]
     e_ref = np.linalg.eigvalsh(reference[valid]) if truth is not None else \
@@ -132,7 +132,7 @@ def _error_by_walker_count(points, values, reference):
     for size in sizes:
         pick = np.sort(rng.choice(n, size, replace=False))
         est = np.asarray(estimate_hessian(knn_graph(points[pick], k), np.asarray(values)[pick]))
-        medians.append(float(np.nanmedian(_relative_error(est, reference[pick]))))
+        medians.append(float(np.nanmedian(relative_error(est, reference[pick]))))
     return sizes, medians
 
 
@@ -147,7 +147,8 @@ def _decade_limits(values) -> tuple[float, float]:
     return 10.0 ** low, 10.0 ** max(high, low + 1)
 
 
-def _relative_error(estimate, reference):
+def relative_error(estimate, reference):
+    """Per walker |estimate - reference|_F / |reference|_F (a diagonal estimate against the diagonal)."""
     if estimate.ndim == 2:  # a diagonal estimate
         reference = np.diagonal(reference, axis1=1, axis2=2)
         return np.linalg.norm(estimate - reference, axis=1) / np.maximum(np.linalg.norm(reference, axis=1), 1e-300)
@@ -174,7 +175,7 @@ def _error_by_neighbour_count(points, values, reference, valid):
     for k in ks:
         nbrs = jnp.where(jnp.arange(ks[-1]) < k, full.neighbors, n)
         est = np.asarray(estimate_hessian(eqx.tree_at(lambda t: t.neighbors, full, nbrs), values))
-        err = _relative_error(est, reference)[valid]
+        err = relative_error(est, reference)[valid]
         medians.append(float(np.nanmedian(err)))
     return ks, medians
 
