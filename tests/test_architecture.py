@@ -25,6 +25,7 @@ LAYERS = {
     ],
     "geometry": [
         ("_boxclip", "_transport"),  # Voronoi cells clipped to the box; exact small transport problems
+        ("_dualclip",),  # the Delaunay dual's pieces cut to the box (3D)
         ("_dual",),  # 3D faces, volumes, centroids and vertex counts from the Delaunay dual
         ("_volumes", "_facets"),  # cell volumes; the faces, centroids and vertex counts of the cells
         ("_metric",),

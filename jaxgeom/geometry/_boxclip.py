@@ -1,21 +1,14 @@
-"""Voronoi cells clipped to the box: exact volumes of box ∩ cell, in 2D and 3D.
+"""2D Voronoi cells clipped to the box: exact areas of box ∩ cell (3D cells: `_dualclip`).
 
-Walker i's cell is the polytope {y : n_f . (y - x_i) <= c_f} of its Delaunay neighbours'
-bisectors (n = (x_j - x_i) / r, c = r / 2, r = |x_j - x_i|) and, for the box, of the 2d
+Walker i's cell is the polygon {y : n_f . (y - x_i) <= c_f} of its Delaunay neighbours'
+bisectors (n = (x_j - x_i) / r, c = r / 2, r = |x_j - x_i|) and, for the box, of the 4
 walls (n = +-e_k, c = the walker's distance to the wall). Any superset of the cell's
-face-defining neighbours gives the same polytope, so the padded neighbour rows serve as
-they are. Its volume follows from the divergence theorem with signed distances from x_i:
-
-- 2D: area = 1/2 sum_f c_f L_f, L_f the length of line f inside every other half-plane
-  (an interval on the line);
-- 3D: volume = 1/3 sum_f c_f A_f, the face area A_f = 1/2 sum_g h_fg L_fg, L_fg the length
-  of the line (plane f) ∩ (plane g) inside every other half-space, h_fg the signed distance
-  of that line from the foot of x_i on plane f, measured in plane f.
-
-No polygon is built: every term is an interval on a line, in fixed shapes (F^2 intervals per
-cell in 2D, F^3 in 3D, F = K + 2d). Only cells that reach the box (tier 0) need clipping,
-so they are gathered in chunks and the chunks past their count are skipped (`lax.cond`
-inside `lax.map`): the cost follows the number of boundary walkers, not N.
+face-defining neighbours gives the same polygon, so the padded neighbour rows serve as they
+are. Its area follows from the divergence theorem with signed distances from x_i:
+area = 1/2 sum_f c_f L_f, L_f the length of line f inside every other half-plane (an
+interval on the line), F^2 intervals per cell, F = K + 4. Only cells that reach the box
+(tier 0) need clipping, so they are gathered in chunks and the chunks past their count are
+skipped (`lax.cond` inside `lax.map`): the cost follows the number of boundary walkers.
 """
 
 from __future__ import annotations
@@ -80,42 +73,6 @@ def polygon_area(normals: Float[Array, "F 2"], offsets: Float[Array, " F"], acti
     return 0.5 * jnp.sum(offsets * lengths)
 
 
-def plane_line(nf, cf, ng, cg, g, row, active):
-    """The line where face plane f (nf . y = cf) meets plane g, seen from x_i (the origin):
-    (whether it exists: g active, not f, not parallel; its point nearest x_i; its unit
-    direction; its signed distance from the foot cf nf of x_i on plane f, in plane f; the
-    rows that bound it: every active plane but f and g)."""
-    cross = jnp.cross(nf, ng)
-    s2 = jnp.sum(cross * cross)
-    ok = active[g] & ~row[g] & (s2 > PARALLEL**2)
-    s_safe = jnp.sqrt(jnp.where(ok, s2, 1.0))
-    cos = nf @ ng
-    # the point of the line nearest x_i: alpha nf + beta ng with nf.p = cf, ng.p = cg
-    alpha, beta = (cf - cos * cg) / s_safe**2, (cg - cos * cf) / s_safe**2
-    usable = active & ~row & (jnp.arange(active.shape[0]) != g)
-    return ok, alpha * nf + beta * ng, cross / s_safe, (cg - cos * cf) / s_safe, usable
-
-
-def polyhedron_volume(normals: Float[Array, "F 3"], offsets: Float[Array, " F"], active: Bool[Array, " F"]):
-    """Volume of {y : normals . y <= offsets (active rows)}, bounded and containing 0."""
-    f = normals.shape[0]
-    eye = jnp.eye(f, dtype=bool)
-    size = jnp.max(jnp.where(active, offsets, 0.0))
-
-    def face(nf, cf, row):
-        def edge(ng, cg, g):
-            ok, point, direction, height, usable = plane_line(nf, cf, ng, cg, g, row, active)
-            length, contains = _bounded_interval(point, direction, normals, offsets, usable, size)
-            # planes through the same edge (a lattice cell's corner): the lowest index counts it once
-            first = ~jnp.any(usable & contains & (jnp.arange(f) < g))
-            return height * jnp.where(ok & first, length, 0.0)
-
-        return 0.5 * jnp.sum(jax.vmap(edge)(normals, offsets, jnp.arange(f)))
-
-    areas = jnp.where(active, jax.vmap(face)(normals, offsets, eye), 0.0)
-    return jnp.sum(offsets * areas) / 3.0
-
-
 def cell_planes(tess: Tessellation, rows):
     """The half-spaces of the cells of walkers `rows` (padding N) in their own frames:
     (normals (M, F, d), offsets (M, F), active (M, F)), the bisectors first, then the walls."""
@@ -148,8 +105,7 @@ def map_flagged_rows(flags, size: int, fn, empty):
 
 def clip_to_box(tess: Tessellation, volumes: Float[Array, " N"]) -> Float[Array, " N"]:
     """`volumes` with every tier-0 walker's cell (unbounded or reaching the box) replaced by
-    its volume inside `tess.box` (2D and 3D, non-periodic)."""
-    measure = polygon_area if tess.dim == 2 else polyhedron_volume
-    rows, clipped = map_flagged_rows(tess.tier == 0, CLIP_CHUNK, lambda ids: jax.vmap(measure)(*cell_planes(tess, ids)),
+    its area inside `tess.box` (2D, non-periodic; 3D cells are clipped by `_dualclip`)."""
+    rows, clipped = map_flagged_rows(tess.tier == 0, CLIP_CHUNK, lambda ids: jax.vmap(polygon_area)(*cell_planes(tess, ids)),
                                      lambda ids: jnp.zeros(ids.shape, volumes.dtype))
     return volumes.at[rows].set(clipped, mode="drop")

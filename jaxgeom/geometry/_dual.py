@@ -15,7 +15,9 @@ the signed piece p = (C_s - c_T) . u (u: T's normal, towards s's fourth vertex).
 
 A triangle with one simplex lies on the hull: its Voronoi edge, and every face around it, is
 unbounded. Open 3D graphs find those by sorting the faces' vertex ids (`hull_faces`); 2D
-graphs at the hull walkers' extreme neighbours.
+graphs at the hull walkers' extreme neighbours. In a (non-periodic) box the pieces that reach
+a wall, and the hull's unbounded ones, are cut to it (`_dualclip`) and the walls' faces follow
+from their edges; vertex counts then add the clipped cells' vertices on the walls.
 """
 
 from __future__ import annotations
@@ -25,43 +27,10 @@ import jax.numpy as jnp
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
+from ._dualclip import (CORNER_WALLS, EDGE_WALLS, box_edge_faces, circumcentre_3d, clipped_sums, triangle_circumcentre,
+                        unit_vector)
 
-# A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
-# vertex count: co-spherical walkers' coplanar quadruples (a lattice's) have ~1e-17 from
-# rounding, and their computed centres are anywhere; a Delaunay simplex inside the hull that
-# flat would have its centre 1e10 cells away, which only a degenerate input allows.
-COUNTED_FLATNESS = 1e-10
 FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
-
-
-def _unit(v):
-    norm_sq = jnp.sum(v * v)
-    ok = norm_sq > 0
-    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, norm_sq, 1.0)), 0.0), ok
-
-
-def _circumcentre_3d(p):
-    """Circumcentre of a tetrahedron (rows p, relative to p[0]), whether it is not flat (to
-    rounding), and whether it is a vertex of its own (`COUNTED_FLATNESS`)."""
-    e = p[1:] - p[0]
-    det = jnp.linalg.det(e)
-    scale = jnp.max(jnp.sum(e * e, axis=1)) ** 1.5
-    ok = jnp.abs(det) > 10.0 * jnp.finfo(p.dtype).eps * scale
-    rhs = 0.5 * jnp.sum(e * e, axis=1)
-    centre = jnp.linalg.solve(jnp.where(ok, e, jnp.eye(3, dtype=p.dtype)), rhs)
-    return p[0] + jnp.where(ok, centre, 0.0), ok, jnp.abs(det) > COUNTED_FLATNESS * scale
-
-
-def _triangle_circumcentre(a, b, c):
-    """Circumcentre of triangle abc in 3D and whether it is not flat."""
-    u, v = b - a, c - a
-    n = jnp.cross(u, v)
-    n_sq = jnp.sum(n * n)
-    scale = jnp.maximum(jnp.sum(u * u), jnp.sum(v * v)) ** 2
-    ok = n_sq > 100.0 * jnp.finfo(a.dtype).eps ** 2 * scale
-    safe = jnp.where(ok, n_sq, 1.0)
-    offset = (jnp.sum(u * u) * jnp.cross(v, n) + jnp.sum(v * v) * jnp.cross(n, u)) / (2.0 * safe)
-    return a + jnp.where(ok, offset, 0.0), ok
 
 
 def simplex_flags_3d(p):
@@ -70,14 +39,16 @@ def simplex_flags_3d(p):
     Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
     face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
     of the edge's two ends gets it), `moment_a`, `moment_b` (4, 3, 3) the orthoschemes' volume
-    times (centroid - end), for the edge's first and second end; the circumcentre (3,) and
-    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`)."""
-    centre, ok, counted = _circumcentre_3d(p)
-    pieces, heights, volumes, moments_a, moments_b = [], [], [], [], []
+    times (centroid - end), for the edge's first and second end; the circumcentre (3,),
+    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`), and the faces' circumcentres
+    (4, 3)."""
+    centre, ok, counted = circumcentre_3d(p)
+    pieces, heights, volumes, moments_a, moments_b, face_centres = [], [], [], [], [], []
     for o, face in enumerate(FACES_3D):
         a, b, c = (p[v] for v in face)
-        c_t, tri_ok = _triangle_circumcentre(a, b, c)
-        normal, _ = _unit(jnp.cross(b - a, c - a))
+        c_t, tri_ok = triangle_circumcentre(a, b, c)
+        face_centres.append(c_t)
+        normal, _ = unit_vector(jnp.cross(b - a, c - a))
         normal = jnp.where(normal @ (p[o] - a) < 0, -normal, normal)
         piece = jnp.where(ok & tri_ok, (centre - c_t) @ normal, 0.0)
         pieces.append(piece)
@@ -85,9 +56,9 @@ def simplex_flags_3d(p):
         for e in range(3):  # edge opposite the face's e-th vertex: (face[e+1], face[e+2])
             x, y, k = p[face[(e + 1) % 3]], p[face[(e + 2) % 3]], p[face[e]]
             edge = y - x
-            direction, _ = _unit(edge)
+            direction, _ = unit_vector(edge)
             across = (k - x) - ((k - x) @ direction) * direction
-            w, _ = _unit(across)
+            w, _ = unit_vector(across)
             middle = 0.5 * (x + y)
             height = (c_t - middle) @ w
             volume = jnp.sqrt(jnp.sum(edge * edge)) * height * piece / 12.0
@@ -100,7 +71,7 @@ def simplex_flags_3d(p):
         moments_a.append(jnp.stack(ma_row))
         moments_b.append(jnp.stack(mb_row))
     return (jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(moments_a), jnp.stack(moments_b),
-            centre, counted)
+            centre, counted, jnp.stack(face_centres))
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -127,16 +98,25 @@ def _face_keys(tess: Tessellation):
     return jnp.stack([jnp.where(valid, k, n) for k in keys], axis=-1).reshape(-1, len(keys))
 
 
-def hull_faces(tess: Tessellation):
+def hull_faces(tess: Tessellation, proper=None):
     """(S, 4) whether each simplex face lies on the hull: the only simplex with its key
-    (`_face_keys`) in a sort of all of them."""
+    (`_face_keys`) in a sort of all of them. With `proper` (S,) (the simplices that are not
+    flat), a flat simplex lying on the hull (co-planar hull walkers, a lattice's) is dropped:
+    its faces are not on the hull, and those of the proper simplices it covers are."""
     keys = _face_keys(tess)
     order = jnp.lexsort(tuple(keys[:, k] for k in reversed(range(keys.shape[1]))))
     sorted_keys = keys[order]
     same = jnp.all(sorted_keys[1:] == sorted_keys[:-1], axis=1)
-    paired = jnp.concatenate([same, jnp.zeros(1, bool)]) | jnp.concatenate([jnp.zeros(1, bool), same])
-    alone = ~paired & (sorted_keys[:, 0] < tess.n_points)
-    return jnp.zeros(alone.shape, bool).at[order].set(alone).reshape(-1, 4)
+    after, before = jnp.concatenate([same, jnp.zeros(1, bool)]), jnp.concatenate([jnp.zeros(1, bool), same])
+    alone = ~(after | before) & (sorted_keys[:, 0] < tess.n_points)
+    raw = jnp.zeros(alone.shape, bool).at[order].set(alone).reshape(-1, 4)
+    if proper is None:
+        return raw
+    partner_sorted = jnp.where(after, jnp.roll(order, -1), jnp.where(before, jnp.roll(order, 1), -1))
+    partner = jnp.zeros_like(order).at[order].set(partner_sorted).reshape(-1, 4)
+    flat_on_hull = ~proper & tess.simplex_mask & jnp.any(raw, axis=1)
+    covered = (partner >= 0) & flat_on_hull[jnp.maximum(partner, 0) // 4]
+    return proper[:, None] & (raw | covered)
 
 
 def neighbor_slots(tess: Tessellation, rows, targets, shifts):
@@ -182,33 +162,123 @@ def _sum_at_ends(ends, values, moment_a, moment_b, n: int):
             jax.ops.segment_sum(moments, ids, num_segments=n + 1)[:n])
 
 
-def dual_faces_3d(tess: Tessellation):
+def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     """Per walker and neighbour slot: (areas (N, K), unbounded (N, K)); per walker: volumes
     (N,), first moments about the walker (N, 3), Voronoi vertex counts (N, -1 where the count's
-    table overflowed), and (N,) False (3D keeps flat simplices: they add nothing), from the
-    Delaunay dual (module docstring). Hull cells' volumes, moments and counts are meaningless
-    (callers mask them with `tess.hull`), and so are those of cells reaching a box (callers
-    clip them)."""
+    table overflowed; zeros without `counts`), (N,) False (3D keeps flat simplices: they add
+    nothing) and the faces on the box walls (N, 6), from the Delaunay dual (module docstring).
+    With a (non-periodic) box every cell is clipped to it (`_dualclip`); otherwise hull cells'
+    volumes, moments and counts are meaningless (callers mask them with `tess.hull`)."""
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     rel = verts - verts[:, :1]
-    pieces, heights, volumes, moment_a, moment_b, centres, proper = jax.vmap(simplex_flags_3d)(rel)
+    pieces, heights, volumes, moment_a, moment_b, centres, proper, face_centres = jax.vmap(simplex_flags_3d)(rel)
     mask = tess.simplex_mask
-    pieces = jnp.where(mask[:, None], pieces, 0.0)
-    # open: the hull's faces bound the unbounded cells (a torus or a box has none)
-    hull_face = hull_faces(tess) if tess.box is None else jnp.zeros(pieces.shape, bool)
+    boxed = tess.box is not None and tess.simplex_shifts is None
+    # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
+    if tess.simplex_shifts is not None:
+        hull_face = jnp.zeros(pieces.shape, bool)
+    else:
+        hull_face = hull_faces(tess, proper & mask if boxed else None)
+    inside = mask
+    if boxed:
+        box = tess.box.astype(verts.dtype)
+        # pieces reaching a wall are clipped: those leaving the box, and those with a point on a
+        # wall (a walker on it), whose edges there bound the cell's wall face
+        margin = ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * jnp.max(jnp.abs(box))
+        reaches = lambda y: jnp.any((y <= box[0] + margin) | (y >= box[1] - margin), axis=-1)  # noqa: E731
+        centre_out = reaches(verts[:, 0] + centres)
+        on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
+        outside = mask[:, None] & (centre_out[:, None] | reaches(verts[:, :1] + face_centres) | on_wall)  # (S, 4)
+        inside = mask[:, None] & ~outside
+    keep = jnp.broadcast_to(inside if boxed else mask[:, None], pieces.shape)[:, :, None]
     ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, EDGE_ENDS]
     index = _slot_index(tess, ends, shifts)
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
-    areas = _sum_into_slots(jnp.where(mask[:, None, None], 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
-    ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
-    unbounded = jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index,
-                                    num_segments=n * k + 1)[:-1].reshape(n, k) > 0
+    areas = _sum_into_slots(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
-    cell_volume, moments = _sum_at_ends(ends, jnp.where(mask[:, None, None], volumes, 0.0), moment_a, moment_b, n)
-    vertices = _vertex_counts(tess, centres[:, None, :] - rel, mask & proper)
-    return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool)
+    cell_volume, moments = _sum_at_ends(ends, jnp.where(keep, volumes, 0.0), moment_a, moment_b, n)
+    wall_areas = jnp.zeros((n, 6), areas.dtype)
+    if boxed:
+        areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
+            tess, hull_face, outside, ends, index, areas, cell_volume, moments)
+        unbounded = jnp.zeros((n, k), bool)
+    else:
+        ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
+        unbounded = jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index,
+                                        num_segments=n * k + 1)[:-1].reshape(n, k) > 0
+    vertices = jnp.zeros(n, jnp.int32)
+    if counts:
+        counted = jnp.broadcast_to((mask & proper)[:, None], tess.simplices.shape)
+        if boxed:
+            counted = counted & _counted_in_box(tess, verts[:, 0] + centres, wall_areas)
+        vertices = _vertex_counts(tess, centres[:, None, :] - rel, counted)
+        if boxed:
+            vertices = jnp.where(vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths,
+                                                                                   edges))
+    return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
+
+
+def _clip_to_box(tess: Tessellation, hull_face, outside, ends, index, areas, cell_volume, moments):
+    """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
+    inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
+    segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts)."""
+    n, k = tess.neighbors.shape
+    n_flags = tess.simplices.shape[0] * 12
+    # each hull edge's two hull triangles: the sum of their outer normals, seen from each flag
+    verts = tess.points[tess.simplices]  # (S, 4, 3)
+    faces = verts[:, FACE_VERTS]  # (S, 4, 3, 3)
+    normal = jnp.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0])
+    normal = normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), jnp.finfo(verts.dtype).tiny)
+    inward = jnp.sum(normal * (verts - faces[:, :, 0]), axis=-1) > 0  # towards the opposite vertex
+    outer = jnp.where((hull_face & ~inward)[..., None], normal, jnp.where(hull_face[..., None], -normal, 0.0))
+    outer = jnp.repeat(outer, 3, axis=1).reshape(-1, 3)  # per flag
+    normal_sums = jax.ops.segment_sum(jnp.concatenate([outer, outer]), index, num_segments=n * k + 1)
+    flat_ends = ends.reshape(-1, 2)
+    area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
+        tess, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T)
+    areas = areas + area_add.reshape(n, k)
+    edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
+    wall_area, wall_moment = wall_area + edge_area, wall_moment + edge_moment
+    box = tess.box.astype(tess.points.dtype)
+    distance = jnp.concatenate([box[1] - tess.points, tess.points - box[0]], axis=1)  # (N, 6)
+    cell_volume = cell_volume + volume_add + jnp.sum(distance * wall_area, axis=1) / 3.0
+    moments = moments + moment_add + jnp.sum(distance[:, :, None] * wall_moment, axis=1) / 4.0
+    return areas, cell_volume, moments, wall_area, wall_lengths.reshape(n, k, 6), (real, inner, corners)
+
+
+def _counted_in_box(tess: Tessellation, centres, wall_areas):
+    """(S, 4) whether each simplex's circumcentre counts as a vertex of each of its walkers'
+    clipped cells apart from their wall faces' (`_wall_vertices`): inside the box, or on a wall
+    (to rounding) where the cell has no face (it touches the wall at that vertex)."""
+    box = tess.box.astype(centres.dtype)
+    margin = ROUNDING_ULPS * jnp.finfo(centres.dtype).eps * jnp.max(jnp.abs(box))
+    inside = jnp.all((centres > box[0] + margin) & (centres < box[1] - margin), axis=-1)
+    on = jnp.concatenate([jnp.abs(centres - box[1]) <= margin, jnp.abs(centres - box[0]) <= margin], axis=-1)  # (S, 6)
+    in_box = jnp.all((centres >= box[0] - margin) & (centres <= box[1] + margin), axis=-1)
+    eps = jnp.finfo(wall_areas.dtype).eps
+    faces = wall_areas > ROUNDING_ULPS * eps * jnp.max(box[1] - box[0]) ** 2  # (N, 6)
+    walkers_face = faces.at[tess.simplices].get(mode="fill", fill_value=False)  # (S, 4, 6)
+    touching = in_box[:, None] & ~jnp.any(on[:, None, :] & walkers_face, axis=-1)
+    return inside[:, None] | touching
+
+
+def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
+    """(N,) the vertices of the clipped cells on the box. Each wall face has as many as edges
+    (the faces' segments on it and the box's edges inside the cell); a vertex on j walls with
+    a face there (inside a box edge, or a box corner) is counted j times, so j - 1 less."""
+    real, inner, corners = edges
+    eps = jnp.finfo(wall_areas.dtype).eps
+    scale = jnp.max(tess.box[1] - tess.box[0])
+    faces = wall_areas > ROUNDING_ULPS * eps * scale**2  # (N, 6)
+    segments = jnp.sum(wall_lengths > ROUNDING_ULPS * eps * scale, axis=1, dtype=jnp.int32)  # (N, 6)
+    box_edges = jnp.zeros_like(segments).at[:, EDGE_WALLS].add(real[:, :, None].astype(jnp.int32))
+    counted = jnp.sum(jnp.where(faces, segments + box_edges, 0), axis=1, dtype=jnp.int32)
+    on_edge = jnp.sum(faces[:, EDGE_WALLS], axis=2, dtype=jnp.int32)  # (N, 12) walls j of an edge's vertices
+    on_corner = jnp.sum(faces[:, CORNER_WALLS], axis=2, dtype=jnp.int32)  # (N, 8)
+    return (counted - jnp.sum(inner * (on_edge - 1), axis=1, dtype=jnp.int32)
+            - jnp.sum(jnp.where(corners, on_corner - 1, 0), axis=1, dtype=jnp.int32))
 
 
 # circumcentres of co-spherical walkers' simplices closer than this many epsilons of the cell's
@@ -220,14 +290,15 @@ VERTEX_CHUNK = 256  # cells per chunk of the distinct-vertex count (bounds its c
 
 def _vertex_counts(tess: Tessellation, offsets, proper):
     """(N,) the distinct Voronoi vertices of every cell, -1 where a walker has more incident
-    simplices than the table holds. A vertex is the circumcentre of an incident simplex that
-    is not flat (`offsets` (S, 4, 3): circumcentre minus each vertex, images applied), and
+    simplices than the table holds. A vertex is the circumcentre of an incident simplex where
+    `proper` holds ((S,), or (S, 4) per walker of the simplex: not flat, and in a box counted
+    there, `_counted_in_box`; `offsets` (S, 4, 3): circumcentre minus each vertex, images applied), and
     co-spherical walkers (a lattice's) share one among several simplices: centres closer than
     rounding of the cell's size count once. The incident simplices of a walker are at most
     2 deg - 4 (its link is a triangulated sphere); the table holds 2 K + 8."""
     n, k = tess.neighbors.shape
     cap = 2 * k + 8
-    cells = jnp.where(proper[:, None], tess.simplices, n).ravel()
+    cells = jnp.where(proper if proper.ndim == 2 else proper[:, None], tess.simplices, n).ravel()
     order = jnp.argsort(cells, stable=True)
     sorted_cells = cells[order]
     slot = jnp.arange(cells.shape[0], dtype=jnp.int32) - jnp.searchsorted(sorted_cells, sorted_cells).astype(jnp.int32)
@@ -274,8 +345,8 @@ def triangle_flags_2d(p):
     heights, areas, moments_a, moments_b = [], [], [], []
     for a, b, k in EDGES_2D:
         edge = p[b] - p[a]
-        direction, _ = _unit(edge)
-        w, _ = _unit((p[k] - p[a]) - ((p[k] - p[a]) @ direction) * direction)
+        direction, _ = unit_vector(edge)
+        w, _ = unit_vector((p[k] - p[a]) - ((p[k] - p[a]) @ direction) * direction)
         middle = 0.5 * (p[a] + p[b])
         height = jnp.where(ok, (centre - middle) @ w, 0.0)
         area = jnp.sqrt(jnp.sum(edge * edge)) * height / 4.0

@@ -2,22 +2,15 @@
 faces on the box walls, the cells' centroids and their vertex counts, in 2D and 3D.
 
 Every cell from the Delaunay dual in O(simplices) (`_dual`: signed orthoschemes of each
-simplex, no polytope per cell). With a (non-periodic) box the tier-0 cells, those that reach
-it, are clipped from their half-spaces: the polytope {y : n_f . (y - x_i) <= c_f} of the
-neighbours' bisectors and the 2d walls, as in `_boxclip`, measured by intervals on lines:
+simplex, no polytope per cell). With a (non-periodic) box:
 
-- 2D: face f is the interval of its line inside every other half-plane; L_f its length, m_f
-  its midpoint.
-- 3D: face f has area A_f = 1/2 sum_g h_fg L_fg over the lines (plane f) ∩ (plane g), h_fg the
-  signed distance of line fg from the foot p_f of x_i on plane f, L_fg the length of its part
-  inside every other half-space, m_fg that part's midpoint.
-
-First moments follow from the same signed decomposition (a cone from x_i over a face has its
-centroid d / (d + 1) of the way to the face's centroid; a triangle (p_f, edge) has its centroid
-at (p_f + 2 m_fg) / 3), so centroid_i = x_i + sum_f c_f M_f / ((d + 1) V_i). Vertices: a polygon
-has as many as edges; a clipped polyhedron E - F + 2 (Euler). A clipped cell costs O(F^d),
-F = K + 2d (~1 ms per 3D cell at K = 40 on 2 cores); the dual, ~60 us per 3D cell at N = 1e4
-(bench/cells_3d.py).
+- 3D: the dual's pieces that reach a wall are cut to the box (`_dualclip`), so the cost of
+  the clipping follows the simplices at the boundary.
+- 2D: the tier-0 cells, those that reach the box, are clipped from their half-planes (the
+  neighbours' bisectors and the 4 walls, as in `_boxclip`): face f is the interval of its
+  line inside every other half-plane, L_f its length, m_f its midpoint; centroid_i = x_i +
+  sum_f c_f L_f m_f / (3 V_i) (a cone from x_i over a face has its centroid 2/3 of the way to
+  the face's midpoint); a polygon has as many vertices as edges.
 """
 
 from __future__ import annotations
@@ -28,7 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..tessellation._graph import Tessellation, takes_tessellation
-from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows, plane_line
+from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows
 from ._dual import dual_faces_2d, dual_faces_3d
 
 FACET_CHUNK = 64  # cells per chunk of `lax.map` (bounds the O(F^d) temporaries)
@@ -84,42 +77,6 @@ def _polygon_faces(normals, offsets, active):
     return length, moment, unbounded, edges
 
 
-def _polyhedron_faces(normals, offsets, active):
-    """3D cell: per face (area, the face's first moment about x_i, unbounded), and the vertex
-    count E - F + 2."""
-    f = normals.shape[0]
-    eye = jnp.eye(f, dtype=bool)
-    size = jnp.max(jnp.where(active, offsets, 0.0))
-    tol = ROUNDING_ULPS * jnp.finfo(offsets.dtype).eps * size
-
-    def face(nf, cf, row):
-        foot = cf * nf
-
-        def edge(ng, cg, g):
-            ok, point, direction, height, usable = plane_line(nf, cf, ng, cg, g, row, active)
-            lower, upper, empty, unbounded, contains = line_interval(point, direction, normals, offsets, usable, size)
-            first = ~jnp.any(usable & contains & (jnp.arange(f) < g))
-            counted = ok & first & ~empty
-            length = jnp.where(counted, jnp.maximum(upper - lower, 0.0), 0.0)
-            middle = point + 0.5 * (lower + upper) * direction
-            area = 0.5 * height * length
-            return area, area * (foot + 2.0 * middle) / 3.0, counted & unbounded, length > tol
-
-        area, moment, unbounded, real = jax.vmap(edge)(normals, offsets, jnp.arange(f))
-        return jnp.sum(area), jnp.sum(moment, axis=0), jnp.any(unbounded), jnp.sum(real)
-
-    area, moment, unbounded, edges = jax.vmap(face)(normals, offsets, eye)
-    area = jnp.where(active, area, 0.0)
-    unbounded = active & unbounded
-    real_face = active & (area > tol * size)
-    faces = jnp.sum(real_face)
-    # edges on faces of positive area only: a zero-area plane through an edge (a lattice's
-    # diagonal contact between hull walkers) would count it a third time
-    vertices = jnp.sum(jnp.where(real_face, edges, 0)) // 2 - faces + 2
-    moment = jnp.sum(offsets[:, None] * jnp.where(active[:, None], moment, 0.0), axis=0)
-    return area, moment, unbounded, vertices
-
-
 @takes_tessellation
 @eqx.filter_jit
 def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
@@ -151,15 +108,18 @@ def _facets_from_dual(tess: Tessellation) -> VoronoiFacets:
     within rounding of flat are unbounded-like (NaN), as in `voronoi_volumes`."""
     n, k = tess.neighbors.shape
     d = tess.dim
-    dual = dual_faces_2d if d == 2 else dual_faces_3d
-    areas, unbounded, volumes, moments, vertices, undecided = dual(tess)  # no ray on a torus or in a box
-    bounded = ~tess.hull & ~undecided
-    wall_areas = jnp.zeros((n, 2 * d), areas.dtype)
-    measure = _polygon_faces if d == 2 else _polyhedron_faces
-    if tess.box is not None and not tess.periodic:
+    boxed = tess.box is not None and not tess.periodic
+    if d == 3:  # clipped to a box by the dual as well (`_dualclip`)
+        areas, unbounded, volumes, moments, vertices, undecided, wall_areas = dual_faces_3d(tess)
+        bounded = ~undecided if boxed else ~tess.hull & ~undecided
+    else:
+        areas, unbounded, volumes, moments, vertices, undecided = dual_faces_2d(tess)  # no ray on a torus or in a box
+        bounded = ~tess.hull & ~undecided
+        wall_areas = jnp.zeros((n, 2 * d), areas.dtype)
+    if boxed and d == 2:
         def clipped(ids):
             normals, offsets, active = cell_planes(tess, ids)
-            area, moment, _, count = jax.vmap(measure)(normals, offsets, active)
+            area, moment, _, count = jax.vmap(_polygon_faces)(normals, offsets, active)
             return area, jnp.sum(offsets * area, axis=1) / d, moment / (d + 1), count.astype(vertices.dtype)
 
         def empty(ids):

@@ -11,6 +11,7 @@ from jaxtyping import Array, Float
 from ..base._simplex import dual_pieces, simplex_circumcenter
 from ..tessellation._graph import Tessellation, simplex_coords, takes_tessellation
 from ._boxclip import clip_to_box
+from ._dual import dual_faces_3d
 
 
 @takes_tessellation
@@ -29,7 +30,8 @@ def voronoi_volumes(tess: Tessellation, *, clip: bool = True) -> Float[Array, " 
 
     - `tess`: a Delaunay [`jaxgeom.Tessellation`][] (d = 2, 3 or 4).
     - `clip`: with a `box` (not periodic, d = 2 or 3), the cells that reach the box
-      (tier 0, hull walkers included) are clipped to it (`jaxgeom.geometry._boxclip`), so every
+      (tier 0, hull walkers included) are clipped to it (3D: the Delaunay dual's pieces cut to
+      the box, `jaxgeom.geometry._dualclip`; 2D: `jaxgeom.geometry._boxclip`), so every
       walker has a finite cell and the volumes tile the box. Tier-1 and tier-2 cells lie
       inside the box and are unchanged, and the tiers keep their meaning (curvature and
       the cell proxies still read tier 2). `clip=False`: the unclipped cells.
@@ -46,7 +48,9 @@ def voronoi_volumes(tess: Tessellation, *, clip: bool = True) -> Float[Array, " 
     pieces = jnp.where(tess.simplex_mask[:, None], pieces, 0.0)
     volumes = jax.ops.segment_sum(pieces.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
     volumes = jnp.where(tess.hull | _beside_flat_triangle(tess, pieces), jnp.nan, volumes)
-    if clip and tess.box is not None and not tess.periodic and tess.dim in (2, 3):
+    if clip and tess.box is not None and not tess.periodic and tess.dim == 3:
+        return jnp.where(tess.tier == 0, dual_faces_3d(tess, counts=False)[2], volumes)
+    if clip and tess.box is not None and not tess.periodic and tess.dim == 2:
         return clip_to_box(tess, volumes)
     return volumes
 

@@ -1,0 +1,320 @@
+"""3D cells of a (non-periodic) box from the Delaunay dual: each face piece clipped to the box.
+
+`_dual` cuts every cell into signed orthoschemes (x_a, m_ab, c_T, C_s), whose face (m_ab, c_T,
+C_s) is a signed piece of the face ab. The signed pieces decompose the cell as indicator
+functions (a cone from a point over a polytope's facets, with signs, covers the polytope once
+and every other point zero times), so they decompose box ∩ cell as well: a face's area inside
+the box is the signed sum of its pieces clipped to the box. A hull triangle T has one simplex;
+its Voronoi edge is a ray from C_s along T's outer normal u, and the faces around it gain the
+half-strip (m_ab, c_T) + t u, t >= 0 (the second simplex's piece, at infinity), which the box
+cuts to a quadrilateral. Only pieces that leave the box are clipped (Sutherland-Hodgman against
+the six walls in a buffer of 10 vertices), so the cost follows the simplices at the boundary.
+
+Each cell's faces on the walls follow from the same pieces: a clipped piece's edges on wall w
+are signed pieces of the segment where its face meets w, and a wall face's area is 1/2 sum h L
+over its edges (h: the edge's signed distance from the walker's foot on the wall), the edges
+being those segments and the box's edges inside the cell (an interval on each of the 12 box
+edges, per cell at the boundary). Volumes and first moments follow from the faces by the
+divergence theorem (cones from the walker), as in `_dual`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..tessellation._graph import Tessellation
+from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows
+
+BUFFER = 10  # polygon vertices: a quadrilateral cut by six walls
+FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces each)
+EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
+_FACES = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+# flag (face o, edge e) as in `_dual.simplex_flags_3d`: (edge ends x, y, the face's third vertex k, o)
+FLAG_ORDER = jnp.asarray([[_FACES[o][(e + 1) % 3], _FACES[o][(e + 2) % 3], _FACES[o][e], o]
+                          for o in range(4) for e in range(3)], jnp.int32)  # (12, 4)
+
+
+# A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
+# vertex count: co-spherical walkers' coplanar quadruples (a lattice's) have ~1e-17 from
+# rounding, and their computed centres are anywhere; a Delaunay simplex inside the hull that
+# flat would have its centre 1e10 cells away, which only a degenerate input allows.
+COUNTED_FLATNESS = 1e-10
+
+
+def unit_vector(v):
+    norm_sq = jnp.sum(v * v)
+    ok = norm_sq > 0
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, norm_sq, 1.0)), 0.0), ok
+
+
+def circumcentre_3d(p):
+    """Circumcentre of a tetrahedron (rows p, relative to p[0]), whether it is not flat (to
+    rounding), and whether it is a vertex of its own (`COUNTED_FLATNESS`)."""
+    e = p[1:] - p[0]
+    det = jnp.linalg.det(e)
+    scale = jnp.max(jnp.sum(e * e, axis=1)) ** 1.5
+    ok = jnp.abs(det) > 10.0 * jnp.finfo(p.dtype).eps * scale
+    rhs = 0.5 * jnp.sum(e * e, axis=1)
+    centre = jnp.linalg.solve(jnp.where(ok, e, jnp.eye(3, dtype=p.dtype)), rhs)
+    return p[0] + jnp.where(ok, centre, 0.0), ok, jnp.abs(det) > COUNTED_FLATNESS * scale
+
+
+def triangle_circumcentre(a, b, c):
+    """Circumcentre of triangle abc in 3D and whether it is not flat."""
+    u, v = b - a, c - a
+    n = jnp.cross(u, v)
+    n_sq = jnp.sum(n * n)
+    scale = jnp.maximum(jnp.sum(u * u), jnp.sum(v * v)) ** 2
+    ok = n_sq > 100.0 * jnp.finfo(a.dtype).eps ** 2 * scale
+    safe = jnp.where(ok, n_sq, 1.0)
+    offset = (jnp.sum(u * u) * jnp.cross(v, n) + jnp.sum(v * v) * jnp.cross(n, u)) / (2.0 * safe)
+    return a + jnp.where(ok, offset, 0.0), ok
+
+
+def wall_bounds(lower, upper):
+    """(2d,) the walls' axis, bound and outward sign, walls ordered as `VoronoiFacets.wall_areas`."""
+    d = lower.shape[0]
+    axes = jnp.concatenate([jnp.arange(d), jnp.arange(d)])
+    return axes, jnp.concatenate([upper, lower]), jnp.concatenate([jnp.ones(d), -jnp.ones(d)]).astype(lower.dtype)
+
+
+def clip_polygon(verts, count, lower, upper, tol):
+    """A convex polygon (`count` of the rows of `verts` (BUFFER, 3), in order) cut to the box
+    [lower, upper]: (vertices, count, on (BUFFER, 6): the vertex lies on wall j)."""
+    d = verts.shape[-1]
+    idx = jnp.arange(BUFFER)
+    axes, bounds, signs = wall_bounds(lower, upper)
+    on = jnp.abs(verts[:, axes] - bounds) <= tol
+    for j in range(2 * d):
+        k = j % d
+        s = signs[j] * (verts[:, k] - bounds[j])  # > 0 outside
+        valid = idx < count
+        nxt = jnp.where(idx + 1 < count, idx + 1, 0)
+        inside, inside_next = s <= 0, s[nxt] <= 0
+        cross = valid & (inside != inside_next)
+        t = s / jnp.where(cross, s - s[nxt], 1.0)
+        point = (verts + t[:, None] * (verts[nxt] - verts)).at[:, k].set(bounds[j])
+        keep = jnp.stack([valid & inside, cross], axis=1).reshape(-1)
+        candidates = jnp.stack([verts, point], axis=1).reshape(-1, d)
+        candidates_on = jnp.stack([on, (on & on[nxt]).at[:, j].set(True)], axis=1).reshape(-1, 2 * d)
+        position = jnp.where(keep, jnp.cumsum(keep) - 1, BUFFER)
+        verts = jnp.zeros_like(verts).at[position].set(candidates, mode="drop")
+        on = jnp.zeros_like(on).at[position].set(candidates_on, mode="drop")
+        count = jnp.sum(keep)
+    return verts, count, on
+
+
+def polygon_measures(verts, count, on, axis):
+    """(area oriented about `axis`, its first moment, per wall the length of the polygon's
+    edges on it (2d,) and their first moments (2d, 3))."""
+    idx = jnp.arange(BUFFER)
+    a, b = verts[1:-1] - verts[0], verts[2:] - verts[0]
+    fan = jnp.where(idx[1:-1] + 1 < count, 0.5 * (jnp.cross(a, b) @ axis), 0.0)
+    moment = jnp.sum(fan[:, None] * (3.0 * verts[0] + a + b) / 3.0, axis=0)
+    nxt = jnp.where(idx + 1 < count, idx + 1, 0)
+    edge = verts[nxt] - verts
+    length = jnp.where(idx < count, jnp.sqrt(jnp.sum(edge * edge, axis=-1)), 0.0)
+    on_wall = jnp.where(on & on[nxt], length[:, None], 0.0)  # (BUFFER, 2d)
+    return jnp.sum(fan), moment, jnp.sum(on_wall, axis=0), on_wall.T @ (0.5 * (verts + verts[nxt]))
+
+
+def _flag_piece(q, hull, lower, upper, kind, toward):
+    """Flag (x, y, k, v) = q (rows relative to x): the signed piece of face xy it adds, as (sign,
+    the polygon's orientation about the face normal, polygon (BUFFER, 3), count, the face's unit
+    normal x -> y). `kind` 0: the triangle (m, c_T, C); 1 (T on the hull): the half-strip
+    beyond c_T along T's outer normal u; 2 (T on the hull): the wedge m + cone(u, g), `toward`
+    the sum of the outer normals of the two hull triangles at edge xy (g its direction: the
+    two wedges of a hull edge make its face's recession cone m + cone(u_1, u_2))."""
+    centre, ok, _ = circumcentre_3d(q)
+    c_t, tri_ok = triangle_circumcentre(q[0], q[1], q[2])
+    normal, _ = unit_vector(jnp.cross(q[1] - q[0], q[2] - q[0]))
+    normal = jnp.where(normal @ (q[3] - q[0]) < 0, -normal, normal)
+    direction, _ = unit_vector(q[1] - q[0])
+    across = q[2] - (q[2] @ direction) * direction
+    w, _ = unit_vector(across)
+    middle = 0.5 * q[1]
+    height = (c_t - middle) @ w
+    out = -normal
+    diagonal = jnp.sqrt(jnp.sum((upper - lower) ** 2))
+
+    def beyond_box(point, axis):  # a distance along `axis` from `point` that leaves the box
+        return jnp.maximum(jnp.sum(jnp.maximum(lower * axis, upper * axis)) - point @ axis, 0.0) + diagonal
+
+    reach = beyond_box(c_t, out)
+    strip = jnp.stack([middle, c_t, c_t + reach * out, middle + reach * out])
+    g, g_ok = unit_vector(toward)
+    bisector, b_ok = unit_vector(g + out)
+    cos = jnp.where(b_ok, g @ bisector, 1.0)
+    far = beyond_box(middle, bisector) / jnp.maximum(cos, 0.5)
+    wedge = jnp.stack([middle, middle + far * g, middle + far * out, middle + far * out])
+    triangle = jnp.stack([middle, c_t, centre, centre])
+    corners = jnp.where(kind == 1, strip, jnp.where(kind == 2, wedge, triangle))
+    piece = (centre - c_t) @ normal
+    sign = jnp.where(kind == 1, jnp.where(hull & tri_ok, jnp.sign(height), 0.0),
+                     jnp.where(kind == 2, jnp.where(hull & g_ok & b_ok, 1.0, 0.0),
+                               jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0)))
+    orient = jnp.sign(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]) @ direction)
+    polygon = jnp.zeros((BUFFER, 3), q.dtype).at[:4].set(corners)
+    return sign, orient, polygon, jnp.where(kind == 1, 4, 3), direction
+
+
+def clipped_piece(q, hull, lower, upper, kind, toward):
+    """One flag's piece clipped to the box (frame of x = q[0], box relative to it): (signed area,
+    the walls' signed segment lengths (6,), and per end x, y: the volume and first moment of
+    the cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3)
+    (about that end) added by the segments)."""
+    sign, orient, polygon, count, direction = _flag_piece(q, hull, lower, upper, kind, toward)
+    tol = ROUNDING_ULPS * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
+    clipped = clip_polygon(polygon, count, lower, upper, tol)
+    area, moment, lengths, length_moments = polygon_measures(*clipped, direction)
+    area, moment = sign * orient * area, sign * orient * moment
+    axes, bounds, signs = wall_bounds(lower, upper)
+    # a piece outside a wall that its face meets there (a walker on the wall, its hull
+    # triangle's strip) keeps only its edge on the wall: no measure inside, no segment
+    depth = signs[None, :] * (bounds[None, :] - clipped[0][:, axes])  # (BUFFER, 6) distance inside
+    inside = jnp.max(jnp.where((jnp.arange(BUFFER) < clipped[1])[:, None], depth, 0.0), axis=0) > tol
+    lengths = jnp.where(inside, lengths, 0.0)
+    walls = signs[:, None] * jnp.eye(3, dtype=q.dtype)[axes]  # (6, 3) outward normals
+    r = jnp.sqrt(jnp.sum(q[1] * q[1]))
+    safe = jnp.where(lengths > 0, lengths, 1.0)
+    middles = length_moments / safe[:, None]
+    per_end = []
+    for end, outward in ((q[0], direction), (q[1], -direction)):
+        # in wall j, the segment's outward direction is the face normal projected on the wall
+        u = outward - (walls @ outward)[:, None] * walls
+        u_norm = jnp.sqrt(jnp.sum(u * u, axis=-1))
+        u = u / jnp.where(u_norm > 0, u_norm, 1.0)[:, None]
+        h = jnp.sum((middles - end) * u, axis=-1)
+        foot = end + ((bounds - end[axes]) * 1.0)[:, None] * jnp.eye(3, dtype=q.dtype)[axes]
+        wall_area = sign * 0.5 * h * lengths
+        wall_moment = wall_area[:, None] * ((foot - end) + 2.0 * (middles - end)) / 3.0
+        per_end.append((r / 6.0 * area, r / 8.0 * (moment - area * end), wall_area, wall_moment))
+    return area, sign * lengths, per_end
+
+
+def clipped_sums(tess: Tessellation, hull_face, outside, toward, slots, ends):
+    """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
+    triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
+    wedges of the hull triangles (`hull_face` (S, 4); `toward` (S * 12, 3) per flag the sum of
+    the outer normals of the hull triangles at its edge). `slots` (2, S * 12): each flag's
+    neighbour slot seen from either end (N * K where none), `ends` (2, S * 12) its walkers.
+
+    Returns the sums per slot of the areas (N * K,) and of the segments on each wall (N * K, 6),
+    and per walker of the cones' volumes (N,), first moments (N, 3), and the wall faces' areas
+    (N, 6) and first moments (N, 6, 3). The faces are compacted and their pieces summed chunk
+    by chunk (`lax.scan`; chunks past their count are skipped by `lax.cond`), so the cost
+    follows the boundary's pieces, not the simplices."""
+    n, k = tess.neighbors.shape
+    dtype = tess.points.dtype
+    sums = (jnp.zeros(n * k + 1, dtype), jnp.zeros((n * k + 1, 6), dtype), jnp.zeros(n + 1, dtype),
+            jnp.zeros((n + 1, 3), dtype), jnp.zeros((n + 1, 6), dtype), jnp.zeros((n + 1, 6, 3), dtype))
+    slots, ends = (slots[0], slots[1]), (ends[0], ends[1])  # sliced once, not in every chunk
+    for faces, kinds in ((outside, (0,)), (hull_face, (1, 2))):
+        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, hull_face, toward, slots, ends)
+    return tuple(a[:-1] for a in sums)
+
+
+def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots, ends):
+    """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds."""
+    n, k = tess.neighbors.shape
+    s_cap = tess.simplices.shape[0]
+    box = tess.box.astype(tess.points.dtype)
+    total = s_cap * 4
+    n_chunks = -(-total // FACE_CHUNK)
+    rows = jnp.nonzero(faces.ravel(), size=n_chunks * FACE_CHUNK, fill_value=total)[0].astype(jnp.int32)
+    pieces = jax.vmap(clipped_piece)
+
+    def chunk_inputs(face):  # small per-chunk gathers, outside the `cond` (which copies its operands)
+        real = jnp.repeat(face < total, 3 * len(kinds))
+        flag = ((face // 4) * 12 + (face % 4) * 3)[:, None, None] + jnp.arange(3, dtype=jnp.int32)[None, None, :]
+        flag = jnp.broadcast_to(flag, (len(face), len(kinds), 3)).ravel() % (s_cap * 12)
+        kind = jnp.broadcast_to(jnp.asarray(kinds, jnp.int32)[None, :, None], (len(face), len(kinds), 3)).ravel()
+        simplex, within = flag // 12, flag % 12
+        q = tess.points[tess.simplices[simplex[:, None], FLAG_ORDER[within]]]  # (M, 4, 3)
+        origin = q[:, 0]
+        slot = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([slots[0][flag], slots[1][flag]]), n * k)
+        walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ends[0][flag], ends[1][flag]]), n)
+        return slot, walker, (q - origin[:, None], hull_face[simplex, FLAG_ORDER[within, 3]], box[0] - origin,
+                              box[1] - origin, kind, toward[flag])
+
+    def add(sums, slot, walker, args):
+        area, lengths, per_end = pieces(*args)
+        both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
+        areas, walls, volumes, moments, wall_areas, wall_moments = sums
+        return (areas.at[slot].add(jnp.concatenate([area, area])),
+                walls.at[slot].add(jnp.concatenate([lengths, lengths])),
+                volumes.at[walker].add(both(0)), moments.at[walker].add(both(1)),
+                wall_areas.at[walker].add(both(2)), wall_moments.at[walker].add(both(3)))
+
+    def step(sums, face):
+        # chunks past the faces' count are skipped (the sums pass through in place)
+        return jax.lax.cond(face[0] < total, add, lambda sums, *_: sums, sums, *chunk_inputs(face)), None
+
+    sums, _ = jax.lax.scan(step, sums, rows.reshape(n_chunks, FACE_CHUNK))
+    return sums
+
+
+def _box_edges():
+    """The 12 box edges as (axis, wall 1, wall 2) and the 8 corners as their 3 walls (walls
+    ordered as `VoronoiFacets.wall_areas`: x_k = hi_k is k, x_k = lo_k is d + k)."""
+    edges = [(k, w1, w2) for k in range(3) for w1 in ((k + 1) % 3, (k + 1) % 3 + 3)
+             for w2 in ((k + 2) % 3, (k + 2) % 3 + 3)]
+    corners = [(wx, wy, wz) for wx in (0, 3) for wy in (1, 4) for wz in (2, 5)]
+    return edges, corners
+
+
+BOX_EDGES, BOX_CORNERS = _box_edges()
+EDGE_WALLS = jnp.asarray([[w1, w2] for _, w1, w2 in BOX_EDGES], jnp.int32)  # (12, 2)
+CORNER_WALLS = jnp.asarray(BOX_CORNERS, jnp.int32)  # (8, 3)
+
+
+def box_edge_faces(tess: Tessellation):
+    """Per walker at the boundary (tier 0): the 12 box edges' parts inside its cell, as their
+    share of the wall faces' areas (N, 6) and first moments about the walker (N, 6, 3); whether
+    each has a positive length (N, 12) and how many of its ends lie inside the box edge (N, 12)
+    (vertices of the cell on two walls); and whether each box corner lies in the cell (N, 8)."""
+    n, d = tess.points.shape
+    box = tess.box.astype(tess.points.dtype)
+    axes, bounds, signs = wall_bounds(box[0], box[1])
+    eye = jnp.eye(3, dtype=box.dtype)
+
+    def cells(ids):
+        normals, offsets, active = cell_planes(tess, ids)
+        x = tess.points[jnp.minimum(ids, n - 1)]
+
+        def cell(x_i, nrm, off, act):
+            size = jnp.max(jnp.where(act, off, 0.0))
+            tol = ROUNDING_ULPS * jnp.finfo(off.dtype).eps * jnp.maximum(size, jnp.max(box[1] - box[0]))
+            area, moment = jnp.zeros(6, off.dtype), jnp.zeros((6, 3), off.dtype)
+            real, inner = [], []
+            for k, w1, w2 in BOX_EDGES:
+                point = jnp.zeros(3, off.dtype).at[axes[w1]].set(bounds[w1] - x_i[axes[w1]]).at[axes[w2]].set(
+                    bounds[w2] - x_i[axes[w2]])
+                lo, hi, empty, _, _ = line_interval(point, eye[k], nrm, off, act, size)
+                length = jnp.where(empty, 0.0, jnp.maximum(hi - lo, 0.0))
+                middle = point + 0.5 * (lo + hi) * eye[k]
+                for wall, other in ((w1, w2), (w2, w1)):
+                    h = signs[other] * (bounds[other] - x_i[axes[other]])  # the edge's distance from the foot
+                    foot = (bounds[wall] - x_i[axes[wall]]) * eye[axes[wall]]
+                    piece = 0.5 * h * length
+                    area = area.at[wall].add(piece)
+                    moment = moment.at[wall].add(piece * (foot + 2.0 * middle) / 3.0)
+                real.append(length > tol)
+                ends = (lo > box[0, k] - x_i[k] + tol).astype(jnp.int32) + (hi < box[1, k] - x_i[k] - tol).astype(
+                    jnp.int32)
+                inner.append(jnp.where(length > tol, ends, 0))
+            corner = bounds[CORNER_WALLS] - x_i  # (8, 3): each corner's walls are x, y and z in order
+            in_cell = jnp.all(~act[None, :] | (corner @ nrm.T <= off[None, :] + tol), axis=1)
+            return area, moment, jnp.stack(real), jnp.stack(inner), in_cell
+
+        return jax.vmap(cell)(x, normals, offsets, active)
+
+    def empty(ids):
+        m = len(ids)
+        dt = tess.points.dtype
+        return (jnp.zeros((m, 6), dt), jnp.zeros((m, 6, 3), dt), jnp.zeros((m, 12), bool), jnp.zeros((m, 12), jnp.int32),
+                jnp.zeros((m, 8), bool))
+
+    rows, out = map_flagged_rows(tess.tier == 0, EDGE_CHUNK, cells, empty)
+    return jax.tree_util.tree_map(lambda a: jnp.zeros((n,) + a.shape[1:], a.dtype).at[rows].set(a, mode="drop"), out)
