@@ -8,7 +8,7 @@ the box is the signed sum of its pieces clipped to the box. A hull triangle T ha
 its Voronoi edge is a ray from C_s along T's outer normal u, and the faces around it gain the
 half-strip (m_ab, c_T) + t u, t >= 0 (the second simplex's piece, at infinity), which the box
 cuts to a quadrilateral. Only pieces that leave the box are clipped (Sutherland-Hodgman against
-the six walls in a buffer of 10 vertices), so the cost follows the simplices at the boundary.
+the six walls in a buffer that grows by a vertex per wall), so the cost follows the simplices at the boundary.
 
 Each cell's faces on the walls follow from the same pieces: a clipped piece's edges on wall w
 are signed pieces of the segment where its face meets w, and a wall face's area is 1/2 sum h L
@@ -20,13 +20,14 @@ divergence theorem (cones from the walker), as in `_dual`.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
 from ..tessellation._graph import Tessellation
 from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows
 
-BUFFER = 10  # polygon vertices: a quadrilateral cut by six walls
 FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces each)
 EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
 _FACES = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
@@ -80,14 +81,15 @@ def wall_bounds(lower, upper):
 
 
 def clip_polygon(verts, count, lower, upper, tol):
-    """A convex polygon (`count` of the rows of `verts` (BUFFER, 3), in order) cut to the box
-    [lower, upper]: (vertices, count, on (BUFFER, 6): the vertex lies on wall j)."""
+    """A convex polygon (`count` of the rows of `verts` (P, 3), in order) cut to the box
+    [lower, upper]: (vertices (P + 6, 3), count, on (P + 6, 6): the vertex lies on wall j).
+    Each wall adds at most one vertex, so the buffer grows by one row per wall."""
     d = verts.shape[-1]
-    idx = jnp.arange(BUFFER)
     axes, bounds, signs = wall_bounds(lower, upper)
     on = jnp.abs(verts[:, axes] - bounds) <= tol
     for j in range(2 * d):
-        k = j % d
+        k, size = j % d, verts.shape[0] + 1
+        idx = jnp.arange(size - 1)
         s = signs[j] * (verts[:, k] - bounds[j])  # > 0 outside
         valid = idx < count
         nxt = jnp.where(idx + 1 < count, idx + 1, 0)
@@ -98,9 +100,9 @@ def clip_polygon(verts, count, lower, upper, tol):
         keep = jnp.stack([valid & inside, cross], axis=1).reshape(-1)
         candidates = jnp.stack([verts, point], axis=1).reshape(-1, d)
         candidates_on = jnp.stack([on, (on & on[nxt]).at[:, j].set(True)], axis=1).reshape(-1, 2 * d)
-        position = jnp.where(keep, jnp.cumsum(keep) - 1, BUFFER)
-        verts = jnp.zeros_like(verts).at[position].set(candidates, mode="drop")
-        on = jnp.zeros_like(on).at[position].set(candidates_on, mode="drop")
+        position = jnp.where(keep, jnp.cumsum(keep) - 1, size)
+        verts = jnp.zeros((size, d), verts.dtype).at[position].set(candidates, mode="drop")
+        on = jnp.zeros((size, 2 * d), bool).at[position].set(candidates_on, mode="drop")
         count = jnp.sum(keep)
     return verts, count, on
 
@@ -108,20 +110,21 @@ def clip_polygon(verts, count, lower, upper, tol):
 def polygon_measures(verts, count, on, axis):
     """(area oriented about `axis`, its first moment, per wall the length of the polygon's
     edges on it (2d,) and their first moments (2d, 3))."""
-    idx = jnp.arange(BUFFER)
+    idx = jnp.arange(verts.shape[0])
     a, b = verts[1:-1] - verts[0], verts[2:] - verts[0]
     fan = jnp.where(idx[1:-1] + 1 < count, 0.5 * (jnp.cross(a, b) @ axis), 0.0)
     moment = jnp.sum(fan[:, None] * (3.0 * verts[0] + a + b) / 3.0, axis=0)
     nxt = jnp.where(idx + 1 < count, idx + 1, 0)
     edge = verts[nxt] - verts
     length = jnp.where(idx < count, jnp.sqrt(jnp.sum(edge * edge, axis=-1)), 0.0)
-    on_wall = jnp.where(on & on[nxt], length[:, None], 0.0)  # (BUFFER, 2d)
+    on_wall = jnp.where(on & on[nxt], length[:, None], 0.0)  # (P, 2d)
     return jnp.sum(fan), moment, jnp.sum(on_wall, axis=0), on_wall.T @ (0.5 * (verts + verts[nxt]))
 
 
-def _flag_piece(q, hull, lower, upper, kind, toward):
+def _flag_piece(q, hull, lower, upper, kind, toward, size: int):
     """Flag (x, y, k, v) = q (rows relative to x): the signed piece of face xy it adds, as (sign,
-    the polygon's orientation about the face normal, polygon (BUFFER, 3), count, the face's unit
+    the polygon's orientation about the face normal, polygon (`size` rows: 3 for triangles
+    alone, 4 where a half-strip may be among them), count, the face's unit
     normal x -> y). `kind` 0: the triangle (m, c_T, C); 1 (T on the hull): the half-strip
     beyond c_T along T's outer normal u; 2 (T on the hull): the wedge m + cone(u, g), `toward`
     the sum of the outer normals of the two hull triangles at edge xy (g its direction: the
@@ -155,16 +158,15 @@ def _flag_piece(q, hull, lower, upper, kind, toward):
                      jnp.where(kind == 2, jnp.where(hull & g_ok & b_ok, 1.0, 0.0),
                                jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0)))
     orient = jnp.sign(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]) @ direction)
-    polygon = jnp.zeros((BUFFER, 3), q.dtype).at[:4].set(corners)
-    return sign, orient, polygon, jnp.where(kind == 1, 4, 3), direction
+    return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
 
 
-def clipped_piece(q, hull, lower, upper, kind, toward):
+def clipped_piece(q, hull, lower, upper, kind, toward, size: int = 4):
     """One flag's piece clipped to the box (frame of x = q[0], box relative to it): (signed area,
     the walls' signed segment lengths (6,), and per end x, y: the volume and first moment of
     the cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3)
     (about that end) added by the segments)."""
-    sign, orient, polygon, count, direction = _flag_piece(q, hull, lower, upper, kind, toward)
+    sign, orient, polygon, count, direction = _flag_piece(q, hull, lower, upper, kind, toward, size)
     tol = ROUNDING_ULPS * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
     clipped = clip_polygon(polygon, count, lower, upper, tol)
     area, moment, lengths, length_moments = polygon_measures(*clipped, direction)
@@ -172,8 +174,8 @@ def clipped_piece(q, hull, lower, upper, kind, toward):
     axes, bounds, signs = wall_bounds(lower, upper)
     # a piece outside a wall that its face meets there (a walker on the wall, its hull
     # triangle's strip) keeps only its edge on the wall: no measure inside, no segment
-    depth = signs[None, :] * (bounds[None, :] - clipped[0][:, axes])  # (BUFFER, 6) distance inside
-    inside = jnp.max(jnp.where((jnp.arange(BUFFER) < clipped[1])[:, None], depth, 0.0), axis=0) > tol
+    depth = signs[None, :] * (bounds[None, :] - clipped[0][:, axes])  # (P, 6) distance inside
+    inside = jnp.max(jnp.where((jnp.arange(len(depth)) < clipped[1])[:, None], depth, 0.0), axis=0) > tol
     lengths = jnp.where(inside, lengths, 0.0)
     walls = signs[:, None] * jnp.eye(3, dtype=q.dtype)[axes]  # (6, 3) outward normals
     r = jnp.sqrt(jnp.sum(q[1] * q[1]))
@@ -223,7 +225,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots
     total = s_cap * 4
     n_chunks = -(-total // FACE_CHUNK)
     rows = jnp.nonzero(faces.ravel(), size=n_chunks * FACE_CHUNK, fill_value=total)[0].astype(jnp.int32)
-    pieces = jax.vmap(clipped_piece)
+    pieces = jax.vmap(functools.partial(clipped_piece, size=3 if kinds == (0,) else 4))
 
     def chunk_inputs(face):  # small per-chunk gathers, outside the `cond` (which copies its operands)
         real = jnp.repeat(face < total, 3 * len(kinds))
