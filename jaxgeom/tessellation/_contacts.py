@@ -91,20 +91,6 @@ def positive_measure_contacts(tess: Tessellation):
     return (~degenerate.reshape(n, k_cap) | both_hull) & tess.neighbor_mask
 
 
-def drop_contacts(tess: Tessellation, keep) -> Tessellation:
-    """The graph without the neighbour slots where `keep` is False (rows re-sorted)."""
-    n = tess.n_points
-    key = jnp.where(keep, tess.neighbors, n)
-    order = jnp.argsort(key, axis=1, stable=True)
-    neighbors = jnp.take_along_axis(key, order, axis=1)
-    shifts = tess.neighbor_shifts
-    if shifts is not None:
-        shifts = jnp.where((neighbors < n)[..., None], jnp.take_along_axis(shifts, order[..., None], axis=1), 0)
-    return Tessellation(points=tess.points, neighbors=neighbors, tier=tess.tier, hull=tess.hull,
-                        simplices=tess.simplices, neighbor_shifts=shifts, simplex_shifts=tess.simplex_shifts,
-                        box=tess.box, overflow=tess.overflow, periodic=tess.periodic)
-
-
 def planar_degenerate_corners(points, simplices, adjacency):
     """(S, 3) bool, 2D: whether the edge (t[a], t[a + 1]) of triangle t has a dual Voronoi
     edge of zero length, i.e. t and the triangle across that edge (opposite t[a + 2])

@@ -32,7 +32,7 @@ from ..base._checks import (
 )
 from ..base._simplex import det_entries, simplex_circumcenter
 from ._contacts import (
-    circumcenters_and_flat, drop_contacts, planar_degenerate_corners, positive_measure_contacts,
+    circumcenters_and_flat, planar_degenerate_corners, positive_measure_contacts,
 )
 from ._graph import (
     Capacity, Tessellation, bucket_neighbors, bucket_simplices, bucket_walkers, neighbor_any, simplex_coords,
@@ -543,8 +543,9 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
         periodic=periodic,
     )
     padded = _padded_walkers(tess)
-    if _has_cospherical_simplices(tess, len(raw.simplices), padded):
-        tess = drop_contacts(tess, positive_measure_contacts(tess))
+    suspects = _cospherical_suspects(tess, len(raw.simplices), padded)
+    if suspects.size:
+        tess = _drop_rows(tess, nbrs, nbr_shifts, _contacts_near(tess, padded, suspects))
         padded = _padded_walkers(tess)
     if periodic:
         return tess
@@ -572,27 +573,84 @@ def _padded_walkers(tess: Tessellation) -> Tessellation:
         is_leaf=lambda leaf: leaf is None)
 
 
-def _has_cospherical_simplices(tess: Tessellation, n_simplices: int, padded: Tessellation) -> bool:
+def _cospherical_suspects(tess: Tessellation, n_simplices: int, padded: Tessellation) -> np.ndarray:
     """Host pre-check for `positive_measure_contacts` (a compilation of seconds per shape):
-    zero-measure contacts exist only inside a Delaunay cell split into several simplices,
-    which then share a circumcentre (or are flat). Centres are compared on a grid of 1e-9
-    mean spacings, modulo the box when periodic. In float32 the centres' own rounding makes
-    slivers look flat and near-cospherical centres coincide: those few suspects are decided
-    again in float64, where only centres within the walkers' float32 rounding still count as
-    shared (3D, N = 1e5 uniform: 5 suspects, of which 2 pairs 1e-6 spacings apart remain,
-    so the contact filter still runs there: 1.1 s). `padded`: `tess` as `_padded_walkers` gives it."""
+    the simplices (ids) that may hold a zero-measure contact. Such contacts exist only inside
+    a Delaunay cell split into several simplices, which then share a circumcentre (or are
+    flat). Centres are compared on a grid of 1e-9 mean spacings, modulo the box when periodic.
+    In float32 the centres' own rounding makes slivers look flat and near-cospherical centres
+    coincide: those few suspects are decided again in float64, where only centres within the
+    walkers' float32 rounding still count as shared (3D, N = 1e5 uniform: 5 suspects, of
+    which 2 pairs 1e-6 spacings apart remain). `padded`: `tess` as `_padded_walkers` gives it."""
     center, flat = (np.asarray(a)[:n_simplices] for a in circumcenters_and_flat(padded))
     suspects = flat | _shared_centers(center, tess)
-    if not suspects.any() or tess.points.dtype == np.float64:
-        return bool(suspects.any())
     rows = np.flatnonzero(suspects)
+    if not rows.size or tess.points.dtype == np.float64:
+        return rows
     coords = np.asarray(tess.points, np.float64)[np.asarray(tess.simplices)[rows]]
     if tess.periodic:
         coords = coords + np.asarray(tess.simplex_shifts)[rows] * np.asarray(tess.box_lengths, np.float64)
     center64, radius = _circumballs(coords)
     # the walkers' own float32 rounding moves truly shared centres apart by ~eps32 |x|
     rounding = 4 * float(np.finfo(np.float32).eps) * float(np.abs(coords).max())
-    return bool(not np.isfinite(radius).all() or _shared_centers(center64, tess, rounding).any())
+    if not np.isfinite(radius).all():
+        return rows
+    return rows[_shared_centers(center64, tess, rounding)]  # shared with another suspect's (only they can)
+
+
+LOCAL_CONTACTS = 0.25  # suspects' simplices up to this fraction of all: the contact test runs on them alone
+
+
+def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarray) -> np.ndarray:
+    """(N, K) host bool: `positive_measure_contacts` where a contact can be degenerate, True
+    elsewhere. A degenerate contact is an edge of a suspect simplex, so both its ends are
+    walkers of suspects, and every simplex around it holds one of them: the test runs on
+    those simplices alone (a few hundred at N = 1e5 uniform, 2.9 s -> ~0.1 s), on all of them
+    when they are more than `LOCAL_CONTACTS` of the simplices (a lattice)."""
+    n = tess.n_points
+    simplices = np.asarray(tess.simplices)
+    near = np.zeros(n + 1, bool)
+    near[simplices[suspects].ravel()] = True
+    near[n] = False
+    around = np.flatnonzero(near[simplices].any(axis=1))
+    if len(around) > LOCAL_CONTACTS * len(simplices):
+        return np.asarray(positive_measure_contacts(padded))[:n]
+    size = bucket_simplices(max(len(around), 64))
+    m = padded.n_points
+    sub_simplices = np.full((size, simplices.shape[1]), m, simplices.dtype)
+    sub_simplices[: len(around)] = np.where(simplices[around] == n, m, simplices[around])
+    sub_shifts = None
+    if tess.simplex_shifts is not None:
+        shifts = np.asarray(tess.simplex_shifts)
+        sub_shifts = np.zeros((size, *shifts.shape[1:]), shifts.dtype)
+        sub_shifts[: len(around)] = shifts[around]
+    sub = eqx.tree_at(lambda t: (t.simplices, t.simplex_shifts), padded,
+                      (jnp.asarray(sub_simplices), None if sub_shifts is None else jnp.asarray(sub_shifts)),
+                      is_leaf=lambda leaf: leaf is None)
+    keep = np.asarray(positive_measure_contacts(sub))[:n]
+    neighbors = np.asarray(tess.neighbors)
+    candidate = near[:n, None] & near[neighbors]
+    return np.where(candidate, keep, neighbors < n)
+
+
+def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -> Tessellation:
+    """`tess` without the neighbour slots where `keep` (host (N, K)) is False, the kept ones in
+    their order (rows stay sorted by neighbour index), on the host."""
+    n = tess.n_points
+    keep = keep & (nbrs < n)
+    rows = np.flatnonzero(~keep.all(axis=1) & (nbrs < n).any(axis=1))
+    if not rows.size:
+        return tess
+    nbrs = nbrs.copy()
+    order = np.argsort(~keep[rows], axis=1, kind="stable")  # kept slots first, in order
+    nbrs[rows] = np.where(np.take_along_axis(keep[rows], order, axis=1), np.take_along_axis(nbrs[rows], order, axis=1), n)
+    if shifts is not None:
+        shifts = shifts.copy()
+        moved = np.take_along_axis(shifts[rows], order[..., None], axis=1)
+        shifts[rows] = np.where((nbrs[rows] < n)[..., None], moved, 0)
+    return eqx.tree_at(lambda t: (t.neighbors, t.neighbor_shifts), tess,
+                       (jnp.asarray(nbrs), None if shifts is None else jnp.asarray(shifts)),
+                       is_leaf=lambda leaf: leaf is None)
 
 
 def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0.0) -> np.ndarray:

@@ -235,3 +235,25 @@ def test_host_builds_pad_walkers_to_a_bucket_and_equal_the_unpadded_build(rng, m
         if want is not None:
             assert got.shape == want.shape and got.dtype == want.dtype, field
             np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=field)
+
+
+@pytest.mark.parametrize("periodic", [False, True])
+def test_contact_filter_near_the_suspects_equals_the_global_one(rng, monkeypatch, periodic):
+    """The zero-measure contacts of a co-spherical cube embedded in a random cloud (its face
+    diagonals and body diagonals that Qhull adds) are found by testing only the simplices
+    around the suspects (those sharing a circumcentre): the same neighbour rows as the test
+    over every simplex (`LOCAL_CONTACTS = 0`), and every diagonal of the cube dropped."""
+    from jaxgeom.tessellation import _delaunay
+
+    corners = 0.5 + 0.04 * (np.stack(np.meshgrid(*[[-1, 1]] * 3, indexing="ij"), -1).reshape(-1, 3))
+    cloud = rng.uniform(0, 1, (400, 3))
+    cloud = cloud[np.linalg.norm(cloud - 0.5, axis=1) > 0.2]  # nothing inside the cube's sphere
+    x = np.concatenate([corners, cloud])
+    local = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=periodic)
+    monkeypatch.setattr(_delaunay, "LOCAL_CONTACTS", 0.0)
+    every = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=periodic)
+    np.testing.assert_array_equal(np.asarray(local.neighbors), np.asarray(every.neighbors))
+    rows = np.asarray(local.neighbors)[:8]
+    for i in range(8):
+        cube = set(rows[i][rows[i] < 8])
+        assert cube == {j for j in range(8) if np.sum(np.abs(corners[j] - corners[i]) > 0) == 1}, (i, cube)
