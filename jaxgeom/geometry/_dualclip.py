@@ -6,9 +6,12 @@ functions (a cone from a point over a polytope's facets, with signs, covers the 
 and every other point zero times), so they decompose box ∩ cell as well: a face's area inside
 the box is the signed sum of its pieces clipped to the box. A hull triangle T has one simplex;
 its Voronoi edge is a ray from C_s along T's outer normal u, and the faces around it gain the
-half-strip (m_ab, c_T) + t u, t >= 0 (the second simplex's piece, at infinity), which the box
-cuts to a quadrilateral. Only pieces that leave the box are clipped (Sutherland-Hodgman against
-the six walls in a buffer that grows by a vertex per wall), so the cost follows the simplices at the boundary.
+half-strip (m_ab, c_T) + t u, t >= 0 (the second simplex's piece, at infinity), and the wedge
+m_ab + cone(u, g), g the direction of the sum of the outer normals of the two hull triangles
+at edge ab: the two wedges of a hull edge make its face's recession cone, which a cone from
+m_ab over the face's edges leaves out. Only pieces that reach a wall are clipped
+(Sutherland-Hodgman against the six walls, the buffer growing by a vertex per wall), so the
+cost follows the simplices at the boundary.
 
 Each cell's faces on the walls follow from the same pieces: a clipped piece's edges on wall w
 are signed pieces of the segment where its face meets w, and a wall face's area is 1/2 sum h L
@@ -227,7 +230,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots
     rows = jnp.nonzero(faces.ravel(), size=n_chunks * FACE_CHUNK, fill_value=total)[0].astype(jnp.int32)
     pieces = jax.vmap(functools.partial(clipped_piece, size=3 if kinds == (0,) else 4))
 
-    def chunk_inputs(face):  # small per-chunk gathers, outside the `cond` (which copies its operands)
+    def chunk_inputs(face):  # inside the `cond`: a skipped chunk gathers nothing
         real = jnp.repeat(face < total, 3 * len(kinds))
         flag = ((face // 4) * 12 + (face % 4) * 3)[:, None, None] + jnp.arange(3, dtype=jnp.int32)[None, None, :]
         flag = jnp.broadcast_to(flag, (len(face), len(kinds), 3)).ravel() % (s_cap * 12)
@@ -240,7 +243,8 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots
         return slot, walker, (q - origin[:, None], hull_face[simplex, FLAG_ORDER[within, 3]], box[0] - origin,
                               box[1] - origin, kind, toward[flag])
 
-    def add(sums, slot, walker, args):
+    def add(sums, face):
+        slot, walker, args = chunk_inputs(face)
         area, lengths, per_end = pieces(*args)
         both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
         areas, walls, volumes, moments, wall_areas, wall_moments = sums
@@ -251,7 +255,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots
 
     def step(sums, face):
         # chunks past the faces' count are skipped (the sums pass through in place)
-        return jax.lax.cond(face[0] < total, add, lambda sums, *_: sums, sums, *chunk_inputs(face)), None
+        return jax.lax.cond(face[0] < total, add, lambda sums, _: sums, sums, face), None
 
     sums, _ = jax.lax.scan(step, sums, rows.reshape(n_chunks, FACE_CHUNK))
     return sums
