@@ -27,10 +27,8 @@ import jax.numpy as jnp
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import (CORNER_WALLS, EDGE_WALLS, box_edge_faces, circumcentre_3d, clipped_sums, triangle_circumcentre,
-                        unit_vector)
-
-FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
+from ._dualclip import (CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, circumcentre_3d, clipped_sums,
+                        triangle_circumcentre, unit_vector)
 
 
 def simplex_flags_3d(p):
@@ -40,16 +38,17 @@ def simplex_flags_3d(p):
     face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
     of the edge's two ends gets it), `moment_a`, `moment_b` (4, 3, 3) the orthoschemes' volume
     times (centroid - end), for the edge's first and second end; the circumcentre (3,),
-    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`), and the faces' circumcentres
-    (4, 3)."""
+    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`), the faces' circumcentres
+    (4, 3) and their unit normals towards the opposite vertex (4, 3)."""
     centre, ok, counted = circumcentre_3d(p)
-    pieces, heights, volumes, moments_a, moments_b, face_centres = [], [], [], [], [], []
+    pieces, heights, volumes, moments_a, moments_b, face_centres, normals = [], [], [], [], [], [], []
     for o, face in enumerate(FACES_3D):
         a, b, c = (p[v] for v in face)
         c_t, tri_ok = triangle_circumcentre(a, b, c)
         face_centres.append(c_t)
         normal, _ = unit_vector(jnp.cross(b - a, c - a))
         normal = jnp.where(normal @ (p[o] - a) < 0, -normal, normal)
+        normals.append(normal)
         piece = jnp.where(ok & tri_ok, (centre - c_t) @ normal, 0.0)
         pieces.append(piece)
         h_row, v_row, ma_row, mb_row = [], [], [], []
@@ -71,7 +70,7 @@ def simplex_flags_3d(p):
         moments_a.append(jnp.stack(ma_row))
         moments_b.append(jnp.stack(mb_row))
     return (jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(moments_a), jnp.stack(moments_b),
-            centre, counted, jnp.stack(face_centres))
+            centre, counted, jnp.stack(face_centres), jnp.stack(normals))
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -172,7 +171,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     rel = verts - verts[:, :1]
-    pieces, heights, volumes, moment_a, moment_b, centres, proper, face_centres = jax.vmap(simplex_flags_3d)(rel)
+    pieces, heights, volumes, moment_a, moment_b, centres, proper, face_centres, normals = jax.vmap(simplex_flags_3d)(rel)
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
     # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
@@ -202,7 +201,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
-            tess, hull_face, outside, ends, index, areas, cell_volume, moments)
+            tess, hull_face, normals, outside, ends, index, areas, cell_volume, moments)
         unbounded = jnp.zeros((n, k), bool)
     else:
         ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
@@ -220,19 +219,15 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
 
 
-def _clip_to_box(tess: Tessellation, hull_face, outside, ends, index, areas, cell_volume, moments):
+def _clip_to_box(tess: Tessellation, hull_face, normals, outside, ends, index, areas, cell_volume, moments):
     """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
-    segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts)."""
+    segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts).
+    `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex."""
     n, k = tess.neighbors.shape
     n_flags = tess.simplices.shape[0] * 12
     # each hull edge's two hull triangles: the sum of their outer normals, seen from each flag
-    verts = tess.points[tess.simplices]  # (S, 4, 3)
-    faces = verts[:, FACE_VERTS]  # (S, 4, 3, 3)
-    normal = jnp.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0])
-    normal = normal / jnp.maximum(jnp.linalg.norm(normal, axis=-1, keepdims=True), jnp.finfo(verts.dtype).tiny)
-    inward = jnp.sum(normal * (verts - faces[:, :, 0]), axis=-1) > 0  # towards the opposite vertex
-    outer = jnp.where((hull_face & ~inward)[..., None], normal, jnp.where(hull_face[..., None], -normal, 0.0))
+    outer = jnp.where(hull_face[..., None], -normals, 0.0)
     outer = jnp.repeat(outer, 3, axis=1).reshape(-1, 3)  # per flag
     normal_sums = jax.ops.segment_sum(jnp.concatenate([outer, outer]), index, num_segments=n * k + 1)
     flat_ends = ends.reshape(-1, 2)

@@ -33,9 +33,9 @@ from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_row
 
 FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces each)
 EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
-_FACES = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
 # flag (face o, edge e) as in `_dual.simplex_flags_3d`: (edge ends x, y, the face's third vertex k, o)
-FLAG_ORDER = jnp.asarray([[_FACES[o][(e + 1) % 3], _FACES[o][(e + 2) % 3], _FACES[o][e], o]
+FLAG_ORDER = jnp.asarray([[FACES_3D[o][(e + 1) % 3], FACES_3D[o][(e + 2) % 3], FACES_3D[o][e], o]
                           for o in range(4) for e in range(3)], jnp.int32)  # (12, 4)
 
 
@@ -191,7 +191,7 @@ def clipped_piece(q, hull, lower, upper, kind, toward, size: int = 4):
         u_norm = jnp.sqrt(jnp.sum(u * u, axis=-1))
         u = u / jnp.where(u_norm > 0, u_norm, 1.0)[:, None]
         h = jnp.sum((middles - end) * u, axis=-1)
-        foot = end + ((bounds - end[axes]) * 1.0)[:, None] * jnp.eye(3, dtype=q.dtype)[axes]
+        foot = end + (bounds - end[axes])[:, None] * jnp.eye(3, dtype=q.dtype)[axes]
         wall_area = sign * 0.5 * h * lengths
         wall_moment = wall_area[:, None] * ((foot - end) + 2.0 * (middles - end)) / 3.0
         per_end.append((r / 6.0 * area, r / 8.0 * (moment - area * end), wall_area, wall_moment))

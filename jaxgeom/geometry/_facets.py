@@ -102,9 +102,10 @@ def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
 
 
 def _facets_from_dual(tess: Tessellation) -> VoronoiFacets:
-    """Every cell from the Delaunay dual (`_dual`, O(simplices)); with a (non-periodic) box, the
-    tier-0 cells (those reaching the box) clipped to it from their half-spaces (intervals on
-    lines), chunks past their count skipped as in `clip_to_box`. 2D cells beside a triangle
+    """Every cell from the Delaunay dual (`_dual`, O(simplices)); with a (non-periodic) box, in
+    3D the dual's pieces cut to it (`_dualclip`), in 2D the tier-0 cells (those reaching the
+    box) clipped from their half-planes (intervals on lines), chunks past their count skipped
+    as in `clip_to_box`. 2D cells beside a triangle
     within rounding of flat are unbounded-like (NaN), as in `voronoi_volumes`."""
     n, k = tess.neighbors.shape
     d = tess.dim
