@@ -27,25 +27,24 @@ import jax.numpy as jnp
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import (CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, circumcentre_3d, clipped_sums,
-                        triangle_circumcentre, unit_vector)
+from ._dualclip import (CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres,
+                        unit_vector)
 
 
-def simplex_flags_3d(p):
-    """The flags of one tetrahedron p (4, 3), coordinates relative to its first vertex.
+def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
+    """The flags of one tetrahedron p (4, 3), coordinates relative to its first vertex, with
+    its circumcentre and its faces' (4, 3) in that frame, and whether each is not flat
+    (`dual_centres`).
 
     Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
     face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
     of the edge's two ends gets it), `moment_a`, `moment_b` (4, 3, 3) the orthoschemes' volume
-    times (centroid - end), for the edge's first and second end; the circumcentre (3,),
-    whether it counts as a Voronoi vertex (`COUNTED_FLATNESS`), the faces' circumcentres
-    (4, 3) and their unit normals towards the opposite vertex (4, 3)."""
-    centre, ok, counted = circumcentre_3d(p)
-    pieces, heights, volumes, moments_a, moments_b, face_centres, normals = [], [], [], [], [], [], []
+    times (centroid - end), for the edge's first and second end; and the faces' unit normals
+    towards the opposite vertex (4, 3)."""
+    pieces, heights, volumes, moments_a, moments_b, normals = [], [], [], [], [], []
     for o, face in enumerate(FACES_3D):
         a, b, c = (p[v] for v in face)
-        c_t, tri_ok = triangle_circumcentre(a, b, c)
-        face_centres.append(c_t)
+        c_t, tri_ok = face_centres[o], face_ok[o]
         normal, _ = unit_vector(jnp.cross(b - a, c - a))
         normal = jnp.where(normal @ (p[o] - a) < 0, -normal, normal)
         normals.append(normal)
@@ -70,7 +69,7 @@ def simplex_flags_3d(p):
         moments_a.append(jnp.stack(ma_row))
         moments_b.append(jnp.stack(mb_row))
     return (jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(moments_a), jnp.stack(moments_b),
-            centre, counted, jnp.stack(face_centres), jnp.stack(normals))
+            jnp.stack(normals))
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -170,8 +169,10 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     volumes, moments and counts are meaningless (callers mask them with `tess.hull`)."""
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
-    rel = verts - verts[:, :1]
-    pieces, heights, volumes, moment_a, moment_b, centres, proper, face_centres, normals = jax.vmap(simplex_flags_3d)(rel)
+    centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
+    origin = verts[:, :1]
+    pieces, heights, volumes, moment_a, moment_b, normals = jax.vmap(simplex_flags_3d)(
+        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok)
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
     # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
@@ -186,9 +187,9 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
         # wall (a walker on it), whose edges there bound the cell's wall face
         margin = ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * jnp.max(jnp.abs(box))
         reaches = lambda y: jnp.any((y <= box[0] + margin) | (y >= box[1] - margin), axis=-1)  # noqa: E731
-        centre_out = reaches(verts[:, 0] + centres)
+        centre_out = reaches(centres)
         on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
-        outside = mask[:, None] & (centre_out[:, None] | reaches(verts[:, :1] + face_centres) | on_wall)  # (S, 4)
+        outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)
         inside = mask[:, None] & ~outside
     keep = jnp.broadcast_to(inside if boxed else mask[:, None], pieces.shape)[:, :, None]
     ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
@@ -201,7 +202,8 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
-            tess, hull_face, normals, outside, ends, index, areas, cell_volume, moments)
+            tess, (centres, face_centres, ok, face_ok), hull_face, normals, outside, ends, index, areas, cell_volume,
+            moments)
         unbounded = jnp.zeros((n, k), bool)
     else:
         ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
@@ -211,15 +213,15 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     if counts:
         counted = jnp.broadcast_to((mask & proper)[:, None], tess.simplices.shape)
         if boxed:
-            counted = counted & _counted_in_box(tess, verts[:, 0] + centres, wall_areas)
-        vertices = _vertex_counts(tess, centres[:, None, :] - rel, counted)
+            counted = counted & _counted_in_box(tess, centres, wall_areas)
+        vertices = _vertex_counts(tess, centres[:, None, :] - verts, counted)
         if boxed:
             vertices = jnp.where(vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths,
                                                                                    edges))
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
 
 
-def _clip_to_box(tess: Tessellation, hull_face, normals, outside, ends, index, areas, cell_volume, moments):
+def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends, index, areas, cell_volume, moments):
     """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
     segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts).
@@ -232,7 +234,7 @@ def _clip_to_box(tess: Tessellation, hull_face, normals, outside, ends, index, a
     normal_sums = jax.ops.segment_sum(jnp.concatenate([outer, outer]), index, num_segments=n * k + 1)
     flat_ends = ends.reshape(-1, 2)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
-        tess, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T)
+        tess, centres, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T)
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
     wall_area, wall_moment = wall_area + edge_area, wall_moment + edge_moment

@@ -39,11 +39,13 @@ FLAG_ORDER = jnp.asarray([[FACES_3D[o][(e + 1) % 3], FACES_3D[o][(e + 2) % 3], F
                           for o in range(4) for e in range(3)], jnp.int32)  # (12, 4)
 
 
-# A tetrahedron with |det(edges)| below this fraction of its longest edge cubed is flat for the
-# vertex count: co-spherical walkers' coplanar quadruples (a lattice's) have ~1e-17 from
-# rounding, and their computed centres are anywhere; a Delaunay simplex inside the hull that
-# flat would have its centre 1e10 cells away, which only a degenerate input allows.
-COUNTED_FLATNESS = 1e-10
+# A tetrahedron whose |det(edges)| is below this many epsilons of the product of its edges'
+# lengths (the rounding bound of the determinant, Hadamard's) is flat: co-spherical walkers'
+# coplanar quadruples (a lattice's) have |det| below one epsilon of it, and their computed
+# centres are anywhere. The product, not the longest edge cubed: a needle from a cluster of
+# walkers 1e-4 apart to one 100 away has |det| ~ 1e-12 of the longest edge cubed, and is no
+# more flat than its cluster (measured: the 1e4x-clustered swarm of test_triangulators).
+FLAT_ULPS = 256.0
 
 
 def unit_vector(v):
@@ -52,28 +54,61 @@ def unit_vector(v):
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, norm_sq, 1.0)), 0.0), ok
 
 
+# per vertex of a tetrahedron, the other three
+OTHER_VERTICES = jnp.asarray([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], jnp.int32)
+OTHER_CORNERS = jnp.asarray([[1, 2], [0, 2], [0, 1]], jnp.int32)  # the same for a triangle
+
+
 def circumcentre_3d(p):
-    """Circumcentre of a tetrahedron (rows p, relative to p[0]), whether it is not flat (to
-    rounding), and whether it is a vertex of its own (`COUNTED_FLATNESS`)."""
-    e = p[1:] - p[0]
+    """Circumcentre of a tetrahedron (rows p; in their frame), whether it is not flat (to
+    rounding), and whether it is a vertex of its own (`FLAT_ULPS`). Solved from the vertex
+    whose three edges have the least product of lengths (the determinant's rounding bound):
+    from the far end of a needle, a cluster's 1e-4 spacing costs the centre 1e-2 of its digits
+    (the choice does not depend on the vertices' order)."""
+    edges = p[OTHER_VERTICES] - p[:, None, :]  # (4, 3, 3) from each vertex
+    products = jnp.prod(jnp.sqrt(jnp.sum(edges * edges, axis=-1)), axis=-1)
+    best = jnp.argmin(products)
+    e = edges[best]
     det = jnp.linalg.det(e)
-    scale = jnp.max(jnp.sum(e * e, axis=1)) ** 1.5
-    ok = jnp.abs(det) > 10.0 * jnp.finfo(p.dtype).eps * scale
+    bound = jnp.finfo(p.dtype).eps * products[best]
+    ok = jnp.abs(det) > 10.0 * bound
     rhs = 0.5 * jnp.sum(e * e, axis=1)
     centre = jnp.linalg.solve(jnp.where(ok, e, jnp.eye(3, dtype=p.dtype)), rhs)
-    return p[0] + jnp.where(ok, centre, 0.0), ok, jnp.abs(det) > COUNTED_FLATNESS * scale
+    return jnp.where(ok, p[best] + centre, p[0]), ok, jnp.abs(det) > FLAT_ULPS * bound
 
 
 def triangle_circumcentre(a, b, c):
-    """Circumcentre of triangle abc in 3D and whether it is not flat."""
-    u, v = b - a, c - a
+    """Circumcentre of triangle abc in 3D and whether it is not flat, solved from the vertex
+    opposite the longest edge (the cross product's rounding bound is least there; ties go to
+    the first, so callers pass the vertices in a canonical order)."""
+    p = jnp.stack([a, b, c])
+    edges = p[OTHER_CORNERS] - p[:, None, :]  # (3, 2, 3): from each vertex to the other two
+    lengths_sq = jnp.sum(edges * edges, axis=-1)
+    best = jnp.argmin(jnp.prod(lengths_sq, axis=-1))
+    u, v = edges[best]
     n = jnp.cross(u, v)
     n_sq = jnp.sum(n * n)
     scale = jnp.maximum(jnp.sum(u * u), jnp.sum(v * v)) ** 2
     ok = n_sq > 100.0 * jnp.finfo(a.dtype).eps ** 2 * scale
     safe = jnp.where(ok, n_sq, 1.0)
     offset = (jnp.sum(u * u) * jnp.cross(v, n) + jnp.sum(v * v) * jnp.cross(n, u)) / (2.0 * safe)
-    return a + jnp.where(ok, offset, 0.0), ok
+    return jnp.where(ok, p[best] + offset, a), ok
+
+
+def dual_centres(tess: Tessellation, verts):
+    """The circumcentres of the simplices `verts` (S, 4, 3) and of their faces (S, 4, 3), in the
+    frame of `verts`, each computed once: a face's two simplices, and every flag of a
+    simplex, must share its centre bit for bit, or the signed pieces around an edge stop
+    cancelling (a needle's centre carries ~1e-5 of rounding from its inputs). Returns (centres
+    (S, 3), not flat (S,), counted as a vertex (S,), face centres (S, 4, 3), faces not flat
+    (S, 4)); a face's vertices are taken in the order of their walker ids."""
+    centres, ok, counted = jax.vmap(circumcentre_3d)(verts)
+    face_ids = tess.simplices[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3)
+    order = jnp.argsort(face_ids, axis=-1)
+    corners = jnp.take_along_axis(verts[:, jnp.asarray(FACES_3D, jnp.int32)], order[..., None], axis=-2)
+    face_centres, face_ok = jax.vmap(jax.vmap(triangle_circumcentre))(corners[..., 0, :], corners[..., 1, :],
+                                                                     corners[..., 2, :])
+    return centres, ok, counted, face_centres, face_ok
 
 
 def wall_bounds(lower, upper):
@@ -124,16 +159,17 @@ def polygon_measures(verts, count, on, axis):
     return jnp.sum(fan), moment, jnp.sum(on_wall, axis=0), on_wall.T @ (0.5 * (verts + verts[nxt]))
 
 
-def _flag_piece(q, hull, lower, upper, kind, toward, size: int):
-    """Flag (x, y, k, v) = q (rows relative to x): the signed piece of face xy it adds, as (sign,
+def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
+    """Flag (x, y, k, v) = q (rows relative to x), `centres` its simplex's and face xyk's
+    circumcentres (relative to x) and whether each is not flat (`dual_centres`): the signed
+    piece of face xy it adds, as (sign,
     the polygon's orientation about the face normal, polygon (`size` rows: 3 for triangles
     alone, 4 where a half-strip may be among them), count, the face's unit
     normal x -> y). `kind` 0: the triangle (m, c_T, C); 1 (T on the hull): the half-strip
     beyond c_T along T's outer normal u; 2 (T on the hull): the wedge m + cone(u, g), `toward`
     the sum of the outer normals of the two hull triangles at edge xy (g its direction: the
     two wedges of a hull edge make its face's recession cone m + cone(u_1, u_2))."""
-    centre, ok, _ = circumcentre_3d(q)
-    c_t, tri_ok = triangle_circumcentre(q[0], q[1], q[2])
+    centre, c_t, ok, tri_ok = centres
     normal, _ = unit_vector(jnp.cross(q[1] - q[0], q[2] - q[0]))
     normal = jnp.where(normal @ (q[3] - q[0]) < 0, -normal, normal)
     direction, _ = unit_vector(q[1] - q[0])
@@ -164,12 +200,12 @@ def _flag_piece(q, hull, lower, upper, kind, toward, size: int):
     return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
 
 
-def clipped_piece(q, hull, lower, upper, kind, toward, size: int = 4):
+def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
     """One flag's piece clipped to the box (frame of x = q[0], box relative to it): (signed area,
     the walls' signed segment lengths (6,), and per end x, y: the volume and first moment of
     the cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3)
     (about that end) added by the segments)."""
-    sign, orient, polygon, count, direction = _flag_piece(q, hull, lower, upper, kind, toward, size)
+    sign, orient, polygon, count, direction = _flag_piece(q, centres, hull, lower, upper, kind, toward, size)
     tol = ROUNDING_ULPS * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
     clipped = clip_polygon(polygon, count, lower, upper, tol)
     area, moment, lengths, length_moments = polygon_measures(*clipped, direction)
@@ -198,12 +234,14 @@ def clipped_piece(q, hull, lower, upper, kind, toward, size: int = 4):
     return area, sign * lengths, per_end
 
 
-def clipped_sums(tess: Tessellation, hull_face, outside, toward, slots, ends):
+def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots, ends):
     """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
     triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
     wedges of the hull triangles (`hull_face` (S, 4); `toward` (S * 12, 3) per flag the sum of
     the outer normals of the hull triangles at its edge). `slots` (2, S * 12): each flag's
     neighbour slot seen from either end (N * K where none), `ends` (2, S * 12) its walkers.
+    `centres`: (the simplices' circumcentres (S, 3), their faces' (S, 4, 3), whether each is
+    not flat (S,), (S, 4)), as `dual_centres` gives them.
 
     Returns the sums per slot of the areas (N * K,) and of the segments on each wall (N * K, 6),
     and per walker of the cones' volumes (N,), first moments (N, 3), and the wall faces' areas
@@ -216,11 +254,12 @@ def clipped_sums(tess: Tessellation, hull_face, outside, toward, slots, ends):
             jnp.zeros((n + 1, 3), dtype), jnp.zeros((n + 1, 6), dtype), jnp.zeros((n + 1, 6, 3), dtype))
     slots, ends = (slots[0], slots[1]), (ends[0], ends[1])  # sliced once, not in every chunk
     for faces, kinds in ((outside, (0,)), (hull_face, (1, 2))):
-        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, hull_face, toward, slots, ends)
+        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots,
+                           ends)
     return tuple(a[:-1] for a in sums)
 
 
-def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots, ends):
+def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots, ends):
     """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds."""
     n, k = tess.neighbors.shape
     s_cap = tess.simplices.shape[0]
@@ -238,9 +277,12 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, hull_face, toward, slots
         simplex, within = flag // 12, flag % 12
         q = tess.points[tess.simplices[simplex[:, None], FLAG_ORDER[within]]]  # (M, 4, 3)
         origin = q[:, 0]
+        face = FLAG_ORDER[within, 3]
+        flag_centres = (centres[0][simplex] - origin, centres[1][simplex, face] - origin, centres[2][simplex],
+                        centres[3][simplex, face])
         slot = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([slots[0][flag], slots[1][flag]]), n * k)
         walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ends[0][flag], ends[1][flag]]), n)
-        return slot, walker, (q - origin[:, None], hull_face[simplex, FLAG_ORDER[within, 3]], box[0] - origin,
+        return slot, walker, (q - origin[:, None], flag_centres, hull_face[simplex, face], box[0] - origin,
                               box[1] - origin, kind, toward[flag])
 
     def add(sums, face):

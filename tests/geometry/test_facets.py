@@ -105,6 +105,23 @@ def test_boxed_cells_of_co_spherical_walkers_at_the_walls_equal_scipy():
             np.testing.assert_allclose(np.asarray(facets.wall_areas[i]), walls, atol=1e-12)
 
 
+def test_boxed_cells_of_clustered_walkers_equal_scipy():
+    """Five clusters with spacings 1e-4 .. 1 in a box 1 beyond them: needles from a tight
+    cluster to a far walker are Delaunay simplices, not flat ones (measured by the longest
+    edge cubed they were, and the hull's faces around them went wrong by up to 1e4x)."""
+    rng = np.random.default_rng(12345)
+    scales = np.array([1e-4, 1e-3, 1e-2, 1e-1, 1.0]) * 100 ** (1 / 3)
+    x = np.concatenate([c + s * rng.random((100, 3)) for c, s in zip(rng.uniform(-50, 50, (5, 3)), scales)])
+    box = (x.min(axis=0) - 1.0, x.max(axis=0) + 1.0)
+    tess = jaxgeom.delaunay(x, box=box)
+    volumes = np.asarray(jaxgeom.voronoi_volumes(tess))
+    expected = np.array([cell[2] for cell in halfspace_cells(x, np.asarray(tess.neighbors), box)])
+    np.testing.assert_allclose(volumes.sum(), np.prod(box[1] - box[0]), rtol=1e-9)
+    # slivers of the 1e-4 cluster cost their circumcentres digits (both sides)
+    np.testing.assert_allclose(volumes, expected, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_facets(tess).volumes), volumes, rtol=1e-7)
+
+
 @pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("kind", ["open", "box", "torus"])
 def test_divergence_theorem_ties_faces_to_volumes(rng, d, kind):
