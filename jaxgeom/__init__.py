@@ -59,6 +59,10 @@ from .swarm._observables import OBSERVABLES as OBSERVABLES
 from .swarm._simulate import simulate as simulate
 from .swarm._simulate import stack_swarms as stack_swarms
 from .swarm._swarm_init import init_swarm as init_swarm
+from .swarm._trajectory import TrajectoryInterrupted as TrajectoryInterrupted
+from .swarm._trajectory import analyze_trajectory as analyze_trajectory
+from .base._h5md import H5MDTrajectory as H5MDTrajectory
+from .base._h5md import H5MDWriter as H5MDWriter
 from .swarm._tune import TuneResult as TuneResult
 from .swarm._tune import parameter_errors as parameter_errors
 from .swarm._tune import TuningFailed as TuningFailed

@@ -14,6 +14,7 @@ PACKAGE = Path(__file__).parent.parent / "jaxgeom"
 LAYERS = {
     "base": [
         ("_checks", "_simplex", "_progress", "_sharding"),  # validation; dense algebra; bars; meshes
+        ("_h5md",),  # H5MD trajectory files through h5py
     ],
     "tessellation": [
         ("_device_check",),  # the cheap check of a GPU backend's triangles, on the device
@@ -45,6 +46,7 @@ LAYERS = {
         ("_simulate",),  # the entry point: checks, dispatch, batches of swarms
         ("_tuning",),  # simulation_loss: theta -> objective of whole simulations
         ("_tune",),  # the optimistix / jaxopt driver
+        ("_trajectory",),  # the observables of a recorded trajectory
     ],
     "apps": [
         ("_landscapes",),

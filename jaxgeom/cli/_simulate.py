@@ -86,6 +86,11 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
                           "change (Delaunay graphs)")
     sim.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
+    sim.add_argument("--trajectory", action="store_true",
+                     help="also write DIR/trajectory.h5md (H5MD: positions, velocities, fitness and clone parents "
+                          "every --save-every steps, the observables' series); needs --out and h5py "
+                          "(pip install 'jaxgeom[h5md]')")
+    sim.add_argument("--save-every", type=int, default=1, help="steps between saved frames with --trajectory")
     add_progress_flag(sim)
     return sim
 
@@ -139,6 +144,10 @@ def _validate(args) -> None:
         raise ValueError("--gap-every must be a multiple of --rebuild-every.")
     if args.graph == "delaunay":
         resolve_triangulator(args.triangulator, args.dim)  # installed, and built for this dimension
+    if args.trajectory and args.out is None:
+        raise ValueError("--trajectory writes DIR/trajectory.h5md: give --out DIR.")
+    if args.save_every < 1 or args.save_every % args.rebuild_every:
+        raise ValueError(f"--save-every must be a positive multiple of --rebuild-every; got {args.save_every}.")
 
 
 def run_simulation(args) -> dict:
@@ -154,11 +163,16 @@ def run_simulation(args) -> dict:
     seconds_init = time.perf_counter() - start
     segment = args.rebuild_every * math.ceil(args.steps / (N_SNAPSHOTS - 1) / args.rebuild_every)
     snapshots, parts, done = [_snapshot(fitness, params, state, 0)], [], 0
+    writer = _open_trajectory(args, state)
     bar, owned = open_bar(progress_choice(args), args.steps, "simulate")
     interrupted = False
     try:
         while done < args.steps:
-            n = min(segment, args.steps - done)
+            if writer is not None and done % args.save_every == 0:
+                _save_frame(writer, state, done, args.dt)
+            n = min(segment - done % segment, args.steps - done)
+            if writer is not None:
+                n = min(n, args.save_every - done % args.save_every)
             try:
                 state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, observe=observed(args),
                                                   rebuild_every=args.rebuild_every, spectral_gap_every=args.gap_every,
@@ -167,23 +181,49 @@ def run_simulation(args) -> dict:
                 state, history, n, interrupted = stop.state, stop.history, stop.steps, True
             parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
             done += n
-            snapshots.append(_snapshot(fitness, params, state, done))
+            if done % segment == 0 or done == args.steps or interrupted:
+                snapshots.append(_snapshot(fitness, params, state, done))
             if interrupted:
                 break
+        if writer is not None and done % args.save_every == 0 and not interrupted:
+            _save_frame(writer, state, done, args.dt)
         interrupted = interrupted or take_interrupt()  # a Ctrl-C in the last step or snapshot: all ran
     except KeyboardInterrupt:  # outside a simulate call (a snapshot): the segments so far
         interrupted = True
     finally:
         close_bar(bar, owned)
     if not parts:  # interrupted before the first segment returned anything
+        if writer is not None:
+            writer.close()
         raise KeyboardInterrupt
     result = _merge(parts, float(args.dt))
+    if writer is not None:
+        steps = np.arange(len(next(iter(result["series"].values()))))
+        writer.write_observables({k: v for k, v in result["series"].items() if k != "time"}, steps,
+                                 float(args.dt) * steps)
+        writer.close()
+        result["trajectory"] = str(writer.path)
     result["interrupted_at"] = done if interrupted else None
     result.update(config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                   seconds_total=time.perf_counter() - start, seconds_init=seconds_init,
                   seconds_snapshots=sum(snap.pop("seconds") for snap in snapshots), snapshots=snapshots,
                   fitness=fitness, box=(lo, hi), dtype=str(jnp.dtype(dtype)))
     return result
+
+
+def _open_trajectory(args, state):
+    """The H5MD writer of --trajectory (None without it)."""
+    if not args.trajectory:
+        return None
+    args.out.mkdir(parents=True, exist_ok=True)
+    n, d = state.positions.shape
+    return jaxgeom.H5MDWriter(args.out / "trajectory.h5md", n, d, creator_version=jaxgeom.__version__)
+
+
+def _save_frame(writer, state, step: int, dt: float) -> None:
+    """The state entering `step` (the one its observables describe) as one H5MD frame."""
+    writer.append(step, step * dt, position=np.asarray(state.positions), velocity=np.asarray(state.velocities),
+                  fitness=np.asarray(state.fitness), parents=np.asarray(state.scutoid_trace.parents))
 
 
 def _snapshot(fitness, params, state, step: int) -> dict:
@@ -325,6 +365,8 @@ def simulate_main(args) -> int:
     if args.out is not None:
         for name, path in write_outputs(result, args.out).items():
             print(f"wrote {name}: {path}")
+        if "trajectory" in result:
+            print(f"wrote trajectory: {result['trajectory']}")
     if result["interrupted_at"] is not None:
         return say_interrupted("simulate", "step", result["interrupted_at"], args.steps, args.out is not None)
     return 0

@@ -51,7 +51,10 @@ class _View(eqx.Module):
 
 
 def _observed_metric(s: _View):
-    """The Hessian metric at the observed walkers, with the current eps_Sigma."""
+    """The Hessian metric at the observed walkers, with the current eps_Sigma; None (Euclidean)
+    for a recorded trajectory analysed without a landscape (`analyze_trajectory`)."""
+    if s.fitness is None:
+        return None
     return metric_field(s.fitness, s.params, s.params.eps_sigma * s.new.eps_factor, s.new.positions)
 
 
