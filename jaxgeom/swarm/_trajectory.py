@@ -322,7 +322,6 @@ def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, perio
     series, gaps, kept, indices, seconds = {name: [] for name in observe}, [], [], [], {"rebuild": 0.0, "steps": 0.0}
     state, capacity, reallocations, shape, between = None, None, 0, None, []
     bar, owned = open_bar(progress, len(wanted) if n_frames is not None else None, "analyze_trajectory")
-    fitness_fn = None if landscape is None else landscape
     previous_time, done = None, 0
     try:
         for t, frame in _frames(src, supplied, start, stop):
@@ -359,7 +358,7 @@ def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, perio
             between = []
             now = frame_times(t)
             step_dt = jnp.asarray(now - previous_time if previous_time is not None else 1.0, dtype)
-            state, obs = _observe_frame(fitness_fn, params, state,
+            state, obs = _observe_frame(landscape, params, state,
                                         (xj, v, values, jnp.asarray(p, jnp.int32)), jnp.asarray(done, jnp.int32),
                                         step_dt, observe)
             previous_time = now
