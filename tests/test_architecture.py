@@ -53,7 +53,7 @@ LAYERS = {
         ("_validation", "_plots"),
     ],
     "cli": [  # one unit: its modules import each other freely
-        ("__init__", "__main__", "_analyze", "_simulate", "_tune", "_legend"),
+        ("__init__", "__main__", "_analyze", "_simulate", "_tune", "_legend", "_trajectory"),
     ],
 }
 FOLDERS = list(LAYERS)

@@ -228,6 +228,8 @@ def _landscape_grid(fitness, lo, hi, d: int):
     import jax.numpy as jnp
 
     gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 160), np.linspace(lo[1], hi[1], 160))
+    if fitness is None:  # a recorded trajectory without a landscape: no contours
+        return gx, gy, None
     plane = np.zeros((gx.size, d))
     plane[:, 0], plane[:, 1] = gx.ravel(), gy.ravel()
     return gx, gy, np.asarray(jax.vmap(fitness)(jnp.asarray(plane))).reshape(gx.shape)
@@ -273,7 +275,7 @@ def _symlog_ticks(norm):
     return np.concatenate([-(10.0 ** decades[::-1]), [0.0], 10.0 ** decades])
 
 
-def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
+def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str, str] | None = None) -> Path:
     """Three rows, one column per snapshot `{"step", "positions", "ricci"}` (ricci None on a
     k-NN graph: walkers coloured by V instead), one symmetric-log colour scale for every panel:
 
@@ -285,14 +287,17 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
       the same colours, with its median and the count of walkers without a value (hull tiers).
 
     Beyond 2D the panels show the projection on (x_1, x_2) and the contours V(x_1, x_2, 0, ...,
-    0); the figure says so."""
+    0); the figure says so. `colour` = (label, description): the snapshots carry their own
+    per-walker "values" (a recorded trajectory's fitness or cell volumes), on a linear scale;
+    `fitness` None: no contours."""
     plt = pyplot()
     from matplotlib.patches import Rectangle
     from matplotlib.ticker import MaxNLocator
 
     d = snapshots[0]["positions"].shape[1]
-    has_ricci = any(s["ricci"] is not None for s in snapshots)
-    colours = [_colour_values(fitness, snap, has_ricci) for snap in snapshots]
+    has_ricci = colour is None and any(s["ricci"] is not None for s in snapshots)
+    colours = [np.asarray(snap["values"], np.float64) if colour else _colour_values(fitness, snap, has_ricci)
+               for snap in snapshots]
     norm = _shared_ricci_norm(snapshots) if has_ricci else _value_norm(colours[1:] or colours)
     cmap = "coolwarm" if has_ricci else "viridis"
     n = len(snapshots)
@@ -317,18 +322,20 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path) -> Path:
             ax.xaxis.set_major_locator(MaxNLocator(4))
             ax.yaxis.set_major_locator(MaxNLocator(5))
             ax.set_aspect("equal", adjustable="box")
-        _draw_histogram(bottom, c, norm, cmap, has_ricci)
+        _draw_histogram(bottom, c, norm, cmap, has_ricci, colour[0] if colour else None)
     axes[0, 0].set_ylabel("x_2")
     axes[1, 0].set_ylabel("x_2")
     axes[2, 0].set_ylabel("share of the walkers with a value")
-    label = "Ricci scalar R (symmetric log scale)" if has_ricci else "V(x)"
+    label = "Ricci scalar R (symmetric log scale)" if has_ricci else (colour[0] if colour else "V(x)")
     bar = fig.colorbar(mapped, ax=axes[:2].ravel().tolist(), label=label, fraction=0.03, pad=0.01, extend="both")
     if has_ricci:
         bar.set_ticks(_symlog_ticks(norm))
     what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull tiers, "
-            "no R)" if has_ricci else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
-    where = (f"{d}D swarm projected on (x_1, x_2), contours of V(x_1, x_2, 0, ..., 0)" if d > 2
-             else "contours of V")
+            "no R)" if has_ricci else colour[1] if colour else
+            "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
+    where = (f"{d}D swarm projected on (x_1, x_2)" if d > 2 else "") + (
+        "" if fitness is None else (", contours of V(x_1, x_2, 0, ..., 0)" if d > 2 else "contours of V"))
+    where = where or "no landscape (no contours)"
     fig.suptitle(f"{what}; {where}\ntop: every walker, one frame; middle: the most populated cluster (dashed "
                  "square above); bottom: the distribution of the colour over the walkers", fontsize=10)
     return save_figure(fig, path, dpi=100, layout=False)
@@ -376,13 +383,14 @@ def _value_norm(colours):
 
 def _draw_walkers(ax, x, c, gx, gy, values, norm, cmap: str, size: float):
     """Light contours of V, walkers without a value in black, the others coloured."""
-    ax.contour(gx, gy, values, levels=_contour_levels(values, 10), colors="0.78", linewidths=0.4, zorder=0)
+    if values is not None:
+        ax.contour(gx, gy, values, levels=_contour_levels(values, 10), colors="0.78", linewidths=0.4, zorder=0)
     ok = np.isfinite(c)
     ax.scatter(x[~ok, 0], x[~ok, 1], s=size / 3, c="k", lw=0, zorder=1)
     return ax.scatter(x[ok, 0], x[ok, 1], s=size, c=c[ok], cmap=cmap, norm=norm, lw=0, zorder=2)
 
 
-def _draw_histogram(ax, c, norm, cmap: str, symlog: bool):
+def _draw_histogram(ax, c, norm, cmap: str, symlog: bool, label: str | None = None):
     """The share of the walkers with a value in each of 40 bins spread evenly in the colour
     scale, each bar in its bin's colour (values off the scale in the end bars); the median dashed."""
     import matplotlib
@@ -404,7 +412,7 @@ def _draw_histogram(ax, c, norm, cmap: str, symlog: bool):
         beyond = int(np.sum((ok < edges[0]) | (ok > edges[-1])))
         ax.set_title(f"median {median:.3g}; {int(c.size - ok.size)} without a value, {beyond} off the scale",
                      fontsize=9)
-    ax.set_xlabel("Ricci scalar R" if symlog else "V")
+    ax.set_xlabel(label or ("Ricci scalar R" if symlog else "V"))
 
 
 def _fitness_at(fitness, x):
@@ -423,12 +431,14 @@ def _constant(values) -> bool:
     return finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300)
 
 
-def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None) -> Path:
+def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None, gap_times=None,
+                     time_label: str = "time (steps x dt)") -> Path:
     """Every observable of a `jaxgeom.simulate` history against time, one panel each, with
     labelled axes. Constant series (nu, eps_Sigma without annealing) are named in the title
     instead of drawn; observables that are NaN throughout (the Voronoi ones on a k-NN graph)
     are listed; NaN entries (the expansion at step 0) are skipped, the line joins the rest.
-    `gap_rounding` (bool per gap) marks the gaps below float64 resolution, drawn as x at 0."""
+    `gap_rounding` (bool per gap) marks the gaps below float64 resolution, drawn as x at 0.
+    `gap_times`: the gaps' times (default: their steps x the series' time step)."""
     plt = pyplot()
     names, constant, undefined = observable_panels(series, gaps)
     cols = 3
@@ -436,8 +446,9 @@ def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None) -> 
     fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.9 * rows + 0.6), squeeze=False)
     t = np.asarray(series["time"])
     dt = t[1] - t[0] if len(t) > 1 else 1.0
+    gap_times = np.asarray(gap_steps) * dt if gap_times is None else np.asarray(gap_times)
     for ax, name in zip(axes.ravel(), names):
-        _plot_one(ax, name, series, t, np.asarray(gap_steps) * dt, gaps, gap_rounding)
+        _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding, time_label)
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
     notes = []
@@ -459,7 +470,7 @@ def observable_panels(series: dict, gaps) -> tuple[list, list, list]:
     return drawn, constant, undefined
 
 
-def _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding=None):
+def _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding=None, time_label="time (steps x dt)"):
     title, ylabel = OBSERVABLE_LABELS.get(name, (name, name))
     if name == "spectral_gap":
         rounding = np.zeros(len(gaps), bool) if gap_rounding is None else np.asarray(gap_rounding, bool)
@@ -479,4 +490,4 @@ def _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding=None):
         ax.fill_between(t, -floor, floor, color="0.85", label="rounding floor (+-)")
         ax.legend(fontsize=7)
     ax.set_title(title, fontsize=10)
-    ax.set(xlabel="time (steps x dt)", ylabel=ylabel)
+    ax.set(xlabel=time_label, ylabel=ylabel)

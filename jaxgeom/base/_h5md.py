@@ -163,11 +163,7 @@ class H5MDWriter(_OpenFile):
         h5py = require_h5py()
         self.path = Path(path)
         self._file = f = h5py.File(self.path, "w")
-        meta = f.create_group("h5md")
-        meta.attrs["version"] = np.array([1, 1])
-        meta.create_group("author").attrs["name"] = "jaxgeom user"
-        creator = meta.create_group("creator")
-        creator.attrs["name"], creator.attrs["version"] = "jaxgeom", creator_version or "unknown"
+        _write_header(f, creator_version)
         g = f.create_group(f"particles/{group}")
         b = g.create_group("box")
         b.attrs["dimension"] = d
@@ -188,6 +184,11 @@ class H5MDWriter(_OpenFile):
                 e.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,)))
         self.n_frames = 0
 
+    @property
+    def elements(self) -> tuple[str, ...]:
+        """The per-frame elements each `append` takes."""
+        return tuple(self._elements)
+
     def append(self, step: int, time: float, **data):
         """One frame: `position=` (N, d) and the other elements named at construction."""
         missing = set(self._elements) - set(data)
@@ -206,8 +207,36 @@ class H5MDWriter(_OpenFile):
             values = np.asarray(values)
             if values.ndim != 1 or len(values) != len(steps):
                 continue  # not a per-step series (a counter, the spectral gaps): not an H5MD time series
-            g = self._file.create_group(f"observables/{name}")
-            g.create_dataset("value", data=values)
-            g.create_dataset("step", data=np.asarray(steps, np.int64))
-            g.create_dataset("time", data=np.asarray(times, float))
+            _write_series(self._file, name, values, steps, times)
+
+
+def _write_header(f, creator_version: str) -> None:
+    meta = f.create_group("h5md")
+    meta.attrs["version"] = np.array([1, 1])
+    meta.create_group("author").attrs["name"] = "jaxgeom user"
+    creator = meta.create_group("creator")
+    creator.attrs["name"], creator.attrs["version"] = "jaxgeom", creator_version or "unknown"
+
+
+def _write_series(f, name: str, values, steps, times) -> None:
+    g = f.create_group(f"observables/{name}")
+    g.create_dataset("value", data=np.asarray(values))
+    g.create_dataset("step", data=np.asarray(steps, np.int64))
+    g.create_dataset("time", data=np.asarray(times, float))
+
+
+def write_h5md_observables(path, series: dict, *, creator_version: str = "") -> Path:
+    """A new H5MD file holding only `observables/<name>/{value, step, time}`, one group per
+    entry of `series` {name: (values (K,), steps (K,), times (K,))} (each series at its own
+    steps: the spectral gap is measured less often than the rest)."""
+    h5py = require_h5py()
+    path = Path(path)
+    with h5py.File(path, "w") as f:
+        _write_header(f, creator_version)
+        for name, (values, steps, times) in series.items():
+            if not len(values) == len(steps) == len(times):
+                raise ValueError(f"write_h5md_observables: {name} has {len(values)} values, {len(steps)} steps and "
+                                 f"{len(times)} times.")
+            _write_series(f, name, values, steps, times)
+    return path
 

@@ -85,7 +85,8 @@ def check_arguments(parser: argparse.ArgumentParser, args) -> None:
     rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
              ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
              ("beta", "--beta", 0.0, None), ("k", "--k", 1, None), ("seeds", "--seeds", 1, None),
-             ("max_steps", "--max-steps", 1, None), ("steps", "--steps", 1, None)]
+             ("max_steps", "--max-steps", 1, None), ("steps", "--steps", 1, None), ("every", "--every", 1, None),
+             ("snapshots", "--snapshots", 1, None)]
     for attr, flag, low, high in rules:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):

@@ -1,4 +1,5 @@
-"""`jaxgeom analyze`: tessellate a swarm and report its geometry.
+"""`jaxgeom analyze`: tessellate a swarm and report its geometry (a recorded trajectory's
+observables with --trajectory: `_trajectory.py`).
 
 The report is a list of sections (`REPORT_SECTIONS`); each takes the analysis
 context and returns a flat dict of numbers. New proxies add a section.
@@ -25,6 +26,7 @@ from ..geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from ..swarm._observables import riemannian_log_weights, weighted_mean_from_logs
 from ._legend import UNITS, analyze_definition
 from ._simulate import HelpFormatter, load_landscape
+from ._trajectory import add_trajectory_arguments, refuse_mixed_options, trajectory_main
 
 
 
@@ -536,11 +538,24 @@ def add_analyze_parser(sub) -> argparse.ArgumentParser:
                          "(None: the adaptive rule, 3 x the nearest-neighbour distance); edges lighter than "
                          "1e-8 of the heaviest split it into components")
     an.add_argument("--explain", action="store_true", help="define every row of the report, with its unit")
-    an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png")
+    an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png (with --trajectory: "
+                                             "observables.json, observables.h5md, observables.png, swarm.png)")
+    add_trajectory_arguments(an)
+    ANALYZE_DEFAULTS.update({action.dest: action.default for action in an._actions})
     return an
 
 
+ANALYZE_DEFAULTS: dict = {}  # each option's default: an option of the other mode given is refused
+
+
 def analyze_main(args) -> int:
+    try:
+        refuse_mixed_options(args, ANALYZE_DEFAULTS)
+    except ValueError as err:
+        print(f"jaxgeom analyze: error: {err}", file=sys.stderr)
+        return 2
+    if args.trajectory is not None:
+        return trajectory_main(args)
     try:
         report = run_analysis(args)
     except (ValueError, TypeError, OSError) as err:

@@ -88,7 +88,8 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
     sim.add_argument("--trajectory", action="store_true",
                      help="also write DIR/trajectory.h5md (H5MD: positions, velocities, fitness and clone parents "
-                          "every --save-every steps, the observables' series); needs --out and h5py "
+                          "every --save-every steps (clone parents with --save-every 1 only: a state holds its "
+                          "last step's), the observables' series); needs --out and h5py "
                           "(pip install 'jaxgeom[h5md]')")
     sim.add_argument("--save-every", type=int, default=1, help="steps between saved frames with --trajectory")
     add_progress_flag(sim)
@@ -217,13 +218,17 @@ def _open_trajectory(args, state):
         return None
     args.out.mkdir(parents=True, exist_ok=True)
     n, d = state.positions.shape
-    return jaxgeom.H5MDWriter(args.out / "trajectory.h5md", n, d, creator_version=jaxgeom.__version__)
+    # a state knows its last step's clone parents only: frames further apart would record a part
+    elements = ("position", "velocity", "fitness") + (("parents",) if args.save_every == 1 else ())
+    return jaxgeom.H5MDWriter(args.out / "trajectory.h5md", n, d, elements=elements,
+                              creator_version=jaxgeom.__version__)
 
 
 def _save_frame(writer, state, step: int, dt: float) -> None:
     """The state entering `step` (the one its observables describe) as one H5MD frame."""
-    writer.append(step, step * dt, position=np.asarray(state.positions), velocity=np.asarray(state.velocities),
-                  fitness=np.asarray(state.fitness), parents=np.asarray(state.scutoid_trace.parents))
+    data = {"position": state.positions, "velocity": state.velocities, "fitness": state.fitness,
+            "parents": state.scutoid_trace.parents}
+    writer.append(step, step * dt, **{name: np.asarray(data[name]) for name in writer.elements})
 
 
 def _snapshot(fitness, params, state, step: int) -> dict:
@@ -262,14 +267,7 @@ def summary_table(result: dict, explain: bool = False) -> str:
     """The table `jaxgeom simulate` prints: one row per observable (initial, final, min, max),
     the spectral gap's rows, notes, a footer; with `explain`, every row's definition and unit."""
     skipped = delaunay_only(result)
-    rows, names = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"], []
-    for name, values in result["series"].items():
-        if name == "time" or name in skipped:
-            continue
-        finite = values[np.isfinite(values)]
-        cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
-        rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
-        names.append(name)
+    rows, names = observable_rows(result["series"], skipped)
     if result["spectral_gap"].size:
         rows += _gap_rows(result)
         names += ["spectral_gap", "kernel_graph_components"]
@@ -287,6 +285,20 @@ def summary_table(result: dict, explain: bool = False) -> str:
     else:
         rows.append("--explain defines every row and its unit.")
     return "\n".join(rows)
+
+
+def observable_rows(series: dict, skipped=()) -> tuple[list[str], list[str]]:
+    """(rows, names): the header and one row per series (initial, final, min and max of its
+    finite values), "time" and the `skipped` names left out."""
+    rows, names = [f"{'observable':<26}{'initial':>12}{'final':>12}{'min':>12}{'max':>12}"], []
+    for name, values in series.items():
+        if name == "time" or name in skipped:
+            continue
+        finite = values[np.isfinite(values)]
+        cells = [values[0], values[-1]] + ([finite.min(), finite.max()] if finite.size else [np.nan, np.nan])
+        rows.append(f"{name:<26}" + "".join(f"{c:>12.5g}" for c in cells))
+        names.append(name)
+    return rows, names
 
 
 def delaunay_only(result: dict) -> list[str]:

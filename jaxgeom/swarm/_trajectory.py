@@ -11,6 +11,7 @@ kernels of the current one (JAX dispatches them asynchronously).
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -46,7 +47,8 @@ class TrajectoryInterrupted(KeyboardInterrupt):
 
 class _Source:
     """Frames from an array (T, N, d), a .npy (memory-mapped), an .npz, an H5MD file or an
-    iterable of (N, d) arrays: `frame(t)` dicts, `n_frames` (None for an iterable), metadata."""
+    iterable of (N, d) arrays: `frame(t)` dicts, `n_frames` and `dim` (None for an iterable),
+    metadata."""
 
     def __init__(self, source):
         self.name, self.box, self.periodic, self.steps, self.times, self._close = "frames", None, False, None, None, None
@@ -56,7 +58,7 @@ class _Source:
         elif isinstance(source, (np.ndarray, jax.Array)):
             self._from_array(np.asarray(source) if isinstance(source, jax.Array) else source, "frames")
         elif isinstance(source, Iterable):
-            self.n_frames, self._iter = None, iter(source)
+            self.n_frames, self._iter, self.dim = None, iter(source), None
         else:
             raise TypeError("`source` must be an array (T, N, d), a path to a .npy, .npz or H5MD file, or an "
                             f"iterable of (N, d) arrays; got {type(source).__name__}.")
@@ -64,7 +66,7 @@ class _Source:
     def _from_array(self, array, name):
         if array.ndim != 3:
             raise ValueError(f"{name}: positions must be (frames, N, d); got shape {array.shape}.")
-        self.positions, self.n_frames, self.name = array, array.shape[0], name
+        self.positions, self.n_frames, self.name, self.dim = array, array.shape[0], name, array.shape[2]
 
     def _from_file(self, path: Path):
         if not path.exists():
@@ -92,7 +94,7 @@ class _Source:
                                  "optionally fitness, velocities, parents, box, periodic, times.")
         elif suffix in H5MD_SUFFIXES:
             h5 = H5MDTrajectory(path)
-            self.name, self.n_frames, self._h5, self._close = str(path), h5.n_frames, h5, h5.close
+            self.name, self.n_frames, self._h5, self._close, self.dim = str(path), h5.n_frames, h5, h5.close, h5.d
             self.box, self.periodic, self.steps, self.times = h5.box, h5.periodic, h5.steps, h5.times
         else:
             raise ValueError(f"{path}: unknown extension {suffix!r}; give a .npy, .npz or H5MD ({', '.join(H5MD_SUFFIXES)}) "
@@ -160,6 +162,9 @@ def _determined(has: set, landscape, params: SwarmParams, graph: str) -> dict:
         missing["n_clones"] = "needs the clone parents (parents= (T, N))"
     if landscape is None:
         missing["mean_metric_curvature"] = "needs a landscape (the curvature of its Hessian metric)"
+        missing["mean_ricci"] = missing["ricci_resolution"] = (
+            "without a landscape the metric is Euclidean, which is flat (R = 0 exactly); a landscape gives its "
+            "Hessian metric")
     if graph == "knn":
         for name, row in OBSERVABLE_TABLE.items():
             if row.geometric:
@@ -198,11 +203,15 @@ def _first_state(x, tess, dtype) -> SwarmState:
                       empty_scutoid_trace(n))
 
 
-@eqx.filter_jit
+# jax.jit, not eqx.filter_jit: its call returns at once (eqx.filter_jit's blocks until the
+# kernels are done), so the host reads and triangulates the next frame while they run.
+@functools.partial(jax.jit, static_argnames=("fitness", "observe"))
 def _observe_frame(fitness, params, state, frame_data, step, dt, observe):
     """The state of one frame (its data in place) observed: (state, {name: scalar})."""
     positions, velocities, values, parents = frame_data
     n = positions.shape[0]
+    if values is None:  # a landscape: evaluated here, in the compiled program
+        values = jax.vmap(fitness)(positions).astype(positions.dtype)
     alive = jnp.isfinite(values)
     cloned = parents != jnp.arange(n, dtype=jnp.int32)
     state = eqx.tree_at(lambda s: (s.positions, s.velocities, s.fitness, s.alive, s.cloned, s.step,
@@ -420,8 +429,9 @@ def _times(src: _Source, times, dt, n_frames):
 
 
 def _fitness(frame: dict, landscape, xj, n: int, dtype):
+    """The frame's fitness values; None with a landscape (`_observe_frame` evaluates it)."""
     if landscape is not None:
-        return jax.vmap(landscape)(xj).astype(dtype)
+        return None
     if "fitness" in frame:
         return jnp.asarray(frame["fitness"], dtype)
     return jnp.zeros(n, dtype)

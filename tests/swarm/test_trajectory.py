@@ -1,6 +1,9 @@
 """analyze_trajectory against simulate's own history, and H5MD files both ways (pyh5md as the
 independent writer and reader)."""
 
+import contextlib
+import json
+
 import h5py
 import numpy as np
 import pyh5md
@@ -165,7 +168,7 @@ def test_simulate_writes_an_h5md_trajectory_that_reanalyses_to_its_history(tmp_p
                                  nu=config["nu"], eps_sigma=config["eps_sigma"])
     with jaxgeom.H5MDTrajectory(out / "trajectory.h5md") as h5:
         np.testing.assert_array_equal(h5.steps, [0, 2, 4])
-        assert h5.has == ("velocity", "fitness", "parents")
+        assert h5.has == ("velocity", "fitness")  # a state holds only its last step's clone parents
     again = jaxgeom.analyze_trajectory(out / "trajectory.h5md", landscape=rastrigin, params=params,
                                        triangulator="qhull", observe=("mean_fitness", "mean_ricci",
                                                                       "volume_distortion"))
@@ -173,3 +176,121 @@ def test_simulate_writes_an_h5md_trajectory_that_reanalyses_to_its_history(tmp_p
         np.testing.assert_allclose(again[name], np.asarray(series[name], float)[[0, 2, 4]], rtol=1e-9, err_msg=name)
     with h5py.File(out / "trajectory.h5md") as h5:
         np.testing.assert_allclose(h5["observables/mean_ricci/value"][()], np.asarray(series["mean_ricci"], float))
+
+
+@pytest.fixture(scope="module")
+def saved_run(tmp_path_factory):
+    """`jaxgeom simulate --trajectory` at every step: a file and the run's own history."""
+    import json
+
+    from jaxgeom.cli import main
+
+    out = tmp_path_factory.mktemp("saved") / "run"
+    assert main(["simulate", "--n", "120", "--steps", "7", "--gap-every", "0", "--out", str(out), "--trajectory",
+                 "--scutoids", "--triangulator", "qhull", "--precision", "float64", "--no-progress"]) == 0
+    return out / "trajectory.h5md", json.loads((out / "history.json").read_text())
+
+
+def _table(text: str) -> dict:
+    """{row name: [initial, final, min, max]} of a printed observables table."""
+    rows = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) == 5 and parts[0].replace("_", "").isalpha() and parts[0] != "observable":
+            rows[parts[0]] = [float(p) if p != "rounding" else np.nan for p in parts[1:]]
+    return rows
+
+
+def test_the_command_line_reports_a_saved_run_as_its_own_history(saved_run, tmp_path, capsys):
+    from jaxgeom.cli import main
+
+    path, run = saved_run
+    out = tmp_path / "an"
+    assert main(["analyze", "--trajectory", str(path), "--landscape", "rastrigin", "--gap-every", "3",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    table = _table(printed)
+    for name in ("mean_fitness", "mean_ricci", "volume_distortion", "mean_expansion", "n_clones",
+                 "complex_scutoid_fraction", "velocity_variance"):
+        series = np.asarray(run["series"][name], float)
+        # the saved run's own series (the table rounds to 5 digits)
+        np.testing.assert_allclose(table[name][:2], series[[0, -1]], rtol=1e-4, equal_nan=True, err_msg=name)
+    assert "not measured: nu" in printed and "frames analysed 8 of 8" in printed
+    saved = json.loads((out / "observables.json").read_text())
+    for name in ("mean_fitness", "mean_ricci", "mean_expansion", "n_clones", "complex_scutoid_fraction"):
+        np.testing.assert_allclose(np.asarray(saved["series"][name], float),
+                                   np.asarray(run["series"][name], float), rtol=1e-9, equal_nan=True, err_msg=name)
+    # the spectral gap every 3 analysed frames, each the gap of its own frame's graph
+    assert saved["spectral_gap"]["frame"] == [0, 3, 6]
+    with jaxgeom.H5MDTrajectory(path) as h5:
+        for frame, gap in zip(saved["spectral_gap"]["frame"], saved["spectral_gap"]["value"]):
+            alone = jaxgeom.spectral_gap(jaxgeom.delaunay(h5.frame(frame)["positions"]), k=2)[1]
+            np.testing.assert_allclose(gap, float(alone), rtol=1e-6)
+    # the observables' H5MD file, read by an independent reader
+    with pyh5md.File(str(out / "observables.h5md"), "r") as h5:
+        np.testing.assert_array_equal(h5["observables/mean_fitness/step"][()], np.arange(8))
+        np.testing.assert_allclose(h5["observables/mean_fitness/value"][()], saved["series"]["mean_fitness"])
+        np.testing.assert_array_equal(h5["observables/spectral_gap/step"][()], [0, 3, 6])
+    for figure in ("observables.png", "swarm.png"):
+        assert (out / figure).stat().st_size > 10_000
+
+
+def test_the_command_line_takes_frame_ranges_and_files_without_a_landscape(saved_run, tmp_path, capsys):
+    from jaxgeom.cli import main
+
+    path, run = saved_run
+    with jaxgeom.H5MDTrajectory(path) as h5:
+        x = np.stack([h5.frame(t)["positions"] for t in range(h5.n_frames)])
+    np.save(tmp_path / "x.npy", x)
+    out = tmp_path / "an"
+    assert main(["analyze", "--trajectory", str(tmp_path / "x.npy"), "--frames", "1:7", "--every", "2",
+                 "--gap-every", "0", "--snapshots", "2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    saved = json.loads((out / "observables.json").read_text())
+    assert saved["frame"] == [1, 3, 5] and "mean_fitness" not in saved["series"]
+    assert "not measured: mean_fitness: needs fitness" in printed
+    assert "not measured: mean_ricci: without a landscape the metric is Euclidean, which is flat" in printed
+    want = jaxgeom.analyze_trajectory(x[1:7:2], observe=("volume_distortion", "mean_shape_distortion"))
+    for name in ("volume_distortion", "mean_shape_distortion"):
+        np.testing.assert_allclose(saved["series"][name], want[name], rtol=1e-12)
+    assert (out / "swarm.png").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--n", "100"], "--n describe"),
+    (["--metric", "emergent"], "--metric describe"),
+    (["--frames", "5:2"], "--frames must be A:B"),
+    (["--graph", "delaunay", "--every", "0"], "--every must be"),
+])
+def test_the_command_line_refuses_options_of_the_other_mode(saved_run, argv, message, capsys):
+    from jaxgeom.cli import main
+
+    path, _ = saved_run
+    with pytest.raises(SystemExit) if message.startswith("--every") else contextlib.nullcontext():
+        assert main(["analyze", "--trajectory", str(path), *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_trajectory_options_without_a_trajectory_are_refused(tmp_path, capsys):
+    from jaxgeom.cli import main
+
+    assert main(["analyze", "--every", "3"]) == 2
+    assert "--every appl" in capsys.readouterr().err
+    (tmp_path / "t.csv").write_text("1")
+    assert main(["analyze", "--trajectory", str(tmp_path / "t.csv")]) == 2
+    assert "t.csv: unknown extension" in capsys.readouterr().err
+
+
+def test_ctrl_c_returns_the_frames_done(run):
+    x = run[0]
+
+    def frames():
+        yield from x[:3]
+        raise KeyboardInterrupt
+
+    with pytest.raises(jaxgeom.TrajectoryInterrupted) as stopped:
+        jaxgeom.analyze_trajectory(frames(), observe=("volume_distortion",))
+    assert stopped.value.frames == 3
+    np.testing.assert_array_equal(stopped.value.history["frame"], [0, 1, 2])
+    np.testing.assert_array_equal(stopped.value.history["volume_distortion"],
+                                  jaxgeom.analyze_trajectory(x[:3], observe=("volume_distortion",))["volume_distortion"])
