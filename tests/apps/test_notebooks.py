@@ -1,6 +1,6 @@
 """The notebooks: executed top to bottom in a Jupyter kernel (nbclient), and kept clean.
 
-Executing all seven takes ~5 minutes on 2 cores, beyond the default run's budget, so those tests
+Executing all eight takes ~5 minutes on 2 cores, beyond the default run's budget, so those tests
 carry the `notebooks` marker: `pytest -m notebooks` runs them (CI does, after the suite). The
 default run checks what needs no kernel: each notebook is valid, committed without outputs, saves
 the figures it names, and those figures are committed, small, and linked from the README.
@@ -30,8 +30,8 @@ def figures_named(path: Path) -> list[str]:
     return re.findall(r'FIGURES / "([\w.]+\.png)"', code_of(path))
 
 
-def test_there_are_the_seven_notebooks():
-    assert [p.name[:2] for p in NOTEBOOKS] == ["01", "02", "03", "04", "05", "06", "07"]
+def test_there_are_the_eight_notebooks():
+    assert [p.name[:2] for p in NOTEBOOKS] == ["01", "02", "03", "04", "05", "06", "07", "08"]
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
