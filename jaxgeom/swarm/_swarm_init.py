@@ -120,11 +120,17 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     dtype = xj.dtype
     if moved:  # coinciding walkers were moved apart
         values, force = _fitness_and_force(fitness, xj)
-    n = len(x)
+    return fresh_state(xj, jnp.asarray(v, dtype), values, force, key, tess, fallbacks, backend)
+
+
+def fresh_state(xj, v, values, force, key, tess, fallbacks: int = 0, backend: str = "qhull") -> SwarmState:
+    """A state at step 0 on its first graph: alive where the fitness is finite, nothing cloned
+    or measured yet, the viscous length scale from the graph."""
+    n, dtype = xj.shape[0], xj.dtype
     zero = jnp.asarray(0, jnp.int32)
     none = jnp.asarray(np.zeros(n, bool))  # host-made constants: no program compiled per size
     unmeasured = jnp.asarray(np.full(n, np.inf), dtype)  # no finite volume known (`SwarmState`)
-    return SwarmState(xj, jnp.asarray(v, dtype), values, force, jnp.asarray(np.isfinite(np.asarray(values))), none,
+    return SwarmState(xj, v, values, force, jnp.asarray(np.isfinite(np.asarray(values))), none,
                       unmeasured, none, unmeasured, none, jnp.asarray(-1, jnp.int32),
                       key, tess, zero,
                       jnp.asarray(_mean_spacing(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,

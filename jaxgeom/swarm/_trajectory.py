@@ -26,12 +26,12 @@ from ..base._h5md import H5MD_SUFFIXES, H5MDTrajectory
 from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
 from ..tessellation._delaunay import CapacityError, build_delaunay
 from ..tessellation._knn import knn_graph
-from ._dynamics import SwarmParams, SwarmState, empty_scutoid_trace
+from ._dynamics import SwarmParams, SwarmState
 from ._history import _bulk_gap
 from ._observables import ALL_OBSERVABLES, OBSERVABLE_TABLE, SCUTOID_OBSERVABLES, observe_state, \
     prepare_scutoid_trace
 from ._rebuild import capacity_with_headroom, pad_to_capacity
-from ._swarm_init import _mean_spacing
+from ._swarm_init import fresh_state
 
 NEVER = {"nu": "a parameter of the simulation that wrote the trajectory, not of its frames",
          "eps_sigma": "a parameter of the simulation that wrote the trajectory, not of its frames"}
@@ -192,15 +192,10 @@ def _graph(x, graph, k, box, periodic, triangulator, capacity):
 
 
 def _first_state(x, tess, dtype) -> SwarmState:
-    n = x.shape[0]
-    zero = jnp.asarray(0, jnp.int32)
-    none = jnp.zeros(n, bool)
-    unmeasured = jnp.full(n, jnp.inf, dtype)
+    """The state that carries the frames' graphs; each frame puts its own data in place."""
     xj = jnp.asarray(x, dtype)
-    return SwarmState(xj, jnp.zeros_like(xj), jnp.zeros(n, dtype), jnp.zeros_like(xj), jnp.ones(n, bool), none,
-                      unmeasured, none, unmeasured, none, jnp.asarray(-1, jnp.int32), jax.random.PRNGKey(0), tess,
-                      zero, jnp.asarray(_mean_spacing(tess), dtype), jnp.asarray(1.0, dtype), zero, zero, zero,
-                      empty_scutoid_trace(n))
+    zeros = jnp.zeros_like(xj)
+    return fresh_state(xj, zeros, jnp.zeros(xj.shape[0], dtype), zeros, jax.random.PRNGKey(0), tess)
 
 
 # jax.jit, not eqx.filter_jit: its call returns at once (eqx.filter_jit's blocks until the
