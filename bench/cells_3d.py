@@ -21,7 +21,6 @@ from pathlib import Path
 import jax
 import numpy as np
 import scipy.spatial
-
 from _timing import summary, timed
 
 
@@ -44,12 +43,13 @@ def cases(x, dtype):
         "qhull alone (scipy)": lambda: scipy.spatial.Delaunay(x).simplices,
         "delaunay open": lambda: jaxgeom.delaunay(xd).neighbors,
         "delaunay periodic": lambda: jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True).neighbors,
-        "delaunay periodic + voronoi_facets": lambda: jaxgeom.voronoi_facets(
-            jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True)).areas,
-        "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(
-            jaxgeom.delaunay(xd, box=(0.0, 1.0))).areas,
+        "delaunay periodic + voronoi_facets": lambda: (
+            jaxgeom.voronoi_facets(jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True)).areas
+        ),
+        "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(jaxgeom.delaunay(xd, box=(0.0, 1.0))).areas,
         "delaunay boxed + voronoi_volumes (clipped)": lambda: jaxgeom.voronoi_volumes(
-            jaxgeom.delaunay(xd, box=(0.0, 1.0))),
+            jaxgeom.delaunay(xd, box=(0.0, 1.0))
+        ),
     }
 
 
@@ -63,8 +63,12 @@ def row(n: int, repeat: int, dtype) -> dict:
         for name, fn in fns.items():  # interleaved: the ratios are measured side by side
             times[name].append(timed(fn))
     freud_median = float(np.median(times["freud periodic (volumes + face areas)"]))
-    return {"n": n, "dtype": str(np.dtype(dtype)), "seconds": {k: summary(v) for k, v in times.items()},
-            "over_freud": {k: float(np.median(v)) / freud_median for k, v in times.items()}}
+    return {
+        "n": n,
+        "dtype": str(np.dtype(dtype)),
+        "seconds": {k: summary(v) for k, v in times.items()},
+        "over_freud": {k: float(np.median(v)) / freud_median for k, v in times.items()},
+    }
 
 
 def main() -> None:
@@ -79,11 +83,23 @@ def main() -> None:
     for r in rows:
         print(f"N = {r['n']} ({r['dtype']})")
         for name, s in r["seconds"].items():
-            print(f"  {name:<46} {s['median']:8.3f} s ({s['min']:.3f}-{s['max']:.3f})  {r['over_freud'][name]:6.2f}x freud")
+            print(
+                f"  {name:<46} {s['median']:8.3f} s ({s['min']:.3f}-{s['max']:.3f})  "
+                f"{r['over_freud'][name]:6.2f}x freud"
+            )
     out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}.json"
-    out.write_text(json.dumps({"rows": rows, "machine": platform.processor() or platform.machine(),
-                               "cores": len(__import__("os").sched_getaffinity(0)), "jax": jax.__version__,
-                               "date": time.strftime("%Y-%m-%d")}, indent=1))
+    out.write_text(
+        json.dumps(
+            {
+                "rows": rows,
+                "machine": platform.processor() or platform.machine(),
+                "cores": len(__import__("os").sched_getaffinity(0)),
+                "jax": jax.__version__,
+                "date": time.strftime("%Y-%m-%d"),
+            },
+            indent=1,
+        )
+    )
     print(f"wrote {out}")
 
 

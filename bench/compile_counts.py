@@ -37,8 +37,11 @@ def _on_event(event: str, **_):
         _row()[1] += 1
 
 
-_STAGES = {"/jax/core/compile/jaxpr_trace_duration": 1, "/jax/core/compile/jaxpr_to_mlir_module_duration": 2,
-           "/jax/core/compile/backend_compile_duration": 3}
+_STAGES = {
+    "/jax/core/compile/jaxpr_trace_duration": 1,
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": 2,
+    "/jax/core/compile/backend_compile_duration": 3,
+}
 _programs: dict[str, list] = {}  # program name: [compiles, tracing s, lowering s, backend s]
 _compiled_in: dict[str, dict] = {}  # program name: {test id: compiles}
 
@@ -90,8 +93,10 @@ def programs(folder: Path, top: int = 40) -> None:
             for k in range(4):
                 row[k] += values[k]
     total = [sum(r[k] for r in rows.values()) for k in range(4)]
-    print(f"{len(rows)} programs, {total[0]} compiles: tracing {total[1]:.0f} s, lowering {total[2]:.0f} s, "
-          f"backend {total[3]:.0f} s")
+    print(
+        f"{len(rows)} programs, {total[0]} compiles: tracing {total[1]:.0f} s, lowering {total[2]:.0f} s, "
+        f"backend {total[3]:.0f} s"
+    )
     for name, (count, trace, lower, backend) in sorted(rows.items(), key=lambda kv: -sum(kv[1][1:]))[:top]:
         print(f"{trace + lower + backend:7.1f} s ({trace:5.1f} + {lower:5.1f} + {backend:5.1f}) {count:4d}x  {name}")
 
@@ -120,8 +125,10 @@ def summary(folder: Path, top: int = 30) -> None:
             row = rows.setdefault(test, [0, 0, 0.0])
             row[0], row[1], row[2] = row[0] + requests, row[1] + hits, row[2] + seconds
     total = [sum(r[k] for r in rows.values()) for k in range(3)]
-    print(f"{len(rows)} tests: {total[0]} compile requests, {total[1]} persistent-cache hits, "
-          f"{total[2]:.1f} s in XLA's backend compile")
+    print(
+        f"{len(rows)} tests: {total[0]} compile requests, {total[1]} persistent-cache hits, "
+        f"{total[2]:.1f} s in XLA's backend compile"
+    )
     for test, (requests, hits, seconds) in sorted(rows.items(), key=lambda kv: -kv[1][2])[:top]:
         print(f"{seconds:7.1f} s {requests:5d} requests {hits:4d} hits  {test}")
 

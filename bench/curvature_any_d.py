@@ -75,10 +75,14 @@ def cost_table(dims, christoffel_walkers, dtype):
         m, relative_std = probes_for_one_percent(metric, d, dtype)
         row.update(probes_for_1pct=m, relative_std_per_probe=relative_std)
         plain = lambda y: jax.hessian(fitness)(y) + EPS * jnp.eye(y.shape[0], dtype=y.dtype)  # noqa: E731
-        forms = {"exact_hessian": (lambda x: jaxgeom.metric_curvature(metric, x), 1000),
-                 "stochastic_hessian": (lambda x: jaxgeom.metric_curvature(metric, x, probes=m, key=jax.random.key(2)),
-                                        1000),
-                 "christoffel": (lambda x: jaxgeom.metric_curvature(plain, x), christoffel_walkers.get(d, 0))}
+        forms = {
+            "exact_hessian": (lambda x: jaxgeom.metric_curvature(metric, x), 1000),
+            "stochastic_hessian": (
+                lambda x: jaxgeom.metric_curvature(metric, x, probes=m, key=jax.random.key(2)),
+                1000,
+            ),
+            "christoffel": (lambda x: jaxgeom.metric_curvature(plain, x), christoffel_walkers.get(d, 0)),
+        }
         for name, (fn, n) in forms.items():
             if n == 0:
                 row[name] = "not run"
@@ -100,9 +104,14 @@ def variance_against_m(d=100, dtype=jnp.float64):
         s, info = jaxgeom.metric_curvature(metric, x, probes=m, key=jax.random.key(m), with_info=True)
         rel_se = np.asarray(info.standard_error) / np.abs(exact)
         z = (np.asarray(s) - exact) / np.asarray(info.standard_error)
-        out.append({"m": m, "median_relative_se": float(np.median(rel_se)),
-                    "rms_relative_error": float(np.sqrt(np.mean(((np.asarray(s) - exact) / exact) ** 2))),
-                    "fraction_within_3_se": float(np.mean(np.abs(z) < 3))})
+        out.append(
+            {
+                "m": m,
+                "median_relative_se": float(np.median(rel_se)),
+                "rms_relative_error": float(np.sqrt(np.mean(((np.asarray(s) - exact) / exact) ** 2))),
+                "fraction_within_3_se": float(np.mean(np.abs(z) < 3)),
+            }
+        )
         print(json.dumps(out[-1]), flush=True)
     return out
 
@@ -112,14 +121,23 @@ def target_d100(n, dtype):
     m, _ = probes_for_one_percent(metric, 100, dtype)
     x = walkers(n, 100, dtype)
     start = time.perf_counter()
-    s, info = jax.block_until_ready(jaxgeom.metric_curvature(metric, x, probes=m, key=jax.random.key(4),
-                                                             with_info=True))
+    s, info = jax.block_until_ready(
+        jaxgeom.metric_curvature(metric, x, probes=m, key=jax.random.key(4), with_info=True)
+    )
     first = time.perf_counter() - start
-    compile_s, runs, peak = timed(lambda p: jaxgeom.metric_curvature(metric, p, probes=m, key=jax.random.key(4)), x,
-                                  repeats=1)
-    out = {"n": n, "d": 100, "dtype": str(jnp.dtype(dtype)), "probes": m, "first_call_s": first,
-           "warm_s": runs[0], "peak_temp_bytes": peak,
-           "median_relative_se": float(np.median(np.asarray(info.standard_error) / np.abs(np.asarray(s))))}
+    compile_s, runs, peak = timed(
+        lambda p: jaxgeom.metric_curvature(metric, p, probes=m, key=jax.random.key(4)), x, repeats=1
+    )
+    out = {
+        "n": n,
+        "d": 100,
+        "dtype": str(jnp.dtype(dtype)),
+        "probes": m,
+        "first_call_s": first,
+        "warm_s": runs[0],
+        "peak_temp_bytes": peak,
+        "median_relative_se": float(np.median(np.asarray(info.standard_error) / np.abs(np.asarray(s)))),
+    }
     print(json.dumps(out), flush=True)
     return out
 
@@ -134,8 +152,13 @@ def against_regge(n, d, dtype):
     build = time.perf_counter() - start
     _, exact_runs, _ = timed(lambda p: jaxgeom.metric_curvature(metric, p), jnp.asarray(x))
     _, regge_runs, _ = timed(lambda t: jaxgeom.ricci_scalar(t, metric=metric), tess)
-    out = {"n": n, "d": d, "exact_hessian_s": float(np.median(exact_runs)), "ricci_scalar_s": float(np.median(regge_runs)),
-           "delaunay_build_s": build}
+    out = {
+        "n": n,
+        "d": d,
+        "exact_hessian_s": float(np.median(exact_runs)),
+        "ricci_scalar_s": float(np.median(regge_runs)),
+        "delaunay_build_s": build,
+    }
     out["ratio_exact_over_ricci_scalar"] = out["exact_hessian_s"] / out["ricci_scalar_s"]
     print(json.dumps(out), flush=True)
     return out
@@ -155,13 +178,21 @@ def regge_convergence(sizes, d, region=1.2, seeds=3):
             weights = jaxgeom.riemannian_volumes(tess, metric=metric)
             inside = tess.interior & jnp.asarray(np.max(np.abs(x), axis=1) < region)
             regge.append(float(jaxgeom.riemannian_mean(jaxgeom.ricci_scalar(tess, metric=metric), weights, inside)))
-            exact.append(float(jaxgeom.riemannian_mean(jaxgeom.metric_curvature(metric, jnp.asarray(x)), weights,
-                                                       inside)))
+            exact.append(
+                float(jaxgeom.riemannian_mean(jaxgeom.metric_curvature(metric, jnp.asarray(x)), weights, inside))
+            )
         diff = np.asarray(regge) - np.asarray(exact)
-        rows.append({"d": d, "n": n, "regge_mean": float(np.mean(regge)), "exact_mean": float(np.mean(exact)),
-                     "relative_difference_mean": float(np.mean(diff) / np.mean(exact)),
-                     "relative_difference_rms": float(np.sqrt(np.mean(diff**2)) / abs(np.mean(exact))),
-                     "seeds": seeds})
+        rows.append(
+            {
+                "d": d,
+                "n": n,
+                "regge_mean": float(np.mean(regge)),
+                "exact_mean": float(np.mean(exact)),
+                "relative_difference_mean": float(np.mean(diff) / np.mean(exact)),
+                "relative_difference_rms": float(np.sqrt(np.mean(diff**2)) / abs(np.mean(exact))),
+                "seeds": seeds,
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -175,24 +206,33 @@ def main():
     jax.config.update("jax_enable_x64", True)
     if args.regge:
         sizes = (1_000, 3_000, 10_000, 30_000, 100_000)
-        result = {"landscape": "log(1 + sum exp x) + |x|^2/4, eps_Sigma = 0.1; walkers U[-2, 2]^d; region: tier 2, "
-                               "|x|_inf < 1.2; float64", "2D": regge_convergence(sizes, 2),
-                  "3D": regge_convergence(sizes, 3)}
+        result = {
+            "landscape": "log(1 + sum exp x) + |x|^2/4, eps_Sigma = 0.1; walkers U[-2, 2]^d; region: tier 2, "
+            "|x|_inf < 1.2; float64",
+            "2D": regge_convergence(sizes, 2),
+            "3D": regge_convergence(sizes, 3),
+        }
         out = args.out.with_name("curvature_regge_vs_exact.json")
         out.write_text(json.dumps(result, indent=1))
         print(f"wrote {out}")
         return
     dims = (2, 5, 10) if args.quick else (2, 5, 10, 20, 50, 100)
     christoffel_walkers = {2: 1000, 5: 1000, 10: 200, 20: 20, 50: 2, 100: 1}
-    result = {"landscape": "log(1 + sum exp x) + |x|^2/4, eps_Sigma = 0.1, walkers N(0, 0.25 I)",
-              "machine": f"{jax.devices()[0].platform}, {jax.local_device_count()} device(s)",
-              "cost_per_1e3_walkers_float64": cost_table(dims, christoffel_walkers, jnp.float64)}
+    result = {
+        "landscape": "log(1 + sum exp x) + |x|^2/4, eps_Sigma = 0.1, walkers N(0, 0.25 I)",
+        "machine": f"{jax.devices()[0].platform}, {jax.local_device_count()} device(s)",
+        "cost_per_1e3_walkers_float64": cost_table(dims, christoffel_walkers, jnp.float64),
+    }
     if not args.quick:
         result["variance_against_m_d100"] = variance_against_m()
         result["target_d100_n1e4"] = [target_d100(10_000, jnp.float32), target_d100(10_000, jnp.float64)]
     n = 10_000 if args.quick else 100_000
-    result["against_ricci_scalar"] = [against_regge(n, 2, np.float32), against_regge(n, 3, np.float32),
-                                      against_regge(n, 2, np.float64), against_regge(n, 3, np.float64)]
+    result["against_ricci_scalar"] = [
+        against_regge(n, 2, np.float32),
+        against_regge(n, 3, np.float32),
+        against_regge(n, 2, np.float64),
+        against_regge(n, 3, np.float64),
+    ]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}")

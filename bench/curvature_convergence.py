@@ -52,10 +52,21 @@ def curvature_rows(sizes, seed):
         vol = jaxgeom.voronoi_volumes(tess)
         for name, metric, exact in (("sphere", sphere, d * (d - 1.0)), ("hyperbolic", hyperbolic, -d * (d - 1.0))):
             r = jaxgeom.ricci_scalar(tess, metric=metric, volumes=vol)
-            avg = float(jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol), region))
-            rows.append({"dim": d, "n": n, "metric": name, "exact_R": exact, "region_average_R": avg,
-                         "relative_error": abs(avg / exact - 1), "region_walkers": int(region.sum()),
-                         "delaunay_s": t_tess})
+            avg = float(
+                jaxgeom.riemannian_mean(r, jaxgeom.riemannian_volumes(tess, metric=metric, volumes=vol), region)
+            )
+            rows.append(
+                {
+                    "dim": d,
+                    "n": n,
+                    "metric": name,
+                    "exact_R": exact,
+                    "region_average_R": avg,
+                    "relative_error": abs(avg / exact - 1),
+                    "region_walkers": int(region.sum()),
+                    "delaunay_s": t_tess,
+                }
+            )
             tqdm.write(json.dumps(rows[-1]))
     return rows
 
@@ -66,7 +77,9 @@ def volume_rows(sizes, seed):
         x = np.random.default_rng(seed + n).random((n, 2))
         tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
         total = float(jnp.sum(jaxgeom.riemannian_volumes(tess, metric=periodic_metric)))
-        rows.append({"dim": 2, "n": n, "sum_riemannian_volumes": total, "exact": 1.125, "abs_error": abs(total - 1.125)})
+        rows.append(
+            {"dim": 2, "n": n, "sum_riemannian_volumes": total, "exact": 1.125, "abs_error": abs(total - 1.125)}
+        )
         print(json.dumps(rows[-1]))
     return rows
 
@@ -77,8 +90,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "curvature_convergence.json")
     args = parser.parse_args()
-    result = {"curvature": curvature_rows(args.sizes, args.seed), "riemannian_volume": volume_rows(args.sizes, args.seed),
-              "targets": {"2D at N=1e5": "relative error < 0.01", "3D at N=1e5": "relative error < 0.02"}}
+    result = {
+        "curvature": curvature_rows(args.sizes, args.seed),
+        "riemannian_volume": volume_rows(args.sizes, args.seed),
+        "targets": {"2D at N=1e5": "relative error < 0.01", "3D at N=1e5": "relative error < 0.02"},
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
-from jaxgeom.tessellation._cellclip import first_candidates, triangulate, voronoi_cycles
 from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.tessellation._cellclip import first_candidates, triangulate, voronoi_cycles
 
 
 def median_seconds(fn, repeats=3):
@@ -76,10 +76,19 @@ def compare(kind: str, n: int) -> dict:
     jax.block_until_ready(first_pass(xj))
     first, _ = median_seconds(lambda: first_pass(xj))
     result = jax.jit(functools.partial(triangulate, s_cap=tess.capacity.simplices))(xj)
-    row = {"sample": kind, "n": n, "qhull_seconds": qhull, "device_seconds": device,
-           "device_over_qhull": device / qhull, "first_pass_seconds": first, "compile_seconds": compile_seconds,
-           "certified": bool(~new.overflow), "repair_rounds": int(result.rounds), "repaired_cells": int(result.n_repaired),
-           "runs": {"qhull": qhull_runs, "device": device_runs}}
+    row = {
+        "sample": kind,
+        "n": n,
+        "qhull_seconds": qhull,
+        "device_seconds": device,
+        "device_over_qhull": device / qhull,
+        "first_pass_seconds": first,
+        "compile_seconds": compile_seconds,
+        "certified": bool(~new.overflow),
+        "repair_rounds": int(result.rounds),
+        "repaired_cells": int(result.n_repaired),
+        "runs": {"qhull": qhull_runs, "device": device_runs},
+    }
     print(json.dumps(row))
     return row
 
@@ -90,8 +99,14 @@ def simulate_modes(n: int, n_steps: int) -> dict:
     state = jaxgeom.init_swarm(rastrigin, x0, key=0)
     out = {"n": n, "n_steps": n_steps}
     for mode in ("callback", "device"):
-        run = lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=n_steps, rebuild=mode,  # noqa: E731
-                                       observe=("mean_fitness",))
+        run = lambda: jaxgeom.simulate(
+            rastrigin,
+            state,
+            params,
+            n_steps=n_steps,
+            rebuild=mode,  # noqa: E731
+            observe=("mean_fitness",),
+        )
         jax.block_until_ready(run()[0].positions)  # compile
         seconds, _ = median_seconds(lambda: run()[0].positions)
         out[f"{mode}_steps_per_second"] = n_steps / seconds
@@ -107,9 +122,15 @@ def main():
     parser.add_argument("--out", default="bench/results/device_rebuild.json")
     args = parser.parse_args()
     rows = [compare(kind, n) for n in args.sizes for kind in ("uniform_box", "gaussian", "clustered_swarm")]
-    report = {"machine": platform.processor() or platform.machine(), "cpus": jax.local_device_count(),
-              "device": str(jax.devices()[0]), "jax": jax.__version__, "dtype": "float32",
-              "rebuild_vs_qhull": rows, "simulate": simulate_modes(args.simulate_n, 30)}
+    report = {
+        "machine": platform.processor() or platform.machine(),
+        "cpus": jax.local_device_count(),
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "dtype": "float32",
+        "rebuild_vs_qhull": rows,
+        "simulate": simulate_modes(args.simulate_n, 30),
+    }
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(report, indent=1))
 

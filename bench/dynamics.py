@@ -44,8 +44,8 @@ import numpy as np
 import scipy.spatial
 
 import jaxgeom
-from jaxgeom.tessellation._triangulators import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
 from jaxgeom.apps._landscapes import rastrigin
+from jaxgeom.tessellation._triangulators import MORTON_MIN_POINTS, QHULL_OPTIONS, morton_order
 
 OBS_FITNESS = ("mean_fitness", "best_fitness", "n_clones")
 
@@ -122,18 +122,24 @@ def run(state, params, n_steps, rebuild_every, observe, rebuild="host", repeats=
     rest_alone = [(t - q) / q for t, q in zip(per_step, alone)]
     rest_in_run = [(t - q) / q for t, q in zip(per_step, in_run)]
     median = lambda values: float(np.median(values))  # noqa: E731
-    return {"steps_per_second": 1.0 / median(per_step), "seconds_per_step": median(per_step),
-            "qhull_seconds_per_step_in_run": median(in_run), "qhull_alone_seconds_per_step": median(alone),
-            "qhull_share": median([q / t for t, q in zip(per_step, in_run)]),
-            "rest_over_qhull": median(rest_alone), "rest_over_qhull_in_run": median(rest_in_run),
-            "runs": {"seconds_per_step": per_step, "rest_over_qhull": rest_alone, "rest_over_qhull_in_run": rest_in_run},
-            "n_reallocations": int(history["n_reallocations"])}
+    return {
+        "steps_per_second": 1.0 / median(per_step),
+        "seconds_per_step": median(per_step),
+        "qhull_seconds_per_step_in_run": median(in_run),
+        "qhull_alone_seconds_per_step": median(alone),
+        "qhull_share": median([q / t for t, q in zip(per_step, in_run)]),
+        "rest_over_qhull": median(rest_alone),
+        "rest_over_qhull_in_run": median(rest_in_run),
+        "runs": {"seconds_per_step": per_step, "rest_over_qhull": rest_alone, "rest_over_qhull_in_run": rest_in_run},
+        "n_reallocations": int(history["n_reallocations"]),
+    }
 
 
 def throughput(n: int, n_steps: int) -> dict:
     rng = np.random.default_rng(0)
-    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0,
-                               triangulator="qhull")
+    state = jaxgeom.init_swarm(
+        rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0, triangulator="qhull"
+    )
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     row = {"n": n, "n_steps": n_steps}
     for observe, label in ((jaxgeom.OBSERVABLES, "all_observables"), (OBS_FITNESS, "fitness_observables")):
@@ -145,8 +151,9 @@ def throughput(n: int, n_steps: int) -> dict:
 
 def rebuild_strategy(n: int, n_steps: int) -> dict:
     rng = np.random.default_rng(1)
-    state = jaxgeom.init_swarm(rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0,
-                               triangulator="qhull")
+    state = jaxgeom.init_swarm(
+        rastrigin, rng.uniform(-5.12, 5.12, (n, 2)).astype(np.float32), key=0, triangulator="qhull"
+    )
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     out = {"n": n, "n_steps": n_steps}
     for rebuild in ("host", "callback"):
@@ -174,10 +181,15 @@ def timed_steps(state, params, n_steps, observe, rebuild, repeats=3) -> dict:
         fallbacks.append(int(history["n_triangulator_fallbacks"]))
         device_fallbacks.append(int(history["n_fallbacks"]))
     timed = per_step[1:]
-    return {"seconds_per_step": float(np.median(timed)), "min": min(timed), "max": max(timed),
-            "first_run_seconds": per_step[0] * n_steps, "triangulating_seconds_per_step": float(np.median(inside[1:])),
-            "n_triangulator_fallbacks": sum(fallbacks[1:]),
-            "device_fallbacks_per_run": device_fallbacks[1:]}
+    return {
+        "seconds_per_step": float(np.median(timed)),
+        "min": min(timed),
+        "max": max(timed),
+        "first_run_seconds": per_step[0] * n_steps,
+        "triangulating_seconds_per_step": float(np.median(inside[1:])),
+        "n_triangulator_fallbacks": sum(fallbacks[1:]),
+        "device_fallbacks_per_run": device_fallbacks[1:],
+    }
 
 
 def triangulator_matrix(triangulators, configs) -> list:
@@ -196,17 +208,26 @@ def triangulator_matrix(triangulators, configs) -> list:
             row[t] = dict(timed_steps(state, params, n_steps, observe, rebuild), backend=state.triangulator)
         base = row["qhull"]["seconds_per_step"]
         row["speedup_over_qhull"] = {t: base / row[t]["seconds_per_step"] for t in triangulators if t in row}
-        print(json.dumps({"config": label, **{t: round(v, 2) for t, v in row["speedup_over_qhull"].items()},
-                          **{f"{t}_ms": round(1e3 * row[t]["seconds_per_step"], 2) for t in triangulators if t in row}}))
+        print(
+            json.dumps(
+                {
+                    "config": label,
+                    **{t: round(v, 2) for t, v in row["speedup_over_qhull"].items()},
+                    **{f"{t}_ms": round(1e3 * row[t]["seconds_per_step"], 2) for t in triangulators if t in row},
+                }
+            )
+        )
         rows.append(row)
     return rows
 
 
-MATRIX = [("2D N=1e4 fitness observables", 2, 10_000, 20, OBS_FITNESS, "host"),
-          ("2D N=1e4 every observable", 2, 10_000, 20, None, "host"),
-          ("2D N=1e4 callback", 2, 10_000, 20, OBS_FITNESS, "callback"),
-          ("2D N=1e5 fitness observables", 2, 100_000, 5, OBS_FITNESS, "host"),
-          ("3D N=1e4 fitness observables", 3, 10_000, 10, OBS_FITNESS, "host")]
+MATRIX = [
+    ("2D N=1e4 fitness observables", 2, 10_000, 20, OBS_FITNESS, "host"),
+    ("2D N=1e4 every observable", 2, 10_000, 20, None, "host"),
+    ("2D N=1e4 callback", 2, 10_000, 20, OBS_FITNESS, "callback"),
+    ("2D N=1e5 fitness observables", 2, 100_000, 5, OBS_FITNESS, "host"),
+    ("3D N=1e4 fitness observables", 3, 10_000, 10, OBS_FITNESS, "host"),
+]
 
 
 def one_mode(n: int, mode: str, n_steps: int, repeats: int) -> dict:
@@ -217,8 +238,16 @@ def one_mode(n: int, mode: str, n_steps: int, repeats: int) -> dict:
     params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
     timed = timed_steps(state, params, n_steps, OBS_FITNESS, mode, repeats=repeats)
     device = jax.devices()[0]
-    return {"n": n, "rebuild": mode, "n_steps": n_steps, "triangulator": state.triangulator, "device": str(device),
-            "device_kind": device.device_kind, **timed, "steps_per_second": 1.0 / timed["seconds_per_step"]}
+    return {
+        "n": n,
+        "rebuild": mode,
+        "n_steps": n_steps,
+        "triangulator": state.triangulator,
+        "device": str(device),
+        "device_kind": device.device_kind,
+        **timed,
+        "steps_per_second": 1.0 / timed["seconds_per_step"],
+    }
 
 
 def rebuild_modes(sizes, steps, modes, budget: float) -> list:
@@ -268,8 +297,14 @@ def force_versus_numpy(n: int) -> dict:
     ref = numpy_viscous_force(x, v, nbrs, np.float32(0.1), ell)
     t_jax = best_of(lambda: jaxgeom.viscous_force(tess, vj, nu=0.1, weights="kernel", length_scale=ell))
     t_np = best_of(lambda: numpy_viscous_force(x, v, nbrs, np.float32(0.1), ell))
-    out = {"n": n, "capacity_neighbors": tess.capacity.neighbors, "jax_seconds": t_jax, "numpy_seconds": t_np,
-           "speedup": t_np / t_jax, "max_abs_difference": float(np.max(np.abs(np.asarray(ours) - ref)))}
+    out = {
+        "n": n,
+        "capacity_neighbors": tess.capacity.neighbors,
+        "jax_seconds": t_jax,
+        "numpy_seconds": t_np,
+        "speedup": t_np / t_jax,
+        "max_abs_difference": float(np.max(np.abs(np.asarray(ours) - ref))),
+    }
     print(json.dumps(out))
     return out
 
@@ -297,9 +332,11 @@ for _ in range(1 + repeats):
 print(json.dumps({"seconds_per_step": times[1:], "jaxgeom": jaxgeom.__file__}))
 """
 
-AGAINST_CONFIGS = [("2D N=1e4 fitness observables", 10_000, 20, list(OBS_FITNESS), "host"),
-                   ("2D N=1e4 every observable", 10_000, 20, None, "host"),
-                   ("2D N=1e4 callback", 10_000, 20, list(OBS_FITNESS), "callback")]
+AGAINST_CONFIGS = [
+    ("2D N=1e4 fitness observables", 10_000, 20, list(OBS_FITNESS), "host"),
+    ("2D N=1e4 every observable", 10_000, 20, None, "host"),
+    ("2D N=1e4 callback", 10_000, 20, list(OBS_FITNESS), "callback"),
+]
 
 
 def against(revs, rounds: int, repeats: int = 3) -> dict:
@@ -309,37 +346,64 @@ def against(revs, rounds: int, repeats: int = 3) -> dict:
     machine's speed reaches all of them alike. Per tree and config: every timed run's seconds
     per step, their median, min and max, and the median's ratio to each tree's."""
     import tempfile
+
     root = Path(__file__).resolve().parent.parent
     with tempfile.TemporaryDirectory() as tmp:
         trees = {"working tree": root}
         for rev in revs:
             trees[rev] = Path(tmp) / rev
-            subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", "-f", str(trees[rev]), rev],
-                           check=True, capture_output=True)
+            subprocess.run(
+                ["git", "-C", str(root), "worktree", "add", "--detach", "-f", str(trees[rev]), rev],
+                check=True,
+                capture_output=True,
+            )
         try:
             runs = {label: {tree: [] for tree in trees} for label, *_ in AGAINST_CONFIGS}
             for _ in range(rounds):
                 for label, n, steps, observe, rebuild in AGAINST_CONFIGS:
                     for tree, path in trees.items():
                         env = dict(os.environ, PYTHONPATH=str(path))
-                        out = subprocess.run([sys.executable, "-c", AGAINST_CHILD,
-                                              json.dumps([n, steps, observe, rebuild, repeats])],
-                                             env=env, capture_output=True, text=True, check=True, cwd=tmp)
+                        out = subprocess.run(
+                            [sys.executable, "-c", AGAINST_CHILD, json.dumps([n, steps, observe, rebuild, repeats])],
+                            env=env,
+                            capture_output=True,
+                            text=True,
+                            check=True,
+                            cwd=tmp,
+                        )
                         row = json.loads(out.stdout.splitlines()[-1])
                         assert Path(row["jaxgeom"]).resolve().is_relative_to(path.resolve()), row["jaxgeom"]
                         runs[label][tree] += row["seconds_per_step"]
-                        print(json.dumps({"config": label, "tree": tree,
-                                          "ms": [round(1e3 * t, 2) for t in row["seconds_per_step"]]}), flush=True)
+                        print(
+                            json.dumps(
+                                {
+                                    "config": label,
+                                    "tree": tree,
+                                    "ms": [round(1e3 * t, 2) for t in row["seconds_per_step"]],
+                                }
+                            ),
+                            flush=True,
+                        )
         finally:
             for rev in revs:
-                subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(trees[rev])],
-                               capture_output=True)
-    return {label: {tree: {"median_ms": 1e3 * float(np.median(t)), "min_ms": 1e3 * min(t), "max_ms": 1e3 * max(t),
-                           "runs_ms": [1e3 * v for v in t],
-                           "speedup_over": {other: float(np.median(runs[label][other]) / np.median(t))
-                                            for other in trees if other != tree}}
-                    for tree, t in runs[label].items()}
-            for label in runs}
+                subprocess.run(
+                    ["git", "-C", str(root), "worktree", "remove", "--force", str(trees[rev])], capture_output=True
+                )
+    return {
+        label: {
+            tree: {
+                "median_ms": 1e3 * float(np.median(t)),
+                "min_ms": 1e3 * min(t),
+                "max_ms": 1e3 * max(t),
+                "runs_ms": [1e3 * v for v in t],
+                "speedup_over": {
+                    other: float(np.median(runs[label][other]) / np.median(t)) for other in trees if other != tree
+                },
+            }
+            for tree, t in runs[label].items()
+        }
+        for label in runs
+    }
 
 
 def main() -> None:
@@ -348,14 +412,26 @@ def main() -> None:
     parser.add_argument("--steps", type=int, nargs="+", default=[40, 10], help="timed steps per size")
     parser.add_argument("--force-n", type=int, default=1_000_000)
     parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--triangulators", nargs="+", help="only the step matrix (MATRIX), with these backends "
-                        "side by side (e.g. qhull cdt shull auto), into results/dynamics_triangulators.json")
-    parser.add_argument("--rebuild-modes", nargs="+", choices=("host", "callback", "device"),
-                        help="only simulate at --sizes/--steps in these rebuild modes, into results/dynamics_modes.json")
+    parser.add_argument(
+        "--triangulators",
+        nargs="+",
+        help="only the step matrix (MATRIX), with these backends "
+        "side by side (e.g. qhull cdt shull auto), into results/dynamics_triangulators.json",
+    )
+    parser.add_argument(
+        "--rebuild-modes",
+        nargs="+",
+        choices=("host", "callback", "device"),
+        help="only simulate at --sizes/--steps in these rebuild modes, into results/dynamics_modes.json",
+    )
     parser.add_argument("--budget", type=float, default=600.0, help="seconds for all of --rebuild-modes")
-    parser.add_argument("--against", nargs="+", metavar="REV",
-                        help="only the 2D N=1e4 step configurations, this working tree against these commits "
-                        "(each in a child process, alternating over --rounds), into results/dynamics_against.json")
+    parser.add_argument(
+        "--against",
+        nargs="+",
+        metavar="REV",
+        help="only the 2D N=1e4 step configurations, this working tree against these commits "
+        "(each in a child process, alternating over --rounds), into results/dynamics_against.json",
+    )
     parser.add_argument("--rounds", type=int, default=3, help="rounds of --against")
     parser.add_argument("--one", nargs=3, metavar=("N", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -363,17 +439,31 @@ def main() -> None:
         print(json.dumps(one_mode(int(args.one[0]), args.one[1], int(args.one[2]), repeats=2)), flush=True)
         return
     if args.against:
-        result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
-                              "dtype": "float32", "date": time.strftime("%Y-%m-%d")},
-                  "against": against(args.against, args.rounds)}
+        result = {
+            "machine": {
+                "platform": platform.platform(),
+                "cpus": os.cpu_count(),
+                "jax": jax.__version__,
+                "dtype": "float32",
+                "date": time.strftime("%Y-%m-%d"),
+            },
+            "against": against(args.against, args.rounds),
+        }
         out = args.out or Path(__file__).parent / "results" / "dynamics_against.json"
         out.write_text(json.dumps(result, indent=2))
         print(f"wrote {out}")
         return
     if args.rebuild_modes:
-        result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
-                              "device": jax.devices()[0].device_kind, "dtype": "float32"},
-                  "modes": rebuild_modes(args.sizes, args.steps, args.rebuild_modes, args.budget)}
+        result = {
+            "machine": {
+                "platform": platform.platform(),
+                "cpus": os.cpu_count(),
+                "jax": jax.__version__,
+                "device": jax.devices()[0].device_kind,
+                "dtype": "float32",
+            },
+            "modes": rebuild_modes(args.sizes, args.steps, args.rebuild_modes, args.budget),
+        }
         out = args.out or Path(__file__).parent / "results" / "dynamics_modes.json"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=2))
@@ -381,19 +471,31 @@ def main() -> None:
         return
     if args.triangulators:
         configs = [c[:4] + (jaxgeom.OBSERVABLES if c[4] is None else c[4],) + c[5:] for c in MATRIX]
-        result = {"machine": {"platform": platform.platform(), "cpus": jax.device_count("cpu"),
-                              "jax": jax.__version__, "dtype": "float32"},
-                  "matrix": triangulator_matrix(["qhull"] + [t for t in args.triangulators if t != "qhull"], configs)}
+        result = {
+            "machine": {
+                "platform": platform.platform(),
+                "cpus": jax.device_count("cpu"),
+                "jax": jax.__version__,
+                "dtype": "float32",
+            },
+            "matrix": triangulator_matrix(["qhull"] + [t for t in args.triangulators if t != "qhull"], configs),
+        }
         out = args.out or Path(__file__).parent / "results" / "dynamics_triangulators.json"
         out.write_text(json.dumps(result, indent=2))
         print(f"wrote {out}")
         return
     args.out = args.out or Path(__file__).parent / "results" / "dynamics.json"
-    result = {"machine": {"platform": platform.platform(), "cpus": jax.device_count("cpu"),
-                          "jax": jax.__version__, "dtype": "float32"},
-              "throughput": [throughput(n, s) for n, s in zip(args.sizes, args.steps)],
-              "rebuild_strategy": rebuild_strategy(args.sizes[0], args.steps[0]),
-              "viscous_force": force_versus_numpy(args.force_n)}
+    result = {
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": jax.device_count("cpu"),
+            "jax": jax.__version__,
+            "dtype": "float32",
+        },
+        "throughput": [throughput(n, s) for n, s in zip(args.sizes, args.steps)],
+        "rebuild_strategy": rebuild_strategy(args.sizes[0], args.steps[0]),
+        "viscous_force": force_versus_numpy(args.force_n),
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

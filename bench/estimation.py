@@ -32,9 +32,22 @@ def convergence(sizes) -> list:
     for name in ("rosenbrock", "rastrigin"):
         for n in sizes:
             r = jaxgeom.validate_on_synthetic_function(name, n_walkers=n)
-            rows.append({k: r[k] for k in ("function", "n_walkers", "k", "n_scored", "gradient_rmse",
-                                           "gradient_relative_rmse", "hessian_frobenius_error",
-                                           "fd_geometric_correlation", "passed")})
+            rows.append(
+                {
+                    k: r[k]
+                    for k in (
+                        "function",
+                        "n_walkers",
+                        "k",
+                        "n_scored",
+                        "gradient_rmse",
+                        "gradient_relative_rmse",
+                        "hessian_frobenius_error",
+                        "fd_geometric_correlation",
+                        "passed",
+                    )
+                }
+            )
             print(json.dumps(rows[-1]))
     return rows
 
@@ -42,19 +55,30 @@ def convergence(sizes) -> list:
 def agreement(n: int, seed: int) -> list:
     rng = np.random.default_rng(seed)
     a = np.array([[3.0, 1.0], [1.0, 1.5]])
-    samples = {"gaussian exp(-x^T A x / 2)": rng.multivariate_normal(np.zeros(2), np.linalg.inv(a), size=n),
-               "uniform [-2, 2]^2": rng.uniform(-2, 2, size=(n, 2))}
+    samples = {
+        "gaussian exp(-x^T A x / 2)": rng.multivariate_normal(np.zeros(2), np.linalg.inv(a), size=n),
+        "uniform [-2, 2]^2": rng.uniform(-2, 2, size=(n, 2)),
+    }
     rows = []
     for label, x in samples.items():
         tess = jaxgeom.delaunay(x)
         values = 0.5 * np.einsum("ni,ij,nj->n", x, a, x)
         out = jaxgeom.compare_estimation_methods(tess, values, eps_sigma=0.1)
         h_geo = np.asarray(out["hessian_geometric"])[out["valid"]]
-        rows.append({"walkers": label, "n": n, **out["metrics"],
-                     "median_fd_hessian_error": float(np.median(np.linalg.norm(
-                         np.asarray(out["hessian_fd"])[out["valid"]] - a, axis=(1, 2)) / np.linalg.norm(a))),
-                     "median_geometric_eigenvalues": np.median(np.linalg.eigvalsh(h_geo), axis=0).tolist(),
-                     "true_eigenvalues": np.linalg.eigvalsh(a).tolist()})
+        rows.append(
+            {
+                "walkers": label,
+                "n": n,
+                **out["metrics"],
+                "median_fd_hessian_error": float(
+                    np.median(
+                        np.linalg.norm(np.asarray(out["hessian_fd"])[out["valid"]] - a, axis=(1, 2)) / np.linalg.norm(a)
+                    )
+                ),
+                "median_geometric_eigenvalues": np.median(np.linalg.eigvalsh(h_geo), axis=0).tolist(),
+                "true_eigenvalues": np.linalg.eigvalsh(a).tolist(),
+            }
+        )
         print(json.dumps(rows[-1]))
     return rows
 
@@ -76,8 +100,15 @@ def timing(n: int, seed: int) -> list:
             start = time.perf_counter()
             jax.block_until_ready(fn(tess, values))
             best = min(best, time.perf_counter() - start)
-        rows.append({"dim": d, "n": n, "delaunay_s": min(times), "full_hessian_s": best,
-                     "hessian_over_delaunay": best / min(times)})
+        rows.append(
+            {
+                "dim": d,
+                "n": n,
+                "delaunay_s": min(times),
+                "full_hessian_s": best,
+                "hessian_over_delaunay": best / min(times),
+            }
+        )
         print(json.dumps(rows[-1]))
     return rows
 
@@ -89,10 +120,17 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "estimation.json")
     args = parser.parse_args()
-    result = {"meta": {"machine": platform.machine(), "jax": jax.__version__, "dtype": "float64",
-                       "target": "hessian_over_delaunay <= 0.25"},
-              "timing": timing(args.n, args.seed), "convergence": convergence(args.sizes),
-              "agreement": agreement(5000, args.seed)}
+    result = {
+        "meta": {
+            "machine": platform.machine(),
+            "jax": jax.__version__,
+            "dtype": "float64",
+            "target": "hessian_over_delaunay <= 0.25",
+        },
+        "timing": timing(args.n, args.seed),
+        "convergence": convergence(args.sizes),
+        "agreement": agreement(5000, args.seed),
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

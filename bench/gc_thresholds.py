@@ -22,7 +22,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from _timing import summary
 
 CHILD = r"""
@@ -59,7 +58,7 @@ def main() -> None:
     seconds = {s: [] for s in settings}
     memory = {s: [] for s in settings}
     for r in range(args.rounds):
-        for s in (settings if r % 2 == 0 else settings[::-1]):
+        for s in settings if r % 2 == 0 else settings[::-1]:
             t, m = run(s)
             seconds[s].append(t)
             memory[s].append(m)

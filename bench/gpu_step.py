@@ -42,13 +42,18 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _timing import summary, timed
 
 import jaxgeom
-from _timing import summary, timed
 from jaxgeom.apps._landscapes import rastrigin
 from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.tessellation._delaunay import (
-    _cut_to_walkers, _pad_walkers, _planar_rows, build_delaunay, planar_graph_on_device, planar_triangles,
+    _cut_to_walkers,
+    _pad_walkers,
+    _planar_rows,
+    build_delaunay,
+    planar_graph_on_device,
+    planar_triangles,
 )
 from jaxgeom.tessellation._device_check import planar_summary, sort_by_two_keys, sort_in_two_radix_passes
 from jaxgeom.tessellation._graph import bucket_neighbors, bucket_walkers
@@ -59,16 +64,27 @@ OBSERVE = ("mean_fitness", "best_fitness", "n_clones")
 def row(n: int, backend: str, steps: int, repeat: int) -> dict:
     x0 = np.random.default_rng(0).uniform(-5.12, 5.12, (n, 2)).astype(np.float32)
     state = jaxgeom.init_swarm(rastrigin, x0, key=0, triangulator=backend)
-    params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=1.0, nu=0.1, eps_sigma=0.1, weights="kernel",
-                                 clone_rate=0.1)
+    params = jaxgeom.SwarmParams(
+        dt=0.01, gamma=2.0, temperature=1.0, nu=0.1, eps_sigma=0.1, weights="kernel", clone_rate=0.1
+    )
     state, _ = jaxgeom.simulate(rastrigin, state, params, n_steps=10, observe=OBSERVE)  # warm, and a real swarm
     jaxgeom.simulate(rastrigin, state, params, n_steps=10, rebuild_every=10, observe=OBSERVE)  # compile 10-step chunks
     every, tenth = [], []
     for _ in range(repeat):
-        every.append(timed(lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=steps, observe=OBSERVE)[0]
-                           .positions) / steps)
-        tenth.append(timed(lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=10, rebuild_every=10,
-                                                    observe=OBSERVE)[0].positions) / 10)
+        every.append(
+            timed(lambda: jaxgeom.simulate(rastrigin, state, params, n_steps=steps, observe=OBSERVE)[0].positions)
+            / steps
+        )
+        tenth.append(
+            timed(
+                lambda: (
+                    jaxgeom.simulate(rastrigin, state, params, n_steps=10, rebuild_every=10, observe=OBSERVE)[
+                        0
+                    ].positions
+                )
+            )
+            / 10
+        )
     tess, v = state.tess, state.velocities
     fitness_gradient = jax.jit(jax.vmap(jax.grad(rastrigin)))
     kernels = {
@@ -86,15 +102,24 @@ def row(n: int, backend: str, steps: int, repeat: int) -> dict:
     build = [timed(lambda: jaxgeom.delaunay(x, triangulator=backend).neighbors) for _ in range(repeat)]
     step, step_10 = float(np.median(every)), float(np.median(tenth))
     kernel_sum = sum(warm.values()) + warm["viscous_force"]
-    return {"n": n, "triangulator": backend, "step": summary(every), "step_10": summary(tenth),
-            "no_rebuild": (10 * step_10 - step) / 9, "kernels": warm, "kernel_sum_force_twice": kernel_sum,
-            "delaunay": summary(build)}
+    return {
+        "n": n,
+        "triangulator": backend,
+        "step": summary(every),
+        "step_10": summary(tenth),
+        "no_rebuild": (10 * step_10 - step) / 9,
+        "kernels": warm,
+        "kernel_sum_force_twice": kernel_sum,
+        "delaunay": summary(build),
+    }
 
 
 def parts(x: np.ndarray, backend: str, repeat: int, stand_in: bool = False) -> dict:
-    calls = {"triangulate": lambda: triangulators.triangulate(x, backend).tri.simplices,
-             "planar_triangles": lambda: planar_triangles(x, None, backend)[0],
-             "build_delaunay": lambda: build_delaunay(x, triangulator=backend)[0].neighbors}
+    calls = {
+        "triangulate": lambda: triangulators.triangulate(x, backend).tri.simplices,
+        "planar_triangles": lambda: planar_triangles(x, None, backend)[0],
+        "build_delaunay": lambda: build_delaunay(x, triangulator=backend)[0].neighbors,
+    }
     if backend == "cupy" and not stand_in:
         import cupy
         from cupyx.scipy.spatial import Delaunay as CupyDelaunay
@@ -140,13 +165,15 @@ def device_parts(xj, backend: str) -> dict:
     a, b = jax.numpy.roll(triangles, -1, axis=1).ravel(), jax.numpy.roll(triangles, -2, axis=1).ravel()
     lo, hi = jax.numpy.minimum(a, b), jax.numpy.maximum(a, b)
     one_sort, two_passes = jax.jit(sort_by_two_keys), jax.jit(sort_in_two_radix_passes)
-    return {"edge_sort_two_keys": lambda: one_sort(lo, hi)[2],
-            "edge_sort_two_radix_passes": lambda: two_passes(lo, hi)[2],
-            "device_triangles": lambda: triangulators.device_triangles(xj, 2 * m, m, backend)[0],
-            "planar_summary": lambda: planar_summary(padded, triangles, flat, n_walkers)[1],
-            "planar_rows": lambda: _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)[0],
-            "cut_to_walkers": lambda: _cut_to_walkers(xj, triangles, None, *rows, s_cap=2 * n).neighbors,
-            "planar_graph_on_device": lambda: planar_graph_on_device(xj, None, None, backend)[0].neighbors}
+    return {
+        "edge_sort_two_keys": lambda: one_sort(lo, hi)[2],
+        "edge_sort_two_radix_passes": lambda: two_passes(lo, hi)[2],
+        "device_triangles": lambda: triangulators.device_triangles(xj, 2 * m, m, backend)[0],
+        "planar_summary": lambda: planar_summary(padded, triangles, flat, n_walkers)[1],
+        "planar_rows": lambda: _planar_rows(padded, triangles, adjacency, None, n_walkers, k_cap=k_cap)[0],
+        "cut_to_walkers": lambda: _cut_to_walkers(xj, triangles, None, *rows, s_cap=2 * n).neighbors,
+        "planar_graph_on_device": lambda: planar_graph_on_device(xj, None, None, backend)[0].neighbors,
+    }
 
 
 def safe_row(n: int, backend: str, args) -> dict:
@@ -167,12 +194,16 @@ def main() -> None:
     parser.add_argument("--triangulators", nargs="+", default=["cupy", "cdt"])
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--parts", type=int, nargs="*", default=[],
-                        help="sizes at which to break one rebuild into its parts")
+    parser.add_argument(
+        "--parts", type=int, nargs="*", default=[], help="sizes at which to break one rebuild into its parts"
+    )
     parser.add_argument("--parts-triangulators", nargs="+", default=["cupy"])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "gpu_step.json")
-    parser.add_argument("--stand-in", action="store_true",
-                        help="scipy and numpy in place of gDel2D and CuPy: a dry run of the device path on a CPU")
+    parser.add_argument(
+        "--stand-in",
+        action="store_true",
+        help="scipy and numpy in place of gDel2D and CuPy: a dry run of the device path on a CPU",
+    )
     args = parser.parse_args()
     if args.stand_in:
         from scipy.spatial import Delaunay
@@ -184,10 +215,20 @@ def main() -> None:
         for backend in args.triangulators:  # side by side, size by size
             rows.append(safe_row(n, backend, args))
             print(json.dumps(rows[-1]), flush=True)
-            args.out.write_text(json.dumps({"rows": rows, "device": f"{device.platform}: {device.device_kind}",
-                                            "jax": jax.__version__, "machine": platform.machine(),
-                                            "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d"),
-                                            "stand_in": args.stand_in}, indent=1))
+            args.out.write_text(
+                json.dumps(
+                    {
+                        "rows": rows,
+                        "device": f"{device.platform}: {device.device_kind}",
+                        "jax": jax.__version__,
+                        "machine": platform.machine(),
+                        "cpus": os.cpu_count(),
+                        "date": time.strftime("%Y-%m-%d"),
+                        "stand_in": args.stand_in,
+                    },
+                    indent=1,
+                )
+            )
 
 
 if __name__ == "__main__":

@@ -63,16 +63,19 @@ def timings(n: int, seed: int, repeat: int) -> dict:
     tess = jaxgeom.delaunay(x)
     row["spectral_gap_scipy_s"], _ = timed(lambda: jaxgeom.spectral_gap(tess, k=6), repeat)
     row["geodesic_dijkstra_s"], _ = timed(lambda: jaxgeom.geodesic_distances(tess, 0, method="dijkstra"), repeat)
-    row["geodesic_bellman_ford_s"], _ = timed(lambda: jaxgeom.geodesic_distances(tess, 0, method="bellman_ford"),
-                                              repeat)
+    row["geodesic_bellman_ford_s"], _ = timed(
+        lambda: jaxgeom.geodesic_distances(tess, 0, method="bellman_ford"), repeat
+    )
     start = time.perf_counter()
     jax.block_until_ready(jaxgeom.geodesic_distances(tess, 1, solver="direct"))
     row["heat_first_call_s"] = time.perf_counter() - start  # factorisations + compilation
     sources = np.random.default_rng(seed + 1).choice(n, 100, replace=False)
     row["heat_1_source_s"], row["heat_1_source_spread_s"] = timed(
-        lambda: jaxgeom.geodesic_distances(tess, 2, solver="direct"), repeat)
+        lambda: jaxgeom.geodesic_distances(tess, 2, solver="direct"), repeat
+    )
     row["heat_100_sources_s"], row["heat_100_sources_spread_s"] = timed(
-        lambda: jaxgeom.geodesic_distances(tess, sources, solver="direct"), repeat)
+        lambda: jaxgeom.geodesic_distances(tess, sources, solver="direct"), repeat
+    )
     for key in ("spectral_gap_scipy", "geodesic_dijkstra", "heat_1_source", "heat_100_sources"):
         row[f"{key}_over_delaunay"] = row[f"{key}_s"] / row["delaunay_s"]
     print(json.dumps(row), flush=True)
@@ -102,8 +105,12 @@ def convergence_row(case: str, n: int, seed: int, fixed_t_up_to: int) -> dict:
         true = np.arccos(np.clip(s[sources] @ s.T, -1.0, 1.0))
     start = time.perf_counter()
     heat = np.asarray(jaxgeom.geodesic_distances(tess, sources, metric, solver="direct"))
-    row = {"case": case, "n": n, "heat_median_rel_error": median_error(tess, heat, true),
-           "heat_s": time.perf_counter() - start}
+    row = {
+        "case": case,
+        "n": n,
+        "heat_median_rel_error": median_error(tess, heat, true),
+        "heat_s": time.perf_counter() - start,
+    }
     graph = np.asarray(jaxgeom.geodesic_distances(tess, sources, metric, method="dijkstra"))
     row["dijkstra_median_rel_error"] = median_error(tess, graph, true)
     sel = np.asarray(tess.interior)[None] & (true > 0)
@@ -126,15 +133,28 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "graph.json")
     args = parser.parse_args()
-    result = {"meta": {"machine": platform.machine(), "cores": os.cpu_count(), "jax": jax.__version__,
-                       "dtype": "float64",
-                       "targets": {"spectral_gap_over_delaunay": "<= 2", "dijkstra_over_delaunay": "<= 0.5",
-                                   "heat_1_source_over_delaunay": "<= 1", "heat_100_sources_over_delaunay": "<= 3",
-                                   "heat_median_rel_error_at_1e5": "flat_2d <= 0.01, flat_3d <= 0.02"}},
-              "timings": timings(args.n, args.seed, args.repeat),
-              "geodesic_convergence": [convergence_row(case, n, args.seed, args.fixed_t_up_to)
-                                       for case, n in tqdm([(c, n) for c in args.cases for n in args.sizes],
-                                                           desc="geodesic convergence", disable=None)]}
+    result = {
+        "meta": {
+            "machine": platform.machine(),
+            "cores": os.cpu_count(),
+            "jax": jax.__version__,
+            "dtype": "float64",
+            "targets": {
+                "spectral_gap_over_delaunay": "<= 2",
+                "dijkstra_over_delaunay": "<= 0.5",
+                "heat_1_source_over_delaunay": "<= 1",
+                "heat_100_sources_over_delaunay": "<= 3",
+                "heat_median_rel_error_at_1e5": "flat_2d <= 0.01, flat_3d <= 0.02",
+            },
+        },
+        "timings": timings(args.n, args.seed, args.repeat),
+        "geodesic_convergence": [
+            convergence_row(case, n, args.seed, args.fixed_t_up_to)
+            for case, n in tqdm(
+                [(c, n) for c in args.cases for n in args.sizes], desc="geodesic convergence", disable=None
+            )
+        ],
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(f"wrote {args.out}")

@@ -60,10 +60,18 @@ CASES: list[tuple[str, str, str]] = [
     ("too few points", "jg.delaunay(X[:3])", E),
     ("duplicates", "jg.delaunay(np.r_[X, X[:5]])", E),
     ("collinear", "jg.delaunay(np.c_[X[:, 0], 2 * X[:, 0]])", E),
-    ("near collinear 1e-13", "s = np.linspace(0, 1, 40); v = np.asarray(jg.voronoi_volumes(jg.delaunay("
-     "np.c_[s, 2 * s + 1e-13 * rng.standard_normal(40)]))); assert not np.any(v[np.isfinite(v)] < 0)", EITHER),
-    ("near collinear 1e-12 volumes", "s = np.linspace(0, 1, 40); v = np.asarray(jg.voronoi_volumes(jg.delaunay("
-     "np.c_[s, 2 * s + 1e-12 * rng.standard_normal(40)]))); assert np.all(v[np.isfinite(v)] > 0)", OK),
+    (
+        "near collinear 1e-13",
+        "s = np.linspace(0, 1, 40); v = np.asarray(jg.voronoi_volumes(jg.delaunay("
+        "np.c_[s, 2 * s + 1e-13 * rng.standard_normal(40)]))); assert not np.any(v[np.isfinite(v)] < 0)",
+        EITHER,
+    ),
+    (
+        "near collinear 1e-12 volumes",
+        "s = np.linspace(0, 1, 40); v = np.asarray(jg.voronoi_volumes(jg.delaunay("
+        "np.c_[s, 2 * s + 1e-12 * rng.standard_normal(40)]))); assert np.all(v[np.isfinite(v)] > 0)",
+        OK,
+    ),
     ("coplanar 3D", "jg.delaunay(np.c_[X, X[:, 0] + X[:, 1]])", E),
     ("dimension 5 Delaunay", "jg.delaunay(rng.random((100, 5)))", E),
     ("unknown triangulator", "jg.delaunay(X, triangulator='fast')", E),
@@ -75,8 +83,12 @@ CASES: list[tuple[str, str, str]] = [
     ("metric wrong shape", "jg.ricci_scalar(T, metric=np.ones((5, 2, 2)))", E),
     ("metric indefinite", "jg.ricci_scalar(T, metric=np.broadcast_to(np.diag([1.0, -1.0]), (N, 2, 2)))", E),
     ("metric string", "jg.ricci_scalar(T, metric='euclidean')", E),
-    ("metric 1e200 I", "v = np.asarray(jg.riemannian_volumes(T, metric=np.broadcast_to(1e200 * np.eye(2), (N, 2, 2))));"
-     " assert np.isfinite(v).sum() > 100", OK),
+    (
+        "metric 1e200 I",
+        "v = np.asarray(jg.riemannian_volumes(T, metric=np.broadcast_to(1e200 * np.eye(2), (N, 2, 2))));"
+        " assert np.isfinite(v).sum() > 100",
+        OK,
+    ),
     ("metric 1e-200 I", "jg.ricci_scalar(T, metric=np.broadcast_to(1e-200 * np.eye(2), (N, 2, 2)))", OK),
     ("metric callable float()", "jg.ricci_scalar(T, metric=lambda p: float(p[0]) * jnp.eye(2))", E),
     ("zero metric eps 0", "jg.ricci_scalar(T, metric=jg.hessian_metric(lambda p: jnp.sum(p), 0.0))", OK),
@@ -107,10 +119,18 @@ CASES: list[tuple[str, str, str]] = [
     ("raychaudhuri dt 0", "jg.raychaudhuri_expansion(VOL, VOL, 0.0)", E),
     ("mean_curvature list with NaN", "assert float(jg.mean_curvature_estimate([1.0, 2.0, np.nan])) == -1.5", OK),
     ("mean_curvature complex", "jg.mean_curvature_estimate(np.array([1.0, 2.0]) + 0j)", E),
-    ("heat on clipped Rastrigin metric 2D", "x = rng.uniform(-5.12, 5.12, (300, 2)); d = np.asarray(jg.geodesic_distances("
-     "jg.delaunay(x), 0, jg.hessian_metric(rastrigin, 0.1))); assert np.isfinite(d).all()", OK),
-    ("heat on clipped Rastrigin metric 3D", "x = rng.uniform(-5.12, 5.12, (400, 3)); d = np.asarray(jg.geodesic_distances("
-     "jg.delaunay(x), 0, jg.hessian_metric(rastrigin, 0.1))); assert np.isfinite(d).all()", OK),
+    (
+        "heat on clipped Rastrigin metric 2D",
+        "x = rng.uniform(-5.12, 5.12, (300, 2)); d = np.asarray(jg.geodesic_distances("
+        "jg.delaunay(x), 0, jg.hessian_metric(rastrigin, 0.1))); assert np.isfinite(d).all()",
+        OK,
+    ),
+    (
+        "heat on clipped Rastrigin metric 3D",
+        "x = rng.uniform(-5.12, 5.12, (400, 3)); d = np.asarray(jg.geodesic_distances("
+        "jg.delaunay(x), 0, jg.hessian_metric(rastrigin, 0.1))); assert np.isfinite(d).all()",
+        OK,
+    ),
     ("geodesic sources out of range", "jg.geodesic_distances(T, 500)", E),
     ("geodesic unknown method", "jg.geodesic_distances(T, 0, method='astar')", E),
     ("geodesic t negative", "jg.geodesic_distances(T, 0, t=-1.0)", E),
@@ -139,8 +159,12 @@ CASES: list[tuple[str, str, str]] = [
     ("simulate unknown observable", "jg.simulate(V, S, P, n_steps=1, observe=('fitness',))", E),
     ("simulate spectral_gap_every -2", "jg.simulate(V, S, P, n_steps=1, spectral_gap_every=-2)", E),
     ("simulate n_steps 0", "jg.simulate(V, S, P, n_steps=0)", E),
-    ("simulate zero metric weights", "jg.simulate(lambda p: jnp.sum(p), jg.init_swarm(lambda p: jnp.sum(p), X), "
-     "jg.SwarmParams(eps_sigma=0.0, weights='metric_full'), n_steps=3, observe=('mean_fitness',))", E),
+    (
+        "simulate zero metric weights",
+        "jg.simulate(lambda p: jnp.sum(p), jg.init_swarm(lambda p: jnp.sum(p), X), "
+        "jg.SwarmParams(eps_sigma=0.0, weights='metric_full'), n_steps=3, observe=('mean_fitness',))",
+        E,
+    ),
     ("SwarmParams dt -1", "jg.SwarmParams(dt=-1.0)", E),
     ("SwarmParams nu NaN", "jg.SwarmParams(nu=np.nan)", E),
     ("SwarmParams unknown weights", "jg.SwarmParams(weights='gauss')", E),
@@ -153,7 +177,11 @@ CASES: list[tuple[str, str, str]] = [
     ("tune lbfgsb reversed bounds", "jg.tune(L, solver='lbfgsb', bounds={'nu': (1.0, 0.1)})", E),
     ("tune max_steps 0", "jg.tune(L, max_steps=0)", E),
     ("tune unknown solver", "jg.tune(L, solver='adam')", E),
-    ("sample_boltzmann beta 0", "x, _ = sample_boltzmann('double_well', 1000, 2, beta=0.0); assert np.isfinite(x).all()", OK),
+    (
+        "sample_boltzmann beta 0",
+        "x, _ = sample_boltzmann('double_well', 1000, 2, beta=0.0); assert np.isfinite(x).all()",
+        OK,
+    ),
     ("sample_boltzmann beta 1e300", "sample_boltzmann('double_well', 10, 2, beta=1e300)", E),
     ("sample_boltzmann d 1000", "sample_boltzmann('double_well', 100, 1000, beta=1e-3)", OK),
     ("cli: analyze --n 300 --dim 4", "cli: analyze --n 300 --dim 4", OK),
@@ -172,40 +200,88 @@ CASES: list[tuple[str, str, str]] = [
     ("cli: simulate --triangulator fast", "cli: simulate --triangulator fast --steps 2", E),
     ("cli: tune --tune speed", "cli: tune --tune speed", E),
     # issue 47: diverging swarms under every driver (the rebuilds meet inf coordinates), NaN metrics
-    ("cli: tune rosenbrock 2D", "cli: tune --tune nu eps_sigma --dim 2 --weights metric_full --landscape rosenbrock "
-     "--max-steps 3 --no-progress", E),
-    ("cli: tune rosenbrock 3D", "cli: tune --tune nu eps_sigma --dim 3 --weights metric_full --landscape rosenbrock "
-     "--max-steps 3 --no-progress", E),
-    ("cli: simulate rosenbrock dt 0.05", "cli: simulate --landscape rosenbrock --weights metric_full --dt 0.05 "
-     "--n 200 --steps 30 --anisotropic", E),
+    (
+        "cli: tune rosenbrock 2D",
+        "cli: tune --tune nu eps_sigma --dim 2 --weights metric_full --landscape rosenbrock "
+        "--max-steps 3 --no-progress",
+        E,
+    ),
+    (
+        "cli: tune rosenbrock 3D",
+        "cli: tune --tune nu eps_sigma --dim 3 --weights metric_full --landscape rosenbrock "
+        "--max-steps 3 --no-progress",
+        E,
+    ),
+    (
+        "cli: simulate rosenbrock dt 0.05",
+        "cli: simulate --landscape rosenbrock --weights metric_full --dt 0.05 --n 200 --steps 30 --anisotropic",
+        E,
+    ),
     ("diverging swarm host", "jg.simulate(R, SD(), PD, n_steps=30)", E),
-    ("diverging swarm callback", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))(SD()); "
-     "assert int(h['diverged_step']) >= 0", OK),
-    ("diverging swarm callback k-NN", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
-     "SD(graph='knn')); assert int(h['diverged_step']) >= 0", OK),
-    ("diverging swarm callback 3D", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
-     "SD(3)); assert int(h['diverged_step']) >= 0", OK),
-    ("diverging swarm device", "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='device'))(SD()); "
-     "assert int(h['diverged_step']) >= 0", OK),
-    ("diverging swarm vmapped seeds", "loss = jg.simulation_loss(R, SD(), n_steps=30, params=PD, n_seeds=4); "
-     "assert np.isposinf(float(jax.jit(lambda t: loss(t))(loss.to_theta()))); "
-     "assert 'diverged by step' in loss.divergence(loss.to_theta())", OK),
+    (
+        "diverging swarm callback",
+        "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))(SD()); "
+        "assert int(h['diverged_step']) >= 0",
+        OK,
+    ),
+    (
+        "diverging swarm callback k-NN",
+        "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
+        "SD(graph='knn')); assert int(h['diverged_step']) >= 0",
+        OK,
+    ),
+    (
+        "diverging swarm callback 3D",
+        "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='callback'))("
+        "SD(3)); assert int(h['diverged_step']) >= 0",
+        OK,
+    ),
+    (
+        "diverging swarm device",
+        "_, h = jax.jit(lambda s: jg.simulate(R, s, PD, n_steps=30, rebuild='device'))(SD()); "
+        "assert int(h['diverged_step']) >= 0",
+        OK,
+    ),
+    (
+        "diverging swarm vmapped seeds",
+        "loss = jg.simulation_loss(R, SD(), n_steps=30, params=PD, n_seeds=4); "
+        "assert np.isposinf(float(jax.jit(lambda t: loss(t))(loss.to_theta()))); "
+        "assert 'diverged by step' in loss.divergence(loss.to_theta())",
+        OK,
+    ),
     ("diverging swarm tune", "jg.tune(jg.simulation_loss(R, SD(), n_steps=30, params=PD, n_seeds=2), max_steps=2)", E),
     ("delaunay coordinate 1e200", "jg.delaunay(np.r_[X[:-1], [[1e200, 0.0]]])", E),
     ("metric array NaN", "jg.ricci_scalar(T, metric=np.full((N, 2, 2), np.nan))", E),
-    ("metric array one NaN row", "g = np.broadcast_to(np.eye(2), (N, 2, 2)).copy(); g[7] = np.nan; "
-     "jg.ricci_scalar(T, metric=g)", E),
-    ("metric_defects NaN callable", "assert np.asarray(jg.metric_defects(T, lambda p: jnp.full((2, 2), jnp.nan))).all()",
-     OK),
+    (
+        "metric array one NaN row",
+        "g = np.broadcast_to(np.eye(2), (N, 2, 2)).copy(); g[7] = np.nan; jg.ricci_scalar(T, metric=g)",
+        E,
+    ),
+    (
+        "metric_defects NaN callable",
+        "assert np.asarray(jg.metric_defects(T, lambda p: jnp.full((2, 2), jnp.nan))).all()",
+        OK,
+    ),
     ("ricci NaN callable", "jg.ricci_scalar(T, metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
     ("ricci indefinite callable", "jg.ricci_scalar(T, metric=lambda p: jnp.diag(jnp.array([1.0, -1.0])))", WARN),
-    ("viscous_force NaN callable", "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
-     "metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
-    ("viscous_force indefinite callable", "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
-     "metric=lambda p: jnp.diag(jnp.array([1.0, -1.0])))", WARN),
+    (
+        "viscous_force NaN callable",
+        "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
+        "metric=lambda p: jnp.full((2, 2), jnp.nan))",
+        WARN,
+    ),
+    (
+        "viscous_force indefinite callable",
+        "jg.viscous_force(T, np.ones((N, 2)), nu=0.1, weights='metric_full', "
+        "metric=lambda p: jnp.diag(jnp.array([1.0, -1.0])))",
+        WARN,
+    ),
     ("edge_lengths NaN callable", "jg.edge_lengths(T, metric=lambda p: jnp.full((2, 2), jnp.nan))", WARN),
-    ("simulation_loss numpy objective", "jg.simulation_loss(V, S, lambda h: float(np.asarray(h['mean_fitness'])[-1]), "
-     "n_steps=2, params=P)", E),
+    (
+        "simulation_loss numpy objective",
+        "jg.simulation_loss(V, S, lambda h: float(np.asarray(h['mean_fitness'])[-1]), n_steps=2, params=P)",
+        E,
+    ),
 ]
 LANDSCAPE_FILES = {  # analyze --landscape FILE.py: each must be refused clearly
     "vector": "import jax.numpy as jnp\ndef V(x):\n    return 2.0 * x\n",
@@ -213,8 +289,15 @@ LANDSCAPE_FILES = {  # analyze --landscape FILE.py: each must be refused clearly
     "numpy": "import numpy as np\ndef V(x):\n    return float(np.sum(np.asarray(x) ** 2))\n",
     "int": "import jax.numpy as jnp\ndef V(x):\n    return jnp.sum(x ** 2).astype(int)\n",
 }
-CLEAR_TYPES = ("ValueError", "TypeError", "CoincidentPointsError", "CapacityError", "SimulationDiverged",
-               "TuningFailed", "FloatingPointError")
+CLEAR_TYPES = (
+    "ValueError",
+    "TypeError",
+    "CoincidentPointsError",
+    "CapacityError",
+    "SimulationDiverged",
+    "TuningFailed",
+    "FloatingPointError",
+)
 MEMORY_CAP = 8 << 30
 
 
@@ -224,26 +307,46 @@ def run_case(label: str, code: str, expect: str, timeout: float, workdir: Path) 
         if code.split()[1] == "simulate":
             cmd += ["--no-progress", "--gap-every", "0"]
     else:
-        body = (PREAMBLE + f"try:\n    out = {code}\n" if "assert" not in code and ";" not in code
-                else PREAMBLE + "try:\n    " + code.replace("; ", "\n    ") + "\n    out = None\n")
+        body = (
+            PREAMBLE + f"try:\n    out = {code}\n"
+            if "assert" not in code and ";" not in code
+            else PREAMBLE + "try:\n    " + code.replace("; ", "\n    ") + "\n    out = None\n"
+        )
         if expect == WARN:  # the warnings the preamble silences, recorded for this call
-            body = body.replace("try:\n", "W = warnings.catch_warnings(record=True); caught = W.__enter__(); "
-                                "warnings.simplefilter('always')\ntry:\n", 1)
-        body += ("except Exception as err:\n    import sys; print('EXC', type(err).__name__, '|', str(err)[:400]);"
-                 " sys.exit(3)\nprint('OK', repr(out)[:200])\n")
+            body = body.replace(
+                "try:\n",
+                "W = warnings.catch_warnings(record=True); caught = W.__enter__(); "
+                "warnings.simplefilter('always')\ntry:\n",
+                1,
+            )
+        body += (
+            "except Exception as err:\n    import sys; print('EXC', type(err).__name__, '|', str(err)[:400]);"
+            " sys.exit(3)\nprint('OK', repr(out)[:200])\n"
+        )
         if expect == WARN:
             body += "print('WARNED' if any('metric_defects' in str(w.message) for w in caught) else 'NO WARNING')\n"
         cmd = [sys.executable, "-c", body]
     began = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=workdir,
-                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP)))
+        proc = subprocess.run(
+            cmd,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=workdir,
+            preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP)),
+        )
     except subprocess.TimeoutExpired:
         return {"label": label, "expect": expect, "outcome": "hang", "seconds": timeout}
     seconds = round(time.perf_counter() - began, 1)
     text = proc.stdout + proc.stderr
-    return {"label": label, "expect": expect, "outcome": classify(code, expect, proc.returncode, text),
-            "seconds": seconds, "tail": text.strip().splitlines()[-1][:300] if text.strip() else ""}
+    return {
+        "label": label,
+        "expect": expect,
+        "outcome": classify(code, expect, proc.returncode, text),
+        "seconds": seconds,
+        "tail": text.strip().splitlines()[-1][:300] if text.strip() else "",
+    }
 
 
 def classify(code: str, expect: str, status: int, text: str) -> str:
@@ -252,7 +355,9 @@ def classify(code: str, expect: str, status: int, text: str) -> str:
     if code.startswith("cli: "):
         clear = status == 2 and "error:" in text and "Traceback" not in text
         if expect == OK:
-            return "handled" if status == 0 and "Traceback" not in text else ("clear error" if clear else "raw traceback")
+            return (
+                "handled" if status == 0 and "Traceback" not in text else ("clear error" if clear else "raw traceback")
+            )
         return "clear error" if clear else ("accepted silently" if status == 0 else "raw traceback")
     if status == 0 and expect == WARN:
         return "handled" if "WARNED" in text else "silent NaN"
@@ -272,8 +377,12 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--timeout", type=float, default=240.0)
     parser.add_argument("--list", action="store_true")
-    parser.add_argument("--only", nargs="+", metavar="TEXT",
-                        help="rerun the cases whose label contains one of these, replacing them in --out")
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        metavar="TEXT",
+        help="rerun the cases whose label contains one of these, replacing them in --out",
+    )
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "hostile_inputs.json")
     args = parser.parse_args()
     workdir = Path("/tmp/jaxgeom_hostile")
@@ -298,8 +407,18 @@ def main() -> None:
         if r["outcome"] not in ("handled", "clear error") or (r["expect"] in (OK, WARN) and r["outcome"] != "handled"):
             print(f"{r['outcome']:18} {r['label']}: {r.get('tail', '')}")
     print(json.dumps(counts))
-    args.out.write_text(json.dumps({"cases": len(results), "counts": counts, "results": results,
-                                    "python": sys.version.split()[0], "cpus": os.cpu_count()}, indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "cases": len(results),
+                "counts": counts,
+                "results": results,
+                "python": sys.version.split()[0],
+                "cpus": os.cpu_count(),
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

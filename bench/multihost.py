@@ -26,8 +26,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.cpu_collectives:
         jax.config.update("jax_cpu_collectives_implementation", args.cpu_collectives)
-    jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
-                               process_id=args.process_id)
+    jax.distributed.initialize(
+        coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+    )
     jax.config.update("jax_enable_x64", True)
     import numpy as np
     from jax.experimental import multihost_utils
@@ -36,14 +37,21 @@ def main() -> None:
     from jaxgeom.apps._landscapes import rastrigin
 
     capacity = jaxgeom.Capacity(simplices=128, neighbors=16)
-    batch = jaxgeom.stack_swarms([jaxgeom.init_swarm(rastrigin, np.random.default_rng(i).uniform(-2, 2, (40, 2)),
-                                                     key=i, capacity=capacity) for i in range(args.swarms)])
+    batch = jaxgeom.stack_swarms(
+        [
+            jaxgeom.init_swarm(rastrigin, np.random.default_rng(i).uniform(-2, 2, (40, 2)), key=i, capacity=capacity)
+            for i in range(args.swarms)
+        ]
+    )
     params, run = jaxgeom.SwarmParams(cloning=False), dict(n_steps=3, rebuild="callback", observe=("mean_fitness",))
     mesh = jaxgeom.batch_mesh()  # every process's devices
     _, history = jaxgeom.simulate(rastrigin, jaxgeom.shard_batch(batch, mesh), params, mesh=mesh, **run)
     gathered = np.asarray(multihost_utils.process_allgather(history["mean_fitness"], tiled=True))
-    print(f"process {jax.process_index()} of {jax.process_count()}: {len(jax.local_devices())} local of "
-          f"{jax.device_count()} devices", flush=True)
+    print(
+        f"process {jax.process_index()} of {jax.process_count()}: {len(jax.local_devices())} local of "
+        f"{jax.device_count()} devices",
+        flush=True,
+    )
     if jax.process_index() == 0:
         alone = np.asarray(jaxgeom.simulate(rastrigin, batch, params, **run)[1]["mean_fitness"])
         print(f"multi-process ensemble equals one process: {np.array_equal(gathered, alone)}", flush=True)

@@ -83,8 +83,11 @@ def flat_sample(n, d, rng):
     return direction * rng.random((n, 1)) ** (1.0 / d)
 
 
-SPACES = {"sphere": (sphere_sample, sphere_metric, 1.0), "hyperbolic": (hyperbolic_sample, hyperbolic_metric, -1.0),
-          "flat": (flat_sample, None, 0.0)}
+SPACES = {
+    "sphere": (sphere_sample, sphere_metric, 1.0),
+    "hyperbolic": (hyperbolic_sample, hyperbolic_metric, -1.0),
+    "flat": (flat_sample, None, 0.0),
+}
 
 
 def region_stats(values, region):
@@ -105,10 +108,15 @@ def convergence_row(space, d, n, k, seed, costs):
         orc = jaxgeom.ollivier_ricci(tess, alpha=0.0, metric=metric, cost=cost)
         mean, se, _ = region_stats(orc.scalar_curvature, region)
         kappa, kappa_se, _ = region_stats(orc.walker_curvature, region)
-        row[cost] = {"mean": mean, "standard_error": se, "ratio": mean / exact if exact else float("nan"),
-                     "mean_kappa": kappa, "mean_kappa_standard_error": kappa_se,
-                     "mean_second_moment": region_stats(orc.second_moment, region)[0],
-                     "seconds": time.perf_counter() - start}
+        row[cost] = {
+            "mean": mean,
+            "standard_error": se,
+            "ratio": mean / exact if exact else float("nan"),
+            "mean_kappa": kappa,
+            "mean_kappa_standard_error": kappa_se,
+            "mean_second_moment": region_stats(orc.second_moment, region)[0],
+            "seconds": time.perf_counter() - start,
+        }
     if d <= 3:
         dtess = jaxgeom.delaunay(x)
         regge = np.asarray(jaxgeom.ricci_scalar(dtess, metric=metric))
@@ -134,17 +142,22 @@ def markdown_table(result):
     mean kappa at the same d and N (the discreteness bias at this k) before scaling."""
     rows = result["rows"]
     flat = {(r["d"], r["n"]): r["direct"]["mean_kappa"] for r in rows if r["space"] == "flat"}
-    lines = ["| space | d | N | region walkers | closed form | ORC estimate (direct) +- se | mean kappa +- se | "
-             "flat-corrected | ORC estimate (graph) | Regge |", "| --- " * 10 + "|"]
+    lines = [
+        "| space | d | N | region walkers | closed form | ORC estimate (direct) +- se | mean kappa +- se | "
+        "flat-corrected | ORC estimate (graph) | Regge |",
+        "| --- " * 10 + "|",
+    ]
     for r in rows:
         o = r["direct"]
         corrected = 2 * r["d"] ** 2 * (o["mean_kappa"] - flat[(r["d"], r["n"])]) / o["mean_second_moment"]
         graph = f"{r['graph']['mean']:.3g}" if "graph" in r else "-"
         regge = f"{r['regge']['mean']:.3g}" if "regge" in r else "-"
-        lines.append(f"| {r['space']} | {r['d']} | {r['n']:.0e} | {r['region_walkers']} | {r['exact']:g} | "
-                     f"{o['mean']:.3g} +- {o['standard_error']:.2g} | {o['mean_kappa']:.4f} +- "
-                     f"{o['mean_kappa_standard_error']:.4f} | {corrected if r['space'] != 'flat' else 0.0:.3g} | "
-                     f"{graph} | {regge} |")
+        lines.append(
+            f"| {r['space']} | {r['d']} | {r['n']:.0e} | {r['region_walkers']} | {r['exact']:g} | "
+            f"{o['mean']:.3g} +- {o['standard_error']:.2g} | {o['mean_kappa']:.4f} +- "
+            f"{o['mean_kappa_standard_error']:.4f} | {corrected if r['space'] != 'flat' else 0.0:.3g} | "
+            f"{graph} | {regge} |"
+        )
     return "\n".join(lines)
 
 
@@ -173,8 +186,12 @@ def ours_timed(tess, repeats=3, **kwargs):
         jax.block_until_ready(orc.edge_curvature)
         runs.append(time.perf_counter() - start)
     warm = runs[1:]
-    return orc, {"median_s": float(np.median(warm)), "min_s": float(min(warm)), "max_s": float(max(warm)),
-                 "first_s": runs[0]}
+    return orc, {
+        "median_s": float(np.median(warm)),
+        "min_s": float(min(warm)),
+        "max_s": float(max(warm)),
+        "first_s": runs[0],
+    }
 
 
 def max_difference(orc, graph):
@@ -188,8 +205,10 @@ def max_difference(orc, graph):
 def speed(args):
     x = np.random.default_rng(0).random((10**4, 2))
     out = {"n": 10**4, "k": 10, "configurations": []}
-    for label, weighted, repeats, kwargs in (("unweighted, uniform", False, 3, {"cost": "hops"}),
-                                             ("Euclidean-weighted, GRC's e^{-w^2}", True, 2, {"cost": "graph", "measure": "grc"})):
+    for label, weighted, repeats, kwargs in (
+        ("unweighted, uniform", False, 3, {"cost": "hops"}),
+        ("Euclidean-weighted, GRC's e^{-w^2}", True, 2, {"cost": "graph", "measure": "grc"}),
+    ):
         grc_s, graph = grc_curvature(jaxgeom.knn_graph(x, 10), weighted, proc=args.proc)
         entry = {"graph": label, "grc_seconds": grc_s, "ours": {}}
         for dtype in ("float64", "float32"):
@@ -197,8 +216,12 @@ def speed(args):
             tess = jaxgeom.knn_graph(x.astype(dtype), 10)
             orc, timing = ours_timed(tess, repeats=repeats, alpha=0.5, **kwargs)
             diff, edges = max_difference(orc, graph)
-            entry["ours"][dtype] = {**timing, "ratio_grc_over_ours": grc_s / timing["median_s"], "max_abs_difference": diff,
-                                    "edges": edges}
+            entry["ours"][dtype] = {
+                **timing,
+                "ratio_grc_over_ours": grc_s / timing["median_s"],
+                "max_abs_difference": diff,
+                "edges": edges,
+            }
         jax.config.update("jax_enable_x64", True)
         print(json.dumps(entry), flush=True)
         out["configurations"].append(entry)
@@ -213,27 +236,37 @@ def batch_sweep(args):
         orc, timing = ours_timed(tess, cost="hops", batch_size=b)
         kappa = np.asarray(orc.edge_curvature)
         first_kappa = kappa if first_kappa is None else first_kappa
-        rows.append({"batch": b, **timing,
-                     "max_diff_vs_first_batch": float(np.nanmax(np.abs(kappa - first_kappa)))})
+        rows.append({"batch": b, **timing, "max_diff_vs_first_batch": float(np.nanmax(np.abs(kappa - first_kappa)))})
         print(json.dumps(rows[-1]), flush=True)
     return {"n": 10**4, "k": 10, "dtype": "float32", "cost": "hops", "rows": rows}
 
 
 def large_run(cost):
-    code = ("import time, resource, numpy as np, jax, jaxgeom\n"
-            "x = np.random.default_rng(1).random((100000, 2)).astype(np.float32)\n"
-            "t = jaxgeom.knn_graph(x, 10)\n"
-            "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=%r); jax.block_until_ready(o.edge_curvature)\n"
-            "first = time.perf_counter() - s\n"
-            "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=%r); jax.block_until_ready(o.edge_curvature)\n"
-            "stats = jax.devices()[0].memory_stats() or {}\n"
-            "print(first, time.perf_counter() - s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, int(o.edge_mask.sum()) // 2,"
-            " stats.get('peak_bytes_in_use', -1))\n"
-            ) % (cost, cost)
-    first, warm, rss_kb, edges, device_peak = subprocess.run([sys.executable, "-c", code], capture_output=True,
-                                                             text=True, check=True).stdout.split()
-    row = {"n": 10**5, "k": 10, "dtype": "float32", "cost": cost, "first_call_s": float(first), "warm_s": float(warm),
-           "peak_rss_mb": int(rss_kb) / 1024, "edges": int(edges)}
+    code = (
+        "import time, resource, numpy as np, jax, jaxgeom\n"
+        "x = np.random.default_rng(1).random((100000, 2)).astype(np.float32)\n"
+        "t = jaxgeom.knn_graph(x, 10)\n"
+        "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=COST); jax.block_until_ready(o.edge_curvature)\n"
+        "first = time.perf_counter() - s\n"
+        "s = time.perf_counter(); o = jaxgeom.ollivier_ricci(t, cost=COST); jax.block_until_ready(o.edge_curvature)\n"
+        "stats = jax.devices()[0].memory_stats() or {}\n"
+        "print(first, time.perf_counter() - s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,"
+        " int(o.edge_mask.sum()) // 2,"
+        " stats.get('peak_bytes_in_use', -1))\n"
+    ).replace("COST", repr(cost))
+    first, warm, rss_kb, edges, device_peak = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.split()
+    row = {
+        "n": 10**5,
+        "k": 10,
+        "dtype": "float32",
+        "cost": cost,
+        "first_call_s": float(first),
+        "warm_s": float(warm),
+        "peak_rss_mb": int(rss_kb) / 1024,
+        "edges": int(edges),
+    }
     if int(device_peak) >= 0:  # an accelerator's allocator reports its peak; the CPU's does not
         row["device_peak_mb"] = int(device_peak) / 2**20
     print(json.dumps(row), flush=True)
@@ -258,9 +291,13 @@ def main():
         return
     jax.config.update("jax_enable_x64", args.what != "batch")
     result = {"speed": speed, "convergence": convergence, "batch": batch_sweep}[args.what](args)
-    result["machine"] = {"cores": os.cpu_count(), "grc_processes": args.proc, "device": jax.devices()[0].device_kind,
-                         "jax": jax.__version__, "peak_rss_mb_this_process":
-                         resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    result["machine"] = {
+        "cores": os.cpu_count(),
+        "grc_processes": args.proc,
+        "device": jax.devices()[0].device_kind,
+        "jax": jax.__version__,
+        "peak_rss_mb_this_process": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
     out = Path(args.out or f"bench/results/ollivier_{args.what}.json")
     out.write_text(json.dumps(result, indent=1) + "\n")
     print("wrote", out)

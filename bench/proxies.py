@@ -2,7 +2,8 @@
 
 Run: python bench/proxies.py [--n 100000] [--out bench/results/proxies.json]
 The metric is the emergent metric (proxy 6), as a pipeline without a fitness Hessian
-would use. Both float32 (the library default) and float64 are measured. "all_proxies" runs every proxy of the curvature issue in one jitted call
+would use. Both float32 (the library default) and float64 are measured. "all_proxies" runs every proxy of the
+curvature issue in one jitted call
 that shares the Voronoi volumes, as a pipeline does. Target: all_proxies <= 0.25 x delaunay.
 """
 
@@ -63,12 +64,26 @@ def _bench_dim(d: int, n: int, seed: int, dtype: str) -> dict:
     proxies = {
         "voronoi_volumes": (jaxgeom.voronoi_volumes, tess),
         "emergent_metric (proxy 6)": (jaxgeom.emergent_metric, tess),
-        "riemannian_volumes (proxy 8)": (jax.jit(lambda t, g, v: jaxgeom.riemannian_volumes(t, metric=g, volumes=v)), tess, metric, vol),
-        "ricci_scalar (proxy 1)": (jax.jit(lambda t, g, v: jaxgeom.ricci_scalar(t, metric=g, volumes=v)), tess, metric, vol),
+        "riemannian_volumes (proxy 8)": (
+            jax.jit(lambda t, g, v: jaxgeom.riemannian_volumes(t, metric=g, volumes=v)),
+            tess,
+            metric,
+            vol,
+        ),
+        "ricci_scalar (proxy 1)": (
+            jax.jit(lambda t, g, v: jaxgeom.ricci_scalar(t, metric=g, volumes=v)),
+            tess,
+            metric,
+            vol,
+        ),
         "deficit_angles": (jax.jit(lambda t, g: jaxgeom.deficit_angles(t, metric=g)), tess, metric),
         "volume_distortion (proxy 2)": (jax.jit(lambda t, v: jaxgeom.volume_distortion(t, v)), tess, vol),
         "shape_distortion (proxy 3)": (jaxgeom.shape_distortion, tess),
-        "raychaudhuri_expansion (proxy 4)": (jax.jit(lambda a, b: jaxgeom.raychaudhuri_expansion(a, b, 0.01)), vol, vol),
+        "raychaudhuri_expansion (proxy 4)": (
+            jax.jit(lambda a, b: jaxgeom.raychaudhuri_expansion(a, b, 0.01)),
+            vol,
+            vol,
+        ),
         "all_proxies": (all_proxies, tess, vol),
     }
     row["seconds"] = {name: best(fn, *args) for name, (fn, *args) in proxies.items()}
@@ -84,8 +99,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "proxies.json")
     args = parser.parse_args()
     rows = [bench_dim(d, args.n, args.seed, dtype) for dtype in ("float32", "float64") for d in (2, 3)]
-    meta = {"machine": platform.machine(), "jax": jax.__version__, "dtypes": "float32 (library default), float64",
-            "metric": "emergent_metric(tess)", "target": "all_proxies_over_delaunay <= 0.25"}
+    meta = {
+        "machine": platform.machine(),
+        "jax": jax.__version__,
+        "dtypes": "float32 (library default), float64",
+        "metric": "emergent_metric(tess)",
+        "target": "all_proxies_over_delaunay <= 0.25",
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
     print(f"wrote {args.out}")

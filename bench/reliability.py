@@ -36,7 +36,8 @@ x = np.stack(np.meshgrid(*[np.arange(float(m))] * d, indexing="ij"), -1).reshape
 start = time.perf_counter()
 tess = jaxgeom.delaunay(x, box=(0.0, float(m)), periodic=True)
 vol = np.asarray(jaxgeom.voronoi_volumes(tess))
-print(time.perf_counter() - start, float(vol.sum()), float(abs(vol - 1).max()), sorted(set(np.asarray(tess.degree).tolist())))
+degrees = sorted(set(np.asarray(tess.degree).tolist()))
+print(time.perf_counter() - start, float(vol.sum()), float(abs(vol - 1).max()), degrees)
 """
 
 
@@ -49,18 +50,40 @@ def main() -> None:
     rings = []
     for n in (30, 60, 200, 1000):
         seconds, rss_mb, degree = run(RING.format(n=n))
-        rings.append({"ring": n, "seconds_with_compilation": float(seconds), "peak_rss_mb": float(rss_mb),
-                      "hub_degree": int(degree)})
+        rings.append(
+            {
+                "ring": n,
+                "seconds_with_compilation": float(seconds),
+                "peak_rss_mb": float(rss_mb),
+                "hub_degree": int(degree),
+            }
+        )
         print(rings[-1])
     lattices = []
     for d, m in ((2, 30), (3, 10)):
         seconds, total, worst, degrees = run(LATTICE.format(d=d, m=m))
-        lattices.append({"dim": d, "side": m, "seconds_with_compilation": float(seconds), "volume_sum": float(total),
-                         "max_cell_error": float(worst), "degrees": json.loads(degrees)})
+        lattices.append(
+            {
+                "dim": d,
+                "side": m,
+                "seconds_with_compilation": float(seconds),
+                "volume_sum": float(total),
+                "max_cell_error": float(worst),
+                "degrees": json.loads(degrees),
+            }
+        )
         print(lattices[-1])
     out = Path(__file__).parent / "results" / "reliability.json"
-    out.write_text(json.dumps({"ring_plus_hub_2d": rings, "periodic_lattices": lattices,
-                               "note": "targets: a 1000-ring in < 2 s and < 500 MB; lattices exact"}, indent=1))
+    out.write_text(
+        json.dumps(
+            {
+                "ring_plus_hub_2d": rings,
+                "periodic_lattices": lattices,
+                "note": "targets: a 1000-ring in < 2 s and < 500 MB; lattices exact",
+            },
+            indent=1,
+        )
+    )
     print(f"wrote {out}")
 
 

@@ -31,8 +31,9 @@ import sys
 if __name__ == "__main__":
     forced = int(sys.argv[sys.argv.index("--forced") + 1]) if "--forced" in sys.argv else 4
     if forced:
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                                   f" --xla_force_host_platform_device_count={forced}").strip()
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={forced}"
+        ).strip()
 
 import json  # noqa: E402
 import platform  # noqa: E402
@@ -51,8 +52,12 @@ from jaxgeom.apps._landscapes import rastrigin  # noqa: E402
 
 def batch_of(b: int, n: int):
     capacity = jaxgeom.Capacity(simplices=max(64, 4 * n), neighbors=32)  # room for clustering
-    return jaxgeom.stack_swarms([jaxgeom.init_swarm(rastrigin, np.random.default_rng(i).uniform(-3, 3, (n, 2)),
-                                                    key=i, capacity=capacity) for i in range(b)])
+    return jaxgeom.stack_swarms(
+        [
+            jaxgeom.init_swarm(rastrigin, np.random.default_rng(i).uniform(-3, 3, (n, 2)), key=i, capacity=capacity)
+            for i in range(b)
+        ]
+    )
 
 
 def timed(fn, repeat: int) -> tuple[list[float], object]:
@@ -78,14 +83,20 @@ def row(b: int, n: int, steps: int, repeat: int) -> dict:
     placed = jaxgeom.shard_batch(batch, mesh)
     many, out_many = timed(lambda: jaxgeom.simulate(rastrigin, placed, params, mesh=mesh, **run), repeat)
     per_step = {"one_device": [t / steps for t in one], "sharded": [t / steps for t in many]}
-    return {"swarms": b, "walkers": n, "steps": steps, "devices": int(mesh.devices.size),
-            "seconds_per_step_one_device_median": float(np.median(per_step["one_device"])),
-            "seconds_per_step_sharded_median": float(np.median(per_step["sharded"])),
-            "spread": {k: [float(min(v)), float(max(v))] for k, v in per_step.items()},
-            "sharded_over_one_device": float(np.median(many) / np.median(one)),
-            "bitwise_equal": same(out_one, out_many),
-            "max_position_difference": float(np.max(np.abs(np.asarray(out_one[0].positions)
-                                                            - np.asarray(out_many[0].positions))))}
+    return {
+        "swarms": b,
+        "walkers": n,
+        "steps": steps,
+        "devices": int(mesh.devices.size),
+        "seconds_per_step_one_device_median": float(np.median(per_step["one_device"])),
+        "seconds_per_step_sharded_median": float(np.median(per_step["sharded"])),
+        "spread": {k: [float(min(v)), float(max(v))] for k, v in per_step.items()},
+        "sharded_over_one_device": float(np.median(many) / np.median(one)),
+        "bitwise_equal": same(out_one, out_many),
+        "max_position_difference": float(
+            np.max(np.abs(np.asarray(out_one[0].positions) - np.asarray(out_many[0].positions)))
+        ),
+    }
 
 
 def gaussian_swarm(n: int):
@@ -101,8 +112,22 @@ def planned_bytes(state, params, steps: int, mesh) -> int:
 
     placed = state if mesh is None else shard_walkers(state, mesh, state.positions.shape[0])
     count = jax.numpy.asarray(steps, jax.numpy.int32)
-    memory = _run_split.lower(rastrigin, params, placed, count, count * 0, steps, ("mean_fitness",), 1,
-                              state.tess.neighbors.shape[1], mesh).compile().memory_analysis()
+    memory = (
+        _run_split.lower(
+            rastrigin,
+            params,
+            placed,
+            count,
+            count * 0,
+            steps,
+            ("mean_fitness",),
+            1,
+            state.tess.neighbors.shape[1],
+            mesh,
+        )
+        .compile()
+        .memory_analysis()
+    )
     return int(memory.temp_size_in_bytes + memory.argument_size_in_bytes + memory.output_size_in_bytes)
 
 
@@ -116,18 +141,25 @@ def walker_row(n: int, steps: int, repeat: int) -> dict:
     devices = int(mesh.devices.size)
     bytes_one, bytes_split = planned_bytes(state, params, steps, None), planned_bytes(state, params, steps, mesh)
     split = (bytes_one - bytes_split) / (1 - 1 / devices) / n  # whole + split = one; whole + split / D = sharded
-    return {"walkers": n, "dimension": 2, "steps": steps, "devices": devices,
-            "seconds_per_step_one_device_median": float(np.median(per_step["one_device"])),
-            "seconds_per_step_sharded_median": float(np.median(per_step["sharded"])),
-            "spread": {k: [float(min(v)), float(max(v))] for k, v in per_step.items()},
-            "sharded_over_one_device": float(np.median(many) / np.median(one)),
-            "fallbacks_to_qhull": [int(out_one[1]["n_fallbacks"]), int(out_many[1]["n_fallbacks"])],
-            "same_graph": bool(np.array_equal(np.asarray(out_one[0].tess.simplices),
-                                              np.asarray(out_many[0].tess.simplices))),
-            "max_position_difference": float(np.max(np.abs(np.asarray(out_one[0].positions)
-                                                            - np.asarray(out_many[0].positions)))),
-            "planned_bytes_per_device": {"one_device": bytes_one, "sharded": bytes_split},
-            "bytes_per_walker": {"whole_on_every_device": bytes_one / n - split, "split": split}}
+    return {
+        "walkers": n,
+        "dimension": 2,
+        "steps": steps,
+        "devices": devices,
+        "seconds_per_step_one_device_median": float(np.median(per_step["one_device"])),
+        "seconds_per_step_sharded_median": float(np.median(per_step["sharded"])),
+        "spread": {k: [float(min(v)), float(max(v))] for k, v in per_step.items()},
+        "sharded_over_one_device": float(np.median(many) / np.median(one)),
+        "fallbacks_to_qhull": [int(out_one[1]["n_fallbacks"]), int(out_many[1]["n_fallbacks"])],
+        "same_graph": bool(
+            np.array_equal(np.asarray(out_one[0].tess.simplices), np.asarray(out_many[0].tess.simplices))
+        ),
+        "max_position_difference": float(
+            np.max(np.abs(np.asarray(out_one[0].positions) - np.asarray(out_many[0].positions)))
+        ),
+        "planned_bytes_per_device": {"one_device": bytes_one, "sharded": bytes_split},
+        "bytes_per_walker": {"whole_on_every_device": bytes_one / n - split, "split": split},
+    }
 
 
 def main() -> None:
@@ -135,8 +167,13 @@ def main() -> None:
     parser.add_argument("--forced", type=int, default=4, help="forced host devices (0: the real ones)")
     parser.add_argument("--batches", type=int, nargs="+", default=[4, 8])
     parser.add_argument("--walkers", type=int, nargs="+", default=[300, 3000])
-    parser.add_argument("--swarm-walkers", type=int, nargs="+", default=[2000, 8000],
-                        help="N of the one-swarm runs with the walkers split")
+    parser.add_argument(
+        "--swarm-walkers",
+        type=int,
+        nargs="+",
+        default=[2000, 8000],
+        help="N of the one-swarm runs with the walkers split",
+    )
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "scale.json")
@@ -150,10 +187,15 @@ def main() -> None:
     for n in tqdm(args.swarm_walkers, desc="walkers", disable=None):
         walker_rows.append(walker_row(n, max(2, args.steps // 2), args.repeat))
         tqdm.write(json.dumps(walker_rows[-1]))
-    meta = {"machine": platform.machine(), "cores": os.cpu_count(), "jax": jax.__version__,
-            "backend": jax.default_backend(), "device": f"{device.device_kind} x{jax.device_count()}",
-            "forced_host_devices": args.forced,
-            "gpu": "none lent to this task: no GPU figures" if jax.default_backend() == "cpu" else "yes"}
+    meta = {
+        "machine": platform.machine(),
+        "cores": os.cpu_count(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "device": f"{device.device_kind} x{jax.device_count()}",
+        "forced_host_devices": args.forced,
+        "gpu": "none lent to this task: no GPU figures" if jax.default_backend() == "cpu" else "yes",
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"meta": meta, "ensembles": rows, "walkers": walker_rows}, indent=2))
     print(f"wrote {args.out}")

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _timing import summary, timed
 
 import jaxgeom
-from _timing import summary, timed
 
 
 def row(n: int, repeat: int) -> dict:
@@ -41,8 +41,9 @@ def row(n: int, repeat: int) -> dict:
     vb, va = jaxgeom.voronoi_volumes(before), jaxgeom.voronoi_volumes(after)
     cases = {
         "delaunay": lambda: jaxgeom.delaunay(x1).neighbors,
-        "scutoids_with_volumes": lambda: jaxgeom.scutoids(before, after, parents, volumes_before=vb,
-                                                          volumes_after=va).kind,
+        "scutoids_with_volumes": lambda: (
+            jaxgeom.scutoids(before, after, parents, volumes_before=vb, volumes_after=va).kind
+        ),
         "scutoids": lambda: jaxgeom.scutoids(before, after, parents).kind,
         "voronoi_facets": lambda: jaxgeom.voronoi_facets(before).areas,
     }
@@ -53,8 +54,11 @@ def row(n: int, repeat: int) -> dict:
         for name, fn in cases.items():
             times[name].append(timed(fn))
     s = jaxgeom.scutoids(before, after, parents)
-    out = {"n": n, "seconds": {name: summary(t) for name, t in times.items()},
-           "fractions_prism_simple_complex": np.asarray(s.fractions()).tolist()}
+    out = {
+        "n": n,
+        "seconds": {name: summary(t) for name, t in times.items()},
+        "fractions_prism_simple_complex": np.asarray(s.fractions()).tolist(),
+    }
     base = np.median(times["delaunay"])
     out["over_delaunay"] = {name: float(np.median(t) / base) for name, t in times.items() if name != "delaunay"}
     return out
@@ -70,9 +74,19 @@ def main() -> None:
     for n in args.sizes:
         rows.append(row(n, args.repeat))
         print(json.dumps(rows[-1], indent=1))
-    args.out.write_text(json.dumps({"rows": rows, "jax": jax.__version__, "device": str(jax.devices()[0]),
-                                    "machine": platform.machine(), "cpus": __import__("os").cpu_count(),
-                                    "date": time.strftime("%Y-%m-%d")}, indent=1))
+    args.out.write_text(
+        json.dumps(
+            {
+                "rows": rows,
+                "jax": jax.__version__,
+                "device": str(jax.devices()[0]),
+                "machine": platform.machine(),
+                "cpus": __import__("os").cpu_count(),
+                "date": time.strftime("%Y-%m-%d"),
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

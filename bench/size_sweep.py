@@ -22,7 +22,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from _timing import summary
 
 CHILD = r"""
@@ -48,8 +47,9 @@ print(*passes)
 
 def run(setting: str, d: int) -> tuple[float, float]:
     env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false"}
-    out = subprocess.run([sys.executable, "-c", CHILD, setting, str(d)], capture_output=True, text=True, check=True,
-                         env=env)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, setting, str(d)], capture_output=True, text=True, check=True, env=env
+    )
     first, second = out.stdout.split()[:2]
     return float(first), float(second)
 
@@ -60,15 +60,19 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "size_sweep.json")
     args = parser.parse_args()
     settings = ("bucketed", "per_n")
-    result = {"what": "wall seconds of jaxgeom.delaunay over N = 1000, 1025, ..., 1500 (Qhull, float64), "
-                      "first pass (compiling) and second pass; fresh process each, no persistent cache",
-              "rounds": args.rounds, "machine": f"{platform.machine()}, {os.cpu_count()} cores",
-              "python": platform.python_version(), "jax": __import__("jax").__version__}
+    result = {
+        "what": "wall seconds of jaxgeom.delaunay over N = 1000, 1025, ..., 1500 (Qhull, float64), "
+        "first pass (compiling) and second pass; fresh process each, no persistent cache",
+        "rounds": args.rounds,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "python": platform.python_version(),
+        "jax": __import__("jax").__version__,
+    }
     for d in (2, 3):
         first = {s: [] for s in settings}
         second = {s: [] for s in settings}
         for r in range(args.rounds):
-            for s in (settings if r % 2 == 0 else settings[::-1]):
+            for s in settings if r % 2 == 0 else settings[::-1]:
                 a, b = run(s, d)
                 first[s].append(a)
                 second[s].append(b)

@@ -23,11 +23,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import summary, timed
 
 import jaxgeom
 from jaxgeom.base import _simplex
 from jaxgeom.geometry import _metric
-from _timing import summary, timed
 
 
 def unrolled_eigh(m):
@@ -60,10 +60,17 @@ def eigh_rows(sizes, repeat: int) -> list:
                 first[name].append(timed(lambda: fn(m)))
                 warm[name].append(min(timed(lambda: fn(m)) for _ in range(3)))
         values = {k: np.asarray(jax.jit(VARIANTS[k])(m)[0]) for k in names}
-        rows.append({"d": d, "n": n, "first_call_s": {k: summary(v) for k, v in first.items()},
-                     "warm_s": {k: summary(v) for k, v in warm.items()},
-                     "max_abs_eigenvalue_difference_vs_unrolled": {
-                         k: float(np.max(np.abs(values[k] - values["unrolled"]))) for k in names}})
+        rows.append(
+            {
+                "d": d,
+                "n": n,
+                "first_call_s": {k: summary(v) for k, v in first.items()},
+                "warm_s": {k: summary(v) for k, v in warm.items()},
+                "max_abs_eigenvalue_difference_vs_unrolled": {
+                    k: float(np.max(np.abs(values[k] - values["unrolled"]))) for k in names
+                },
+            }
+        )
         print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -91,9 +98,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "small_eigh.json")
     args = parser.parse_args()
-    result = {"machine": f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}",
-              "jax": jax.__version__, "eigh": eigh_rows(args.sizes, args.repeat),
-              "curvature": curvature_row(args.repeat)}
+    result = {
+        "machine": f"{platform.processor() or platform.machine()}, {jax.devices()[0].platform}",
+        "jax": jax.__version__,
+        "eigh": eigh_rows(args.sizes, args.repeat),
+        "curvature": curvature_row(args.repeat),
+    }
     args.out.write_text(json.dumps(result, indent=1))
 
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import summary, timed
 
 from jaxgeom.tessellation import _planar
-from _timing import summary, timed
 
 
 def measure(n: int, k: int, network: bool, repeat: int) -> dict:
@@ -50,13 +50,19 @@ def main() -> None:
                 row[name] = measure(n, k, network, args.repeat)
             row["default"] = "network" if n >= _planar.MERGE_NETWORK_MIN_ROWS else "xla_sort"
             net, xla = row["network"], row["xla_sort"]
-            print(f"N={n:>8} K={k}: network first {net['first_call_s']['median']:.2f} s, warm "
-                  f"{net['warm_ms']['median']:.2f} ms | XLA sort first {xla['first_call_s']['median']:.2f} s, "
-                  f"warm {xla['warm_ms']['median']:.2f} ms | default {row['default']}")
+            print(
+                f"N={n:>8} K={k}: network first {net['first_call_s']['median']:.2f} s, warm "
+                f"{net['warm_ms']['median']:.2f} ms | XLA sort first {xla['first_call_s']['median']:.2f} s, "
+                f"warm {xla['warm_ms']['median']:.2f} ms | default {row['default']}"
+            )
             rows.append(row)
-    meta = {"jax": jax.__version__, "device": str(jax.devices()[0]),
-            "machine": platform.processor() or platform.machine(),
-            "merge_network_min_rows": _planar.MERGE_NETWORK_MIN_ROWS, "repeat": args.repeat}
+    meta = {
+        "jax": jax.__version__,
+        "device": str(jax.devices()[0]),
+        "machine": platform.processor() or platform.machine(),
+        "merge_network_min_rows": _planar.MERGE_NETWORK_MIN_ROWS,
+        "repeat": args.repeat,
+    }
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
     print(f"wrote {args.out}")
 

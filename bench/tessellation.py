@@ -23,11 +23,11 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from tqdm.auto import tqdm
+from graph import timed  # median and spread of warm runs (bench/graph.py)
 from scipy.spatial import Delaunay
+from tqdm.auto import tqdm
 
 import jaxgeom
-from graph import timed  # median and spread of warm runs (bench/graph.py)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -120,8 +120,10 @@ def periodic_vs_freud(d: int, n: int, repeat: int, seed: int) -> dict:
     x = np.random.default_rng(seed).random((n, d)) * length
     row = {"dim": d, "n": n, "dtype": "float64"}
     for t in ("qhull", "auto"):
-        row[f"periodic_{t}"] = median_spread(lambda t=t: jaxgeom.voronoi_volumes(
-            jaxgeom.delaunay(x, box=(0.0, length), periodic=True, triangulator=t)), repeat)
+        row[f"periodic_{t}"] = median_spread(
+            lambda t=t: jaxgeom.voronoi_volumes(jaxgeom.delaunay(x, box=(0.0, length), periodic=True, triangulator=t)),
+            repeat,
+        )
     freud_row = freud_periodic(x, length, 1)
     if freud_row is not None:
         row["freud"] = median_spread(lambda: freud_periodic(x, length, 1), repeat)
@@ -130,17 +132,35 @@ def periodic_vs_freud(d: int, n: int, repeat: int, seed: int) -> dict:
 
 
 def main_triangulators(args) -> None:
-    rows = [triangulator_rows(d, n, args.repeat, args.seed) for d in args.dims for n in args.tri_sizes
-            if not (d == 3 and n > 100_000)]
+    rows = [
+        triangulator_rows(d, n, args.repeat, args.seed)
+        for d in args.dims
+        for n in args.tri_sizes
+        if not (d == 3 and n > 100_000)
+    ]
     for row in rows:
-        print(json.dumps({"dim": row["dim"], "n": row["n"], "auto": row["auto"],
-                          "bare_qhull_s": round(row["bare_qhull"]["median_s"], 4),
-                          **{k: round(v, 3) for k, v in row["over_bare_qhull"].items()}}))
+        print(
+            json.dumps(
+                {
+                    "dim": row["dim"],
+                    "n": row["n"],
+                    "auto": row["auto"],
+                    "bare_qhull_s": round(row["bare_qhull"]["median_s"], 4),
+                    **{k: round(v, 3) for k, v in row["over_bare_qhull"].items()},
+                }
+            )
+        )
     periodic = periodic_vs_freud(3, 100_000, args.repeat, args.seed)
     print(json.dumps(periodic.get("over_freud")))
-    meta = {"machine": platform.machine(), "cpus": __import__("os").cpu_count(), "jax": jax.__version__,
-            "targets": {"2D delaunay_auto over bare_qhull": "<= 0.35 at 1e4, <= 0.2 at 1e5, <= 0.15 at 1e6",
-                        "periodic 3D over freud at 1e5": "<= 1"}}
+    meta = {
+        "machine": platform.machine(),
+        "cpus": __import__("os").cpu_count(),
+        "jax": jax.__version__,
+        "targets": {
+            "2D delaunay_auto over bare_qhull": "<= 0.35 at 1e4, <= 0.2 at 1e5, <= 0.15 at 1e6",
+            "periodic 3D over freud at 1e5": "<= 1",
+        },
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"meta": meta, "results": rows, "periodic_3d": periodic}, indent=2))
     print(f"wrote {args.out}")
@@ -165,8 +185,12 @@ def main() -> None:
         row = bench_one(d, n, args.repeat, args.seed)
         rows.append(row)
         tqdm.write(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}))
-    meta = {"machine": platform.machine(), "cpus": __import__("os").cpu_count(), "jax": jax.__version__,
-            "targets": {"delaunay_over_scipy": "<= 1.3", "periodic_over_freud": "< 1 (2D), <= 1.2 (3D) at N=1e5"}}
+    meta = {
+        "machine": platform.machine(),
+        "cpus": __import__("os").cpu_count(),
+        "jax": jax.__version__,
+        "targets": {"delaunay_over_scipy": "<= 1.3", "periodic_over_freud": "< 1 (2D), <= 1.2 (3D) at N=1e5"},
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
     print(f"wrote {args.out}")

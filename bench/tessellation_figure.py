@@ -49,8 +49,11 @@ def main() -> None:
     ax.set_title("exp(-2V) double well: tier 0 (red), 1 (orange), 2 (blue)")
     ax.set_aspect("equal")
     ax = axes[1]
-    ax.add_collection(LineCollection(edges(torus)[np.all(np.abs(np.diff(edges(torus), axis=1)) < 0.5, axis=(1, 2))],
-                                     colors="0.8", linewidths=0.4))
+    ax.add_collection(
+        LineCollection(
+            edges(torus)[np.all(np.abs(np.diff(edges(torus), axis=1)) < 0.5, axis=(1, 2))], colors="0.8", linewidths=0.4
+        )
+    )
     sc = ax.scatter(uniform[:, 0], uniform[:, 1], c=areas * args.n, s=8, cmap="viridis")
     fig.colorbar(sc, ax=ax, label="Voronoi area x N")
     ax.set_title(f"periodic unit box: sum of areas = {areas.sum():.12f}")

@@ -27,7 +27,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -38,9 +37,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _timing import summary
 
 import jaxgeom
-from _timing import summary
 from jaxgeom.swarm._observables import prepare_scutoid_trace
 from jaxgeom.swarm._trajectory import _default_observe, _determined, _first_state, _graph, _observe_frame
 
@@ -48,7 +47,7 @@ DTYPE = np.float32
 
 
 def landscape(x):
-    return jnp.sum(x ** 2 - 0.1 * jnp.cos(8.0 * jnp.pi * x))
+    return jnp.sum(x**2 - 0.1 * jnp.cos(8.0 * jnp.pi * x))
 
 
 def write_frames(path: Path, n: int, d: int, frames: int, seed: int = 0) -> np.ndarray:
@@ -84,7 +83,7 @@ def prebuilt(frames: np.ndarray):
     for x in frames:
         tess, capacity, grew = _graph(x, "delaunay", 12, None, False, "auto", capacity)
         if grew:  # one bucket for all: rebuild the earlier frames at the grown capacity
-            graphs = [_graph(y, "delaunay", 12, None, False, "auto", capacity)[0] for y in frames[:len(graphs)]]
+            graphs = [_graph(y, "delaunay", 12, None, False, "auto", capacity)[0] for y in frames[: len(graphs)]]
         graphs.append(tess)
     return graphs
 
@@ -99,8 +98,15 @@ def kernels_alone(frames, graphs, parents, fn, observe) -> float:
         xj = jnp.asarray(x)
         state = eqx.tree_at(lambda s: s.tess, state, eqx.tree_at(lambda g: g.points, tess, xj))
         values = None if fn is not None else jnp.zeros(n, DTYPE)  # a landscape is evaluated in the program
-        state, obs = _observe_frame(fn, params, state, (xj, jnp.zeros_like(xj), values, jnp.asarray(parents[t])),
-                                    jnp.asarray(t, jnp.int32), jnp.asarray(0.01, DTYPE), observe)
+        state, obs = _observe_frame(
+            fn,
+            params,
+            state,
+            (xj, jnp.zeros_like(xj), values, jnp.asarray(parents[t])),
+            jnp.asarray(t, jnp.int32),
+            jnp.asarray(0.01, DTYPE),
+            observe,
+        )
         out.append(obs)
     jax.block_until_ready(out)
     return time.perf_counter() - start
@@ -111,8 +117,9 @@ def case(name: str, d: int, fn, n: int, n_frames: int, repeat: int, folder: Path
     frames = write_frames(path, n, d, n_frames)
     with jaxgeom.H5MDTrajectory(path) as h5:
         parents = np.stack([h5.frame(t)["parents"] for t in range(n_frames)])
-    observe = _default_observe(_determined({"parents", "fitness"} if fn else {"parents"}, fn, jaxgeom.SwarmParams(),
-                                           "delaunay"))
+    observe = _default_observe(
+        _determined({"parents", "fitness"} if fn else {"parents"}, fn, jaxgeom.SwarmParams(), "delaunay")
+    )
     graphs = prebuilt(frames)
 
     def analyze():
@@ -134,12 +141,19 @@ def case(name: str, d: int, fn, n: int, n_frames: int, repeat: int, folder: Path
         parts["reading_and_graphs"].append(float(h["seconds_rebuild"]))
         parts["observables"].append(float(h["seconds_steps"]))
     med = {k: float(np.median(v)) for k, v in times.items()}
-    out = {"case": name, "d": d, "landscape": fn is not None, "n": n, "frames": n_frames, "observe": list(observe),
-           "seconds": {k: summary(v) for k, v in times.items()},
-           "analyze_trajectory_parts": {k: summary(v) for k, v in parts.items()},
-           "over_delaunay": med["analyze_trajectory"] / med["delaunay"],
-           "over_delaunay_plus_kernels": med["analyze_trajectory"] / (med["delaunay"] + med["kernels"]),
-           "per_frame_ms": {k: 1e3 * v / n_frames for k, v in med.items()}}
+    out = {
+        "case": name,
+        "d": d,
+        "landscape": fn is not None,
+        "n": n,
+        "frames": n_frames,
+        "observe": list(observe),
+        "seconds": {k: summary(v) for k, v in times.items()},
+        "analyze_trajectory_parts": {k: summary(v) for k, v in parts.items()},
+        "over_delaunay": med["analyze_trajectory"] / med["delaunay"],
+        "over_delaunay_plus_kernels": med["analyze_trajectory"] / (med["delaunay"] + med["kernels"]),
+        "per_frame_ms": {k: 1e3 * v / n_frames for k, v in med.items()},
+    }
     print(json.dumps(out, indent=1), flush=True)
     return out
 
@@ -148,13 +162,19 @@ def peak_memory(n: int, n_frames: int, folder: Path) -> dict:
     """Peak resident memory of a fresh process that analyses T frames (2D, no landscape)."""
     path = folder / f"memory_{n_frames}.h5md"
     write_frames(path, n, 2, n_frames, seed=1)
-    code = ("import resource, sys, time, jaxgeom, numpy as np; t = time.perf_counter(); "
-            f"h = jaxgeom.analyze_trajectory({str(path)!r}, dtype=np.float32); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, len(h['frame']), time.perf_counter() - t)")
+    code = (
+        "import resource, sys, time, jaxgeom, numpy as np; t = time.perf_counter(); "
+        f"h = jaxgeom.analyze_trajectory({str(path)!r}, dtype=np.float32); "
+        "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, len(h['frame']), time.perf_counter() - t)"
+    )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     kib, frames, seconds = done.stdout.split()[-3:]
-    return {"frames": int(frames), "peak_rss_mib": int(kib) / 1024, "seconds": float(seconds),
-            "file_mib": path.stat().st_size / 2**20}
+    return {
+        "frames": int(frames),
+        "peak_rss_mib": int(kib) / 1024,
+        "seconds": float(seconds),
+        "file_mib": path.stat().st_size / 2**20,
+    }
 
 
 def main() -> None:
@@ -167,16 +187,21 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "trajectory.json")
     args = parser.parse_args()
     specs = {"2d": (2, None), "2d_landscape": (2, landscape), "3d_landscape": (3, landscape)}
-    result = {"rows": [], "jax": jax.__version__, "device": str(jax.devices()[0]), "machine": platform.machine(),
-              "cpus": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
+    result = {
+        "rows": [],
+        "jax": jax.__version__,
+        "device": str(jax.devices()[0]),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "date": time.strftime("%Y-%m-%d"),
+    }
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.cases:
             d, fn = specs[name]
             result["rows"].append(case(name, d, fn, args.n, args.frames, args.repeat, Path(tmp)))
         if args.memory:
             small, large = peak_memory(args.n, 100, Path(tmp)), peak_memory(args.n, 1000, Path(tmp))
-            result["memory"] = {"T100": small, "T1000": large,
-                                "ratio": large["peak_rss_mib"] / small["peak_rss_mib"]}
+            result["memory"] = {"T100": small, "T1000": large, "ratio": large["peak_rss_mib"] / small["peak_rss_mib"]}
             print(json.dumps(result["memory"], indent=1), flush=True)
     args.out.write_text(json.dumps(result, indent=1))
 

@@ -30,9 +30,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxgeom  # noqa: E402
+from jaxgeom.base._progress import close_bar, open_bar  # noqa: E402
 from jaxgeom.cli import _parser  # noqa: E402
 from jaxgeom.cli._tune import build_loss  # noqa: E402
-from jaxgeom.base._progress import close_bar, open_bar  # noqa: E402
 
 
 def demo_args(*extra: str):
@@ -44,9 +44,16 @@ def demo_recovery() -> dict:
     loss, start, truth = build_loss(args)
     began = time.perf_counter()
     result = jaxgeom.tune(loss, start, max_steps=args.max_steps, target_seeds=args.seeds)
-    return {"start": start, "truth": truth, "found": result.values, "standard_errors": result.standard_errors,
-            "relative_error": {n: abs(result.values[n] / v - 1) for n, v in truth.items()},
-            "message": result.message, "solver_steps": result.n_steps, "seconds": time.perf_counter() - began}
+    return {
+        "start": start,
+        "truth": truth,
+        "found": result.values,
+        "standard_errors": result.standard_errors,
+        "relative_error": {n: abs(result.values[n] / v - 1) for n, v in truth.items()},
+        "message": result.message,
+        "solver_steps": result.n_steps,
+        "seconds": time.perf_counter() - began,
+    }
 
 
 def one_fit(k: int) -> dict:
@@ -54,18 +61,27 @@ def one_fit(k: int) -> dict:
     loss, _, truth = build_loss(args, target_key=1000 + k)
     result = jaxgeom.tune(loss, truth, max_steps=args.max_steps, target_seeds=args.seeds)
     z = {n: (result.values[n] - v) / result.standard_errors[n] for n, v in truth.items()}
-    return {"fit": k, "values": result.values, "standard_errors": result.standard_errors, "z": z,
-            "loss": result.loss, "message": result.message}
+    return {
+        "fit": k,
+        "values": result.values,
+        "standard_errors": result.standard_errors,
+        "z": z,
+        "loss": result.loss,
+        "message": result.message,
+    }
 
 
 def coverage(fits: list[dict]) -> dict:
     names = list(fits[0]["z"])
     z = np.array([[f["z"][n] for n in names] for f in fits])
     inside = np.abs(z) <= 2.0
-    return {"fits": len(fits), "within_2_se": {n: float(inside[:, i].mean()) for i, n in enumerate(names)},
-            "both_within_2_se": float(inside.all(axis=1).mean()),
-            "z_std": {n: float(z[:, i].std(ddof=1)) for i, n in enumerate(names)},
-            "z_mean": {n: float(z[:, i].mean()) for i, n in enumerate(names)}}
+    return {
+        "fits": len(fits),
+        "within_2_se": {n: float(inside[:, i].mean()) for i, n in enumerate(names)},
+        "both_within_2_se": float(inside.all(axis=1).mean()),
+        "z_std": {n: float(z[:, i].std(ddof=1)) for i, n in enumerate(names)},
+        "z_mean": {n: float(z[:, i].mean()) for i, n in enumerate(names)},
+    }
 
 
 def main() -> None:
@@ -89,8 +105,19 @@ def main() -> None:
     close_bar(bar, owned)
     summary = coverage(fits)
     print("coverage:", json.dumps(summary))
-    args.out.write_text(json.dumps({"machine": platform.processor() or platform.machine(), "jax": jax.__version__,
-                                    "demo": demo, "coverage": summary, "fits": fits}, indent=1, default=float))
+    args.out.write_text(
+        json.dumps(
+            {
+                "machine": platform.processor() or platform.machine(),
+                "jax": jax.__version__,
+                "demo": demo,
+                "coverage": summary,
+                "fits": fits,
+            },
+            indent=1,
+            default=float,
+        )
+    )
     print(f"wrote {args.out}")
 
 

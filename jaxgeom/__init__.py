@@ -1,17 +1,13 @@
 """jaxgeom: JAX geometry kernels for walker swarms."""
 
+from .apps._plots import plot_estimation_quality as plot_estimation_quality
+from .apps._validation import compare_estimation_methods as compare_estimation_methods
+from .apps._validation import validate_on_synthetic_function as validate_on_synthetic_function
+from .base._h5md import H5MDTrajectory as H5MDTrajectory
+from .base._h5md import H5MDWriter as H5MDWriter
 from .base._sharding import batch_mesh as batch_mesh
 from .base._sharding import shard_batch as shard_batch
 from .base._sharding import walker_mesh as walker_mesh
-from .tessellation._cellclip import rebuild as rebuild
-from .tessellation._delaunay import CapacityError as CapacityError
-from .tessellation._delaunay import delaunay as delaunay
-from .tessellation._graph import Capacity as Capacity
-from .tessellation._graph import Tessellation as Tessellation
-from .tessellation._graph import neighbor_displacements as neighbor_displacements
-from .tessellation._graph import simplex_vertices as simplex_vertices
-from .tessellation._knn import knn_graph as knn_graph
-from .tessellation._triangulators import CoincidentPointsError as CoincidentPointsError
 from .geometry._cells import mean_curvature_estimate as mean_curvature_estimate
 from .geometry._cells import raychaudhuri_expansion as raychaudhuri_expansion
 from .geometry._cells import shape_distortion as shape_distortion
@@ -25,8 +21,10 @@ from .geometry._estimation import EstimateInfo as EstimateInfo
 from .geometry._estimation import estimate_gradient as estimate_gradient
 from .geometry._estimation import estimate_hessian as estimate_hessian
 from .geometry._estimation import geometric_hessian as geometric_hessian
-from .geometry._forces import edge_weights as edge_weights
+from .geometry._facets import VoronoiFacets as VoronoiFacets
+from .geometry._facets import voronoi_facets as voronoi_facets
 from .geometry._forces import VISCOUS_WEIGHTS as VISCOUS_WEIGHTS
+from .geometry._forces import edge_weights as edge_weights
 from .geometry._forces import viscous_force as viscous_force
 from .geometry._geodesic import geodesic_distances as geodesic_distances
 from .geometry._metric import edge_lengths as edge_lengths
@@ -40,14 +38,12 @@ from .geometry._metric_curvature import CurvatureInfo as CurvatureInfo
 from .geometry._metric_curvature import metric_curvature as metric_curvature
 from .geometry._ollivier import OllivierRicci as OllivierRicci
 from .geometry._ollivier import ollivier_ricci as ollivier_ricci
-from .geometry._spectral import GraphLaplacian as GraphLaplacian
-from .geometry._spectral import graph_laplacian as graph_laplacian
-from .geometry._spectral import spectral_gap as spectral_gap
-from .geometry._facets import VoronoiFacets as VoronoiFacets
-from .geometry._facets import voronoi_facets as voronoi_facets
 from .geometry._scutoids import ScutoidFractions as ScutoidFractions
 from .geometry._scutoids import Scutoids as Scutoids
 from .geometry._scutoids import scutoids as scutoids
+from .geometry._spectral import GraphLaplacian as GraphLaplacian
+from .geometry._spectral import graph_laplacian as graph_laplacian
+from .geometry._spectral import spectral_gap as spectral_gap
 from .geometry._volumes import circumcenters as circumcenters
 from .geometry._volumes import voronoi_volumes as voronoi_volumes
 from .swarm._divergence import SimulationDiverged as SimulationDiverged
@@ -61,19 +57,23 @@ from .swarm._simulate import stack_swarms as stack_swarms
 from .swarm._swarm_init import init_swarm as init_swarm
 from .swarm._trajectory import TrajectoryInterrupted as TrajectoryInterrupted
 from .swarm._trajectory import analyze_trajectory as analyze_trajectory
-from .base._h5md import H5MDTrajectory as H5MDTrajectory
-from .base._h5md import H5MDWriter as H5MDWriter
 from .swarm._tune import TuneResult as TuneResult
-from .swarm._tune import parameter_errors as parameter_errors
 from .swarm._tune import TuningFailed as TuningFailed
 from .swarm._tune import TuningInterrupted as TuningInterrupted
+from .swarm._tune import parameter_errors as parameter_errors
 from .swarm._tune import tune as tune
 from .swarm._tuning import OBJECTIVES as OBJECTIVES
 from .swarm._tuning import TUNABLE as TUNABLE
 from .swarm._tuning import SimulationLoss as SimulationLoss
 from .swarm._tuning import simulation_loss as simulation_loss
-from .apps._plots import plot_estimation_quality as plot_estimation_quality
-from .apps._validation import compare_estimation_methods as compare_estimation_methods
-from .apps._validation import validate_on_synthetic_function as validate_on_synthetic_function
+from .tessellation._cellclip import rebuild as rebuild
+from .tessellation._delaunay import CapacityError as CapacityError
+from .tessellation._delaunay import delaunay as delaunay
+from .tessellation._graph import Capacity as Capacity
+from .tessellation._graph import Tessellation as Tessellation
+from .tessellation._graph import neighbor_displacements as neighbor_displacements
+from .tessellation._graph import simplex_vertices as simplex_vertices
+from .tessellation._knn import knn_graph as knn_graph
+from .tessellation._triangulators import CoincidentPointsError as CoincidentPointsError
 
 __version__ = "0.1.0"

@@ -4,9 +4,12 @@ import shutil
 import tempfile
 from importlib.metadata import version
 
+import numpy as np
+import pytest
+
 
 def _jaxlib_at_least(*wanted: int) -> bool:
-    parts = version("jaxlib").split(".")[:len(wanted)]
+    parts = version("jaxlib").split(".")[: len(wanted)]
     return tuple(int("".join(ch for ch in p if ch.isdigit()) or 0) for p in parts) >= wanted
 
 
@@ -25,14 +28,17 @@ def _jaxlib_at_least(*wanted: int) -> bool:
 # (The emitter and split flags exist in the jaxlib 0.8 the suite is measured with; an unknown
 # flag aborts XLA, so older jaxlibs do without them.)
 if os.environ.get("JAXGEOM_TEST_XLA_OPT", "0") != "default":
-    emitters = (" --xla_cpu_use_fusion_emitters=false --xla_cpu_parallel_codegen_split_count=1"
-                if _jaxlib_at_least(0, 8) else "")
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-                               " --xla_llvm_disable_expensive_passes=true" + emitters).strip()
+    emitters = (
+        " --xla_cpu_use_fusion_emitters=false --xla_cpu_parallel_codegen_split_count=1"
+        if _jaxlib_at_least(0, 8)
+        else ""
+    )
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+        " --xla_llvm_disable_expensive_passes=true" + emitters
+    ).strip()
 
 import jax  # noqa: E402  (after XLA_FLAGS)
-import numpy as np
-import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")

@@ -30,7 +30,14 @@ LAYERS = {
         ("_dual",),  # 3D faces, volumes, centroids and vertex counts from the Delaunay dual
         ("_volumes", "_facets"),  # cell volumes; the faces, centroids and vertex counts of the cells
         ("_metric",),
-        ("_cells", "_curvature", "_heat", "_metric_curvature", "_ollivier", "_scutoids"),  # ..., the curvature of a callable
+        (
+            "_cells",
+            "_curvature",
+            "_heat",
+            "_metric_curvature",
+            "_ollivier",
+            "_scutoids",
+        ),  # ..., the curvature of a callable
         # metric, Ollivier-Ricci curvature of the graph
         ("_geodesic",),  # heat method, Dijkstra, Bellman-Ford behind one entry point
         ("_weights",),  # edge weight rules
@@ -59,8 +66,9 @@ LAYERS = {
 FOLDERS = list(LAYERS)
 PUBLIC = "jaxgeom/__init__.py"
 ORDER = FOLDERS[:-1] + [PUBLIC, "cli"]  # only the CLI may import the public surface
-LEVEL = {(folder, name): level for folder, tuples in LAYERS.items()
-         for level, names in enumerate(tuples) for name in names}
+LEVEL = {
+    (folder, name): level for folder, tuples in LAYERS.items() for level, names in enumerate(tuples) for name in names
+}
 
 
 def internal_imports(path: Path) -> set[tuple[str, str]]:
@@ -77,7 +85,8 @@ def internal_imports(path: Path) -> set[tuple[str, str]]:
         elif isinstance(node, (ast.Import, ast.ImportFrom)):
             absolute = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
             assert getattr(node, "level", 0) < 3 and not any(n.split(".")[0] == "jaxgeom" for n in absolute), (
-                f"{path}: import jaxgeom's private modules relatively (from ._x or from ..folder._x)")
+                f"{path}: import jaxgeom's private modules relatively (from ._x or from ..folder._x)"
+            )
     return found
 
 
@@ -104,7 +113,8 @@ def test_imports_go_down_the_folders(path):
     for folder, name in internal_imports(path):
         assert ORDER.index(folder) <= mine, (
             f"{path.relative_to(PACKAGE)} (folder {path.parent.name}) imports {folder}/{name}: "
-            f"{folder} is a layer above; move the shared code down or the caller up")
+            f"{folder} is a layer above; move the shared code down or the caller up"
+        )
 
 
 @pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(PACKAGE)))
@@ -115,19 +125,23 @@ def test_imports_go_down_within_a_folder(path):
     for folder, name in internal_imports(path):
         if folder == path.parent.name:
             assert LEVEL[folder, name] < me, (
-                f"{path.relative_to(PACKAGE)} (level {me}) imports {name} (level {LEVEL[folder, name]})")
+                f"{path.relative_to(PACKAGE)} (level {me}) imports {name} (level {LEVEL[folder, name]})"
+            )
 
 
 def test_the_public_surface_imports_every_layer_but_cli():
-    top = {node.module.split(".")[0] for node in ast.walk(ast.parse((PACKAGE / "__init__.py").read_text()))
-           if isinstance(node, ast.ImportFrom) and node.level == 1}
+    top = {
+        node.module.split(".")[0]
+        for node in ast.walk(ast.parse((PACKAGE / "__init__.py").read_text()))
+        if isinstance(node, ast.ImportFrom) and node.level == 1
+    }
     assert top == set(FOLDERS) - {"cli"}
 
 
 def architecture_section() -> str:
     readme = (PACKAGE.parent / "README.md").read_text()
     start = readme.index("## Architecture")
-    return readme[start:readme.index("\n## ", start + 1)]
+    return readme[start : readme.index("\n## ", start + 1)]
 
 
 def test_the_readme_names_every_module_by_a_path_that_exists():
@@ -140,4 +154,5 @@ def test_the_readme_names_every_module_by_a_path_that_exists():
     for path in MODULES:
         if path.name != "__init__.py":
             assert f"`{path.name}`" in text or f"`{path.parent.name}/{path.name}`" in text, (
-                f"README's Architecture does not place {path.relative_to(PACKAGE)}")
+                f"README's Architecture does not place {path.relative_to(PACKAGE)}"
+            )

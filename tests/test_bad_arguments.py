@@ -11,7 +11,6 @@ import jaxgeom
 from jaxgeom.cli import main
 
 
-
 @pytest.fixture(scope="module")
 def tess():
     return jaxgeom.delaunay(np.random.default_rng(0).random((200, 2)))
@@ -21,18 +20,21 @@ def bowl(x):
     return jnp.sum(x**2)
 
 
-@pytest.mark.parametrize("kwargs, error, message", [
-    (dict(dt=float("inf")), ValueError, r"`dt` must be a finite number > 0; got inf"),
-    (dict(clone_rate=2), ValueError, r"`clone_rate` must be a finite number >= 0 and <= 1"),
-    (dict(reward_power=float("nan")), ValueError, r"`reward_power` must be a finite number >= 0; got nan"),
-    (dict(distance_power=-1), ValueError, r"`distance_power` must be a finite number >= 0; got -1"),
-    (dict(clone_jitter=float("inf")), ValueError, r"`clone_jitter` must be a finite number > 0"),
-    (dict(dt=[0.1, 0.2]), ValueError, r"`dt` must be a scalar; got shape \(2,\).*jax.vmap"),
-    (dict(nu="0.1"), TypeError, r"`nu` must be numeric; got str"),
-    (dict(nu=np.ones((2, 2))), ValueError, r"`nu` must be a scalar"),
-    (dict(temperature=1j), TypeError, r"`temperature` must be real; got complex"),
-    (dict(gamma=[[1.0], [2.0, 3.0]]), TypeError, r"`gamma` must be a rectangular numeric array"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, message",
+    [
+        (dict(dt=float("inf")), ValueError, r"`dt` must be a finite number > 0; got inf"),
+        (dict(clone_rate=2), ValueError, r"`clone_rate` must be a finite number >= 0 and <= 1"),
+        (dict(reward_power=float("nan")), ValueError, r"`reward_power` must be a finite number >= 0; got nan"),
+        (dict(distance_power=-1), ValueError, r"`distance_power` must be a finite number >= 0; got -1"),
+        (dict(clone_jitter=float("inf")), ValueError, r"`clone_jitter` must be a finite number > 0"),
+        (dict(dt=[0.1, 0.2]), ValueError, r"`dt` must be a scalar; got shape \(2,\).*jax.vmap"),
+        (dict(nu="0.1"), TypeError, r"`nu` must be numeric; got str"),
+        (dict(nu=np.ones((2, 2))), ValueError, r"`nu` must be a scalar"),
+        (dict(temperature=1j), TypeError, r"`temperature` must be real; got complex"),
+        (dict(gamma=[[1.0], [2.0, 3.0]]), TypeError, r"`gamma` must be a rectangular numeric array"),
+    ],
+)
 def test_swarm_params_refuse_bad_values(kwargs, error, message):
     with pytest.raises(error, match=message):
         jaxgeom.SwarmParams(**kwargs)
@@ -100,9 +102,13 @@ def test_box_and_ragged_points_are_refused_clearly():
 
 def metric_calls(tess, g):
     v = np.zeros((tess.n_points, 2))
-    return [lambda: jaxgeom.ricci_scalar(tess, metric=g), lambda: jaxgeom.edge_lengths(tess, metric=g),
-            lambda: jaxgeom.viscous_force(tess, v, nu=0.1, weights="metric_full", metric=g),
-            lambda: jaxgeom.geodesic_distances(tess, 0, metric=g), lambda: jaxgeom.riemannian_volumes(tess, metric=g)]
+    return [
+        lambda: jaxgeom.ricci_scalar(tess, metric=g),
+        lambda: jaxgeom.edge_lengths(tess, metric=g),
+        lambda: jaxgeom.viscous_force(tess, v, nu=0.1, weights="metric_full", metric=g),
+        lambda: jaxgeom.geodesic_distances(tess, 0, metric=g),
+        lambda: jaxgeom.riemannian_volumes(tess, metric=g),
+    ]
 
 
 @pytest.mark.parametrize("call", range(5))
@@ -144,9 +150,13 @@ def test_metric_defects_flags_the_walkers_where_a_callable_is_not_a_metric(d):
 
 @pytest.mark.parametrize("estimate", [jaxgeom.estimate_gradient, jaxgeom.estimate_hessian])
 def test_estimates_refuse_values_of_the_wrong_shape_or_kind(tess, estimate):
-    with pytest.raises(ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(199,\)"):
+    with pytest.raises(
+        ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(199,\)"
+    ):
         estimate(tess, np.zeros(199))
-    with pytest.raises(ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(200, 2\)"):
+    with pytest.raises(
+        ValueError, match=r"`values` must have shape \(200,\), one entry per walker of `tess`; got \(200, 2\)"
+    ):
         estimate(tess, np.zeros((200, 2)))
     with pytest.raises(TypeError, match="`values` must be real; got complex"):
         estimate(tess, np.zeros(200, complex))
@@ -172,7 +182,7 @@ def test_a_tiny_kernel_width_tends_to_nearest_neighbour_weighting(tess):
     force = np.asarray(jaxgeom.viscous_force(tess, v, nu=2.0, length_scale=1e-30))
     np.testing.assert_allclose(force, 2.0 * (v[nearest] - v), rtol=1e-12, atol=1e-12)
     wide = np.asarray(jaxgeom.viscous_force(tess, v, nu=2.0, length_scale=0.05))
-    w = np.where(nbrs < 200, np.exp(-dist**2 / (2 * 0.05**2)), 0.0)  # the unshifted kernel
+    w = np.where(nbrs < 200, np.exp(-(dist**2) / (2 * 0.05**2)), 0.0)  # the unshifted kernel
     v_pad = np.vstack([v, np.zeros((1, 2))])
     reference = 2.0 * ((w[:, :, None] * (v_pad[nbrs] - v[:, None])).sum(1) / w.sum(1)[:, None])
     np.testing.assert_allclose(wide, reference, rtol=1e-10, atol=1e-12)
@@ -196,15 +206,18 @@ def files(tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["simulate", "--landscape", "{}/syntax.py"], "could not be loaded: SyntaxError"),
-    (["simulate", "--landscape", "{}/inverted.py"], r"BOX in .* must satisfy lower < upper"),
-    (["simulate", "--landscape", "{}/scalar.py"], r"BOX in .* must be \(lower, upper\), two numbers; got 5"),
-    (["analyze", "--points", "{}/flat.npy", "--periodic"], r"--points must hold an \(N, d\) float array"),
-    (["analyze", "--points", "{}/flat.npy", "--box", "0", "1"], r"--points must hold an \(N, d\) float array"),
-    (["analyze", "--points", "{}/ints.npy"], r"holds shape \(5, 2\), dtype int64"),
-    (["analyze", "--points", "{}/points.txt"], r"--points must be a .npy file written by numpy.save"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["simulate", "--landscape", "{}/syntax.py"], "could not be loaded: SyntaxError"),
+        (["simulate", "--landscape", "{}/inverted.py"], r"BOX in .* must satisfy lower < upper"),
+        (["simulate", "--landscape", "{}/scalar.py"], r"BOX in .* must be \(lower, upper\), two numbers; got 5"),
+        (["analyze", "--points", "{}/flat.npy", "--periodic"], r"--points must hold an \(N, d\) float array"),
+        (["analyze", "--points", "{}/flat.npy", "--box", "0", "1"], r"--points must hold an \(N, d\) float array"),
+        (["analyze", "--points", "{}/ints.npy"], r"holds shape \(5, 2\), dtype int64"),
+        (["analyze", "--points", "{}/points.txt"], r"--points must be a .npy file written by numpy.save"),
+    ],
+)
 def test_cli_input_files_fail_with_one_line_and_exit_2(files, capsys, argv, message):
     argv = [a.format(files) for a in argv]
     if argv[0] == "simulate":
@@ -215,16 +228,19 @@ def test_cli_input_files_fail_with_one_line_and_exit_2(files, capsys, argv, mess
     assert re.search(message, err)
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["analyze", "--seed", "-1"], "--seed must be a finite number >= 0"),
-    (["analyze", "--n", "0"], "--n must be a finite number >= 1"),
-    (["simulate", "--eps-sigma", "nan"], "--eps-sigma must be a finite number >= 0.0; got nan"),
-    (["simulate", "--clone-rate", "5"], "--clone-rate must be a finite number >= 0.0 and <= 1.0"),
-    (["simulate", "--gap-every", "-2"], "--gap-every must be a finite number >= 0"),
-    (["simulate", "--nu", "-1"], "--nu must be a finite number >= 0.0"),
-    (["analyze", "--out", "{}/a_file"], "is an existing file; give a directory"),
-    (["analyze", "--out", "{}/a_file/sub"], "cannot be created"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["analyze", "--seed", "-1"], "--seed must be a finite number >= 0"),
+        (["analyze", "--n", "0"], "--n must be a finite number >= 1"),
+        (["simulate", "--eps-sigma", "nan"], "--eps-sigma must be a finite number >= 0.0; got nan"),
+        (["simulate", "--clone-rate", "5"], "--clone-rate must be a finite number >= 0.0 and <= 1.0"),
+        (["simulate", "--gap-every", "-2"], "--gap-every must be a finite number >= 0"),
+        (["simulate", "--nu", "-1"], "--nu must be a finite number >= 0.0"),
+        (["analyze", "--out", "{}/a_file"], "is an existing file; give a directory"),
+        (["analyze", "--out", "{}/a_file/sub"], "cannot be created"),
+    ],
+)
 def test_cli_refuses_bad_numbers_and_outputs_before_any_work(files, capsys, argv, message):
     with pytest.raises(SystemExit) as exit_info:
         main([a.format(files) for a in argv])
@@ -242,8 +258,10 @@ def test_traced_knn_gives_non_finite_walkers_no_neighbours_and_wraps_periodic_on
     np.testing.assert_array_equal(others[np.asarray(host.neighbors)], nbrs[others])
     p = np.random.default_rng(5).random((100, 2))
     knn = jax.jit(lambda q: jaxgeom.knn_graph(q, 6, box=(0.0, 1.0), periodic=True, method="brute"))
-    np.testing.assert_array_equal(np.sort(np.asarray(knn(jnp.asarray(p)).neighbors), 1),
-                                  np.sort(np.asarray(knn(jnp.asarray(p + [1.0, -2.0])).neighbors), 1))
+    np.testing.assert_array_equal(
+        np.sort(np.asarray(knn(jnp.asarray(p)).neighbors), 1),
+        np.sort(np.asarray(knn(jnp.asarray(p + [1.0, -2.0])).neighbors), 1),
+    )
 
 
 def test_bellman_ford_sources_outside_the_walkers(tess):
@@ -266,8 +284,11 @@ def test_a_checked_jax_metric_is_not_checked_again(tess, monkeypatch):
 
 
 def test_edge_weights_refuse_an_unknown_rule_instead_of_returning_inverse_distances(tess):
-    with pytest.raises(ValueError, match=r"unknown weights 'kernal'; valid values are 'uniform', 'kernel', "
-                                         r"'inverse_distance', 'metric_diagonal', 'metric_full'"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown weights 'kernal'; valid values are 'uniform', 'kernel', "
+        r"'inverse_distance', 'metric_diagonal', 'metric_full'",
+    ):
         jaxgeom.edge_weights(tess, weights="kernal")
     with pytest.raises(ValueError, match=r"weights 'metric_full' needs `metric`"):
         jaxgeom.edge_weights(tess, weights="metric_full")
@@ -284,55 +305,92 @@ N = 200  # walkers of the `tess` fixture
 VOL = np.linspace(0.5, 1.5, N)
 
 
-@pytest.mark.parametrize("call, error, message", [
-    # per-walker arrays of the cell proxies and curvature: length, strings, complex, signs, masks
-    (lambda t: jaxgeom.volume_distortion(t, VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
-    (lambda t: jaxgeom.volume_distortion(t, "abc"), TypeError, r"`volumes` must be numeric; got str"),
-    (lambda t: jaxgeom.volume_distortion(t, VOL + 0j), TypeError, r"`volumes` must be real; got complex"),
-    (lambda t: jaxgeom.volume_distortion(t, -VOL), ValueError, r"`volumes` must be >= 0"),
-    (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
-    (lambda t: jaxgeom.ricci_scalar(t, volumes="abc"), TypeError, r"`volumes` must be numeric"),
-    (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL + 0j), TypeError, r"`volumes` must be real"),
-    (lambda t: jaxgeom.riemannian_volumes(t, volumes=list(VOL[:5])), ValueError, r"`volumes` must have shape"),
-    (lambda t: jaxgeom.riemannian_volumes(t, volumes=-VOL), ValueError, r"`volumes` must be >= 0"),
-    (lambda t: jaxgeom.viscous_force(t, np.zeros((N, 2)), nu=0.1, volume_weights=VOL + 0j), TypeError,
-     r"`volume_weights` must be real"),
-    (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(N)), TypeError, r"`mask` must be a bool mask"),
-    (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(5, bool)), ValueError, r"`mask` must have shape"),
-    (lambda t: jaxgeom.riemannian_mean(VOL, "abc"), TypeError, r"`weights` must be a 1-D array"),
-    (lambda t: jaxgeom.riemannian_mean(VOL, -VOL), ValueError, r"`weights` must be >= 0"),
-    (lambda t: jaxgeom.riemannian_mean(VOL + 0j, VOL), TypeError, r"`values` must be real"),
-    (lambda t: jaxgeom.riemannian_mean(VOL, VOL[:5]), ValueError, r"`values` and `weights` must have the same"),
-    (lambda t: jaxgeom.raychaudhuri_expansion(np.ones((N, 2)), np.ones((N, 2)), 0.1), ValueError,
-     r"`volumes_before` must be 1-D"),
-    (lambda t: jaxgeom.raychaudhuri_expansion(VOL + 0j, VOL, 0.1), TypeError, r"`volumes_before` must be real"),
-    (lambda t: jaxgeom.raychaudhuri_expansion(VOL, VOL, 0.1, valid=np.ones(N)), TypeError, r"`valid` must be a bool"),
-    (lambda t: jaxgeom.mean_curvature_estimate(np.array([1.0, 2.0]) + 0j), TypeError, r"`theta` must be real"),
-    # callables
-    (lambda t: jaxgeom.hessian_metric(5, 0.1), TypeError, r"`fitness` must be a JAX function"),
-    (lambda t: jaxgeom.ricci_scalar(t, metric=lambda p: float(p[0]) * jnp.eye(2)), TypeError,
-     r"the metric callable must be JAX-traceable.*no float\(\)"),
-    (lambda t: jaxgeom.init_swarm(lambda p: 1, np.random.default_rng(0).random((30, 2))), TypeError,
-     r"`fitness` must return a real floating-point scalar.*int"),
-    (lambda t: jaxgeom.init_swarm(lambda p: jnp.sum(p).astype(complex), np.random.default_rng(0).random((30, 2))),
-     TypeError,
-     r"`fitness` must return a real floating-point scalar.*complex"),
-    # the estimation helpers
-    (lambda t: jaxgeom.geometric_hessian(t, -1.0), ValueError, r"`eps_sigma` must be a finite number >= 0"),
-    (lambda t: jaxgeom.geometric_hessian(t, float("nan")), ValueError, r"`eps_sigma` must be a finite number >= 0"),
-    (lambda t: jaxgeom.compare_estimation_methods(t, VOL, eps_sigma=-1.0), ValueError, r"`eps_sigma` must be"),
-    (lambda t: jaxgeom.validate_on_synthetic_function("quadratic", n_walkers=100.5), TypeError,
-     r"`n_walkers` must be an int >= 4; got 100.5"),
-    (lambda t: jaxgeom.validate_on_synthetic_function("quadratic", eps_sigma=float("nan")), ValueError,
-     r"`eps_sigma` must be"),
-    (lambda t: jaxgeom.plot_estimation_quality({}, "unused.png"), ValueError, r"`result` lacks \['points'"),
-    # LOBPCG and meshes
-    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=-1.0), ValueError, r"`tol` must be a finite number > 0"),
-    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=float("nan")), ValueError, r"`tol` must be"),
-    (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", maxiter=-3), ValueError, r"`maxiter` must be an int >= 1"),
-    (lambda t: jaxgeom.batch_mesh("cpu"), TypeError, r"`devices` must be a sequence of JAX devices.*jax.devices\('cpu'\)"),
-    (lambda t: jaxgeom.batch_mesh([jax.devices()[0]] * 2), ValueError, r"`devices` lists a device more than once"),
-])
+@pytest.mark.parametrize(
+    "call, error, message",
+    [
+        # per-walker arrays of the cell proxies and curvature: length, strings, complex, signs, masks
+        (lambda t: jaxgeom.volume_distortion(t, VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
+        (lambda t: jaxgeom.volume_distortion(t, "abc"), TypeError, r"`volumes` must be numeric; got str"),
+        (lambda t: jaxgeom.volume_distortion(t, VOL + 0j), TypeError, r"`volumes` must be real; got complex"),
+        (lambda t: jaxgeom.volume_distortion(t, -VOL), ValueError, r"`volumes` must be >= 0"),
+        (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL[:5]), ValueError, r"`volumes` must have shape \(200,\)"),
+        (lambda t: jaxgeom.ricci_scalar(t, volumes="abc"), TypeError, r"`volumes` must be numeric"),
+        (lambda t: jaxgeom.ricci_scalar(t, volumes=VOL + 0j), TypeError, r"`volumes` must be real"),
+        (lambda t: jaxgeom.riemannian_volumes(t, volumes=list(VOL[:5])), ValueError, r"`volumes` must have shape"),
+        (lambda t: jaxgeom.riemannian_volumes(t, volumes=-VOL), ValueError, r"`volumes` must be >= 0"),
+        (
+            lambda t: jaxgeom.viscous_force(t, np.zeros((N, 2)), nu=0.1, volume_weights=VOL + 0j),
+            TypeError,
+            r"`volume_weights` must be real",
+        ),
+        (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(N)), TypeError, r"`mask` must be a bool mask"),
+        (lambda t: jaxgeom.riemannian_mean(VOL, VOL, mask=np.ones(5, bool)), ValueError, r"`mask` must have shape"),
+        (lambda t: jaxgeom.riemannian_mean(VOL, "abc"), TypeError, r"`weights` must be a 1-D array"),
+        (lambda t: jaxgeom.riemannian_mean(VOL, -VOL), ValueError, r"`weights` must be >= 0"),
+        (lambda t: jaxgeom.riemannian_mean(VOL + 0j, VOL), TypeError, r"`values` must be real"),
+        (lambda t: jaxgeom.riemannian_mean(VOL, VOL[:5]), ValueError, r"`values` and `weights` must have the same"),
+        (
+            lambda t: jaxgeom.raychaudhuri_expansion(np.ones((N, 2)), np.ones((N, 2)), 0.1),
+            ValueError,
+            r"`volumes_before` must be 1-D",
+        ),
+        (lambda t: jaxgeom.raychaudhuri_expansion(VOL + 0j, VOL, 0.1), TypeError, r"`volumes_before` must be real"),
+        (
+            lambda t: jaxgeom.raychaudhuri_expansion(VOL, VOL, 0.1, valid=np.ones(N)),
+            TypeError,
+            r"`valid` must be a bool",
+        ),
+        (lambda t: jaxgeom.mean_curvature_estimate(np.array([1.0, 2.0]) + 0j), TypeError, r"`theta` must be real"),
+        # callables
+        (lambda t: jaxgeom.hessian_metric(5, 0.1), TypeError, r"`fitness` must be a JAX function"),
+        (
+            lambda t: jaxgeom.ricci_scalar(t, metric=lambda p: float(p[0]) * jnp.eye(2)),
+            TypeError,
+            r"the metric callable must be JAX-traceable.*no float\(\)",
+        ),
+        (
+            lambda t: jaxgeom.init_swarm(lambda p: 1, np.random.default_rng(0).random((30, 2))),
+            TypeError,
+            r"`fitness` must return a real floating-point scalar.*int",
+        ),
+        (
+            lambda t: jaxgeom.init_swarm(
+                lambda p: jnp.sum(p).astype(complex), np.random.default_rng(0).random((30, 2))
+            ),
+            TypeError,
+            r"`fitness` must return a real floating-point scalar.*complex",
+        ),
+        # the estimation helpers
+        (lambda t: jaxgeom.geometric_hessian(t, -1.0), ValueError, r"`eps_sigma` must be a finite number >= 0"),
+        (lambda t: jaxgeom.geometric_hessian(t, float("nan")), ValueError, r"`eps_sigma` must be a finite number >= 0"),
+        (lambda t: jaxgeom.compare_estimation_methods(t, VOL, eps_sigma=-1.0), ValueError, r"`eps_sigma` must be"),
+        (
+            lambda t: jaxgeom.validate_on_synthetic_function("quadratic", n_walkers=100.5),
+            TypeError,
+            r"`n_walkers` must be an int >= 4; got 100.5",
+        ),
+        (
+            lambda t: jaxgeom.validate_on_synthetic_function("quadratic", eps_sigma=float("nan")),
+            ValueError,
+            r"`eps_sigma` must be",
+        ),
+        (lambda t: jaxgeom.plot_estimation_quality({}, "unused.png"), ValueError, r"`result` lacks \['points'"),
+        # LOBPCG and meshes
+        (
+            lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=-1.0),
+            ValueError,
+            r"`tol` must be a finite number > 0",
+        ),
+        (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", tol=float("nan")), ValueError, r"`tol` must be"),
+        (lambda t: jaxgeom.spectral_gap(t, method="lobpcg", maxiter=-3), ValueError, r"`maxiter` must be an int >= 1"),
+        (
+            lambda t: jaxgeom.batch_mesh("cpu"),
+            TypeError,
+            r"`devices` must be a sequence of JAX devices.*jax.devices\('cpu'\)",
+        ),
+        (lambda t: jaxgeom.batch_mesh([jax.devices()[0]] * 2), ValueError, r"`devices` lists a device more than once"),
+    ],
+)
 def test_unchecked_arguments_of_issue_32(tess, call, error, message):
     with pytest.raises(error, match=message):
         call(tess)
@@ -341,7 +399,9 @@ def test_unchecked_arguments_of_issue_32(tess, call, error, message):
 def test_plain_lists_and_nan_entries_are_legal_per_walker_input(tess):
     """A list is an array (once: jnp.isfinite on a list); NaN entries are left out, not zero."""
     vol = np.asarray(jaxgeom.voronoi_volumes(tess))
-    assert float(jaxgeom.volume_distortion(tess, list(vol))) == pytest.approx(float(jaxgeom.volume_distortion(tess, vol)))
+    assert float(jaxgeom.volume_distortion(tess, list(vol))) == pytest.approx(
+        float(jaxgeom.volume_distortion(tess, vol))
+    )
     assert float(jaxgeom.mean_curvature_estimate([1.0, 2.0, float("nan")])) == -1.5
 
 
@@ -350,27 +410,64 @@ def swarm():
     return jaxgeom.init_swarm(bowl, np.random.default_rng(0).random((40, 2)))
 
 
-@pytest.mark.parametrize("call, error, message", [
-    (lambda s: jaxgeom.simulate(bowl, s, jaxgeom.SwarmParams(), n_steps=1, spectral_gap_every=-2), ValueError,
-     r"`spectral_gap_every` must be an int >= 0; got -2"),
-    (lambda s: jaxgeom.simulate(lambda p: float(np.sum(p)), s, jaxgeom.SwarmParams(), n_steps=1), TypeError,
-     r"`fitness` must be a JAX-traceable function"),
-    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), key="abc"), TypeError,
-     r"`key` must be an int seed or a jax.random key"),
-    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), bounds={"nu": ("a", "b")}),
-     TypeError, r"bounds for 'nu' must be real numbers or None"),
-    (lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams())(jnp.zeros(5)), ValueError,
-     r"theta must have shape \(1,\), one entry per tuned parameter"),
-    (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()), rtol=-1.0),
-     ValueError, r"`rtol` must be a finite number > 0"),
-    (lambda s: jaxgeom.tune(jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()),
-                            solver="lbfgsb", bounds={"nu": (1.0, 0.1)}), ValueError,
-     r"bounds for 'nu' must have lower < upper; got \(1.0, 0.1\)"),
-    (lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), "cpu"), TypeError,
-     r"`mesh` must be a jax.sharding.Mesh"),
-    (lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), jaxgeom.walker_mesh()), ValueError,
-     r"`mesh` must have an axis named 'batch'"),
-])
+@pytest.mark.parametrize(
+    "call, error, message",
+    [
+        (
+            lambda s: jaxgeom.simulate(bowl, s, jaxgeom.SwarmParams(), n_steps=1, spectral_gap_every=-2),
+            ValueError,
+            r"`spectral_gap_every` must be an int >= 0; got -2",
+        ),
+        (
+            lambda s: jaxgeom.simulate(lambda p: float(np.sum(p)), s, jaxgeom.SwarmParams(), n_steps=1),
+            TypeError,
+            r"`fitness` must be a JAX-traceable function",
+        ),
+        (
+            lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), key="abc"),
+            TypeError,
+            r"`key` must be an int seed or a jax.random key",
+        ),
+        (
+            lambda s: jaxgeom.simulation_loss(
+                bowl, s, n_steps=2, params=jaxgeom.SwarmParams(), bounds={"nu": ("a", "b")}
+            ),
+            TypeError,
+            r"bounds for 'nu' must be real numbers or None",
+        ),
+        (
+            lambda s: jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams())(jnp.zeros(5)),
+            ValueError,
+            r"theta must have shape \(1,\), one entry per tuned parameter",
+        ),
+        (
+            lambda s: jaxgeom.tune(
+                jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()), rtol=-1.0
+            ),
+            ValueError,
+            r"`rtol` must be a finite number > 0",
+        ),
+        (
+            lambda s: jaxgeom.tune(
+                jaxgeom.simulation_loss(bowl, s, n_steps=2, params=jaxgeom.SwarmParams()),
+                solver="lbfgsb",
+                bounds={"nu": (1.0, 0.1)},
+            ),
+            ValueError,
+            r"bounds for 'nu' must have lower < upper; got \(1.0, 0.1\)",
+        ),
+        (
+            lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), "cpu"),
+            TypeError,
+            r"`mesh` must be a jax.sharding.Mesh",
+        ),
+        (
+            lambda s: jaxgeom.shard_batch(jaxgeom.stack_swarms([s, s]), jaxgeom.walker_mesh()),
+            ValueError,
+            r"`mesh` must have an axis named 'batch'",
+        ),
+    ],
+)
 def test_unchecked_swarm_arguments_of_issue_32(swarm, call, error, message):
     with pytest.raises(error, match=message):
         call(swarm)
@@ -380,19 +477,27 @@ def test_one_observable_name_is_one_observable(swarm):
     """Once: observe="mean_fitness" was read letter by letter ("unknown observable 'm'")."""
     _, history = jaxgeom.simulate(bowl, swarm, jaxgeom.SwarmParams(), n_steps=2, observe="mean_fitness")
     assert history["mean_fitness"].shape == (3,)
-    loss = jaxgeom.simulation_loss(bowl, swarm, lambda h: h["mean_fitness"][-1], n_steps=2,
-                                   params=jaxgeom.SwarmParams(), observe="mean_fitness")
+    loss = jaxgeom.simulation_loss(
+        bowl, swarm, lambda h: h["mean_fitness"][-1], n_steps=2, params=jaxgeom.SwarmParams(), observe="mean_fitness"
+    )
     assert loss.observe == ("mean_fitness",)
 
 
-@pytest.mark.parametrize("body, message", [
-    ("import jax.numpy as jnp\ndef V(x):\n    return 2.0 * x\n", r"it must return a scalar \(shape \(\)\)"),
-    ("def V(x):\n    raise RuntimeError('boom')\n", r"tracing it failed: RuntimeError: boom"),
-    ("import numpy as np\ndef V(x):\n    return float(np.sum(np.asarray(x) ** 2))\n",
-     r"must be a JAX-traceable function.*TracerArrayConversionError"),
-    ("import jax.numpy as jnp\ndef V(x):\n    return jnp.sum(x ** 2).astype(int)\n",
-     r"it must return a real floating-point scalar.*int"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("import jax.numpy as jnp\ndef V(x):\n    return 2.0 * x\n", r"it must return a scalar \(shape \(\)\)"),
+        ("def V(x):\n    raise RuntimeError('boom')\n", r"tracing it failed: RuntimeError: boom"),
+        (
+            "import numpy as np\ndef V(x):\n    return float(np.sum(np.asarray(x) ** 2))\n",
+            r"must be a JAX-traceable function.*TracerArrayConversionError",
+        ),
+        (
+            "import jax.numpy as jnp\ndef V(x):\n    return jnp.sum(x ** 2).astype(int)\n",
+            r"it must return a real floating-point scalar.*int",
+        ),
+    ],
+)
 def test_analyze_refuses_a_landscape_file_it_cannot_use(tmp_path, capsys, body, message):
     (tmp_path / "v.py").write_text(body)
     assert main(["analyze", "--landscape", str(tmp_path / "v.py"), "--n", "100"]) == 2

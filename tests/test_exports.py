@@ -24,8 +24,11 @@ def raised_names() -> dict[str, str]:
 
 
 def test_every_raised_exception_class_is_exported_or_a_builtin():
-    missing = {name: where for name, where in raised_names().items()
-               if not hasattr(builtins, name) and not hasattr(jaxgeom, name) and name not in INTERNAL}
+    missing = {
+        name: where
+        for name, where in raised_names().items()
+        if not hasattr(builtins, name) and not hasattr(jaxgeom, name) and name not in INTERNAL
+    }
     assert not missing, f"raised but not exported from jaxgeom: {missing}"
 
 

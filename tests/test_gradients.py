@@ -47,6 +47,7 @@ LANDSCAPES = {"definite": definite, "indefinite": indefinite, "degenerate": dege
 
 # --- the eigensolvers ---------------------------------------------------------------------------
 
+
 def symmetric_matrices(rng, d, n=200):
     """Random symmetric matrices, then repeated spectra (random rotations of diag with equal
     entries), exactly diagonal and block-diagonal ones (exact zeros off the diagonal)."""
@@ -55,7 +56,7 @@ def symmetric_matrices(rng, d, n=200):
     q = np.linalg.qr(rng.normal(size=(n, d, d)))[0]
     spectra = rng.normal(size=(n, d))
     spectra[: n // 2, 1:] = spectra[: n // 2, :1]  # one eigenvalue d times
-    spectra[n // 2:, 1] = spectra[n // 2:, 0]  # a repeated pair
+    spectra[n // 2 :, 1] = spectra[n // 2 :, 0]  # a repeated pair
     spectra[::7, 0] = 0.0
     repeated = np.einsum("nij,nj,nkj->nik", q, spectra, q)
     diagonal = np.stack([np.diag(s) for s in spectra[:20]])
@@ -85,7 +86,7 @@ def test_small_eigh_matches_lapack_with_repeated_spectra_and_exact_zeros(rng, d)
         ours = projectors(values[k], vectors[k], 1e-9)
         ref = projectors(ref_values[k], ref_vectors[k], 1e-9)
         assert len(ours) == len(ref)
-        for (lam, p), (lam_ref, p_ref) in zip(ours, ref):
+        for (_, p), (_, p_ref) in zip(ours, ref):  # the eigenvalues: compared above
             np.testing.assert_allclose(p, p_ref, atol=1e-9)
 
 
@@ -105,14 +106,18 @@ def test_small_eigh_gradients_are_finite_and_exact_for_distinct_eigenvalues(rng,
 
 def daleckii_krein(f, h, e, eps=1e-6):
     """d/dt f(h + t e) at t = 0 by central differences of the primal (numpy's eigh)."""
+
     def apply(m):
         lam, q = np.linalg.eigh(m)
         return (q * f(lam)) @ q.T
+
     return (apply(h + eps * e) - apply(h - eps * e)) / (2 * eps)
 
 
-FLOORS = {"clip": (_clip_correction, lambda lam: np.maximum(-lam, 0.0)),
-          "softabs": (_softabs, lambda lam: lam / np.tanh(lam / 0.1))}
+FLOORS = {
+    "clip": (_clip_correction, lambda lam: np.maximum(-lam, 0.0)),
+    "softabs": (_softabs, lambda lam: lam / np.tanh(lam / 0.1)),
+}
 
 
 @pytest.mark.parametrize("eigh", [small_eigh, jnp.linalg.eigh], ids=["jacobi", "lapack"])
@@ -124,8 +129,12 @@ def test_floor_derivatives_are_right_at_repeated_eigenvalues(rng, eigh, floor, d
     eigenvectors this is 0/0: an exact repeat missed the off-diagonal part of the direction."""
     fn, reference = FLOORS[floor]
     q = np.linalg.qr(rng.normal(size=(d, d)))[0]
-    for spectrum in ([-1.0] * d, [-1.0, -1.0 + 1e-9] + [0.7] * (d - 2), [-0.5] + [2.0] * (d - 1),
-                     [-2.0, 1e-12 - 2.0] + list(rng.uniform(0.3, 3.0, d - 2))):
+    for spectrum in (
+        [-1.0] * d,
+        [-1.0, -1.0 + 1e-9] + [0.7] * (d - 2),
+        [-0.5] + [2.0] * (d - 1),
+        [-2.0, 1e-12 - 2.0] + list(rng.uniform(0.3, 3.0, d - 2)),
+    ):
         h = (q * np.asarray(spectrum)) @ q.T
         e = rng.normal(size=(d, d))
         e = e + e.T
@@ -167,6 +176,7 @@ def test_floor_higher_derivatives_are_right_at_repeated_eigenvalues(rng, floor):
 def test_clip_floor_at_its_kink_gives_the_symmetric_derivative():
     """At an eigenvalue exactly 0 the clip floor has one-sided derivatives 1 (H) and 0 (H + its
     correction): the derivative is their mean, 1/2, which is what central differences measure."""
+
     def floored(m):
         return m + spectral_function(_clip_correction, small_eigh, m, jnp.asarray(0.0))
 
@@ -203,6 +213,7 @@ def test_hessian_metric_float32_gradient_matches_float64():
 
 # --- the public kernels ---------------------------------------------------------------------------
 
+
 def velocities(points):
     return jnp.asarray(np.random.default_rng(7).normal(size=points.shape), points.dtype)
 
@@ -217,9 +228,20 @@ KERNELS = {  # name: (kernel(tess, metric) -> array, takes a metric, works on a 
     "deficit_angles": (lambda t, m: jaxgeom.deficit_angles(t, metric=m), True, False),
     "ricci_scalar": (lambda t, m: jaxgeom.ricci_scalar(t, metric=m), True, False),
     "metric_curvature": (lambda t, m: jaxgeom.metric_curvature(m, t.points), True, True),
-    **{f"viscous_force[{w}]": ((lambda w: lambda t, m: jaxgeom.viscous_force(
-        t, velocities(t.points), nu=0.3, weights=w, metric=m if w.startswith("metric") else None))(w),
-        w.startswith("metric"), True) for w in jaxgeom.VISCOUS_WEIGHTS},
+    **{
+        f"viscous_force[{w}]": (
+            (
+                lambda w: (
+                    lambda t, m: jaxgeom.viscous_force(
+                        t, velocities(t.points), nu=0.3, weights=w, metric=m if w.startswith("metric") else None
+                    )
+                )
+            )(w),
+            w.startswith("metric"),
+            True,
+        )
+        for w in jaxgeom.VISCOUS_WEIGHTS
+    },
     "emergent_metric": (lambda t, m: jaxgeom.emergent_metric(t), False, True),
     "shape_distortion": (lambda t, m: jaxgeom.shape_distortion(t), False, False),
     "vertex_distance_variance": (lambda t, m: jaxgeom.vertex_distance_variance(t), False, False),
@@ -290,20 +312,41 @@ def check_kernel_gradients(name, kind, d, floor, landscape):
 # case (3D, clip floor, indefinite Hessians), and a k-NN graph with the softabs floor on repeated
 # eigenvalues. The curvature kernels (tens of seconds to compile their gradients in 3D) and
 # ollivier_ricci (its own module checks its gradients) run in the slow tier.
-HEAVY = ("ricci_scalar", "deficit_angles", "angle_sums", "riemannian_volumes", "geodesic_distances",
-         "metric_curvature", "ollivier_ricci")
-DEFAULT_KERNEL_CASES = [(name, "delaunay", 3 if KERNELS[name][1] else 2, "clip", "indefinite")
-                        for name in KERNELS if name not in HEAVY]
-DEFAULT_KERNEL_CASES += [(name, "knn", 3, "softabs", "degenerate")
-                         for name in ("viscous_force[metric_full]", "estimate_hessian", "edge_lengths")]
+HEAVY = (
+    "ricci_scalar",
+    "deficit_angles",
+    "angle_sums",
+    "riemannian_volumes",
+    "geodesic_distances",
+    "metric_curvature",
+    "ollivier_ricci",
+)
+DEFAULT_KERNEL_CASES = [
+    (name, "delaunay", 3 if KERNELS[name][1] else 2, "clip", "indefinite") for name in KERNELS if name not in HEAVY
+]
+DEFAULT_KERNEL_CASES += [
+    (name, "knn", 3, "softabs", "degenerate")
+    for name in ("viscous_force[metric_full]", "estimate_hessian", "edge_lengths")
+]
 # The slow tier: with the default case, every metric kernel sees each floor, each landscape and
 # both dimensions (and a k-NN graph where it takes one); the others both dimensions and graphs.
-METRIC_ROWS = [("delaunay", 2, "clip", "definite"), ("knn", 3, "softabs", "indefinite"),
-               ("delaunay", 2, "softabs", "degenerate")]
-SLOW_KERNEL_CASES = [(name, kind if KERNELS[name][2] else "delaunay", d, floor, landscape)
-                     for name in KERNELS if KERNELS[name][1] for kind, d, floor, landscape in METRIC_ROWS]
-SLOW_KERNEL_CASES += [(name, kind, 3, "clip", "indefinite") for name in KERNELS if not KERNELS[name][1]
-                      for kind in (("delaunay", "knn") if KERNELS[name][2] else ("delaunay",))]
+METRIC_ROWS = [
+    ("delaunay", 2, "clip", "definite"),
+    ("knn", 3, "softabs", "indefinite"),
+    ("delaunay", 2, "softabs", "degenerate"),
+]
+SLOW_KERNEL_CASES = [
+    (name, kind if KERNELS[name][2] else "delaunay", d, floor, landscape)
+    for name in KERNELS
+    if KERNELS[name][1]
+    for kind, d, floor, landscape in METRIC_ROWS
+]
+SLOW_KERNEL_CASES += [
+    (name, kind, 3, "clip", "indefinite")
+    for name in KERNELS
+    if not KERNELS[name][1]
+    for kind in (("delaunay", "knn") if KERNELS[name][2] else ("delaunay",))
+]
 SLOW_KERNEL_CASES += [(name, "delaunay", 3, "clip", "indefinite") for name in HEAVY]
 SLOW_KERNEL_CASES = [case for case in dict.fromkeys(SLOW_KERNEL_CASES) if case not in DEFAULT_KERNEL_CASES]
 
@@ -319,8 +362,9 @@ def test_kernel_gradients_on_every_floor_and_landscape(name, kind, d, floor, lan
     check_kernel_gradients(name, kind, d, floor, landscape)
 
 
-@pytest.mark.parametrize("name", ["viscous_force[metric_full]", "edge_lengths",
-                                  pytest.param("metric_curvature", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "name", ["viscous_force[metric_full]", "edge_lengths", pytest.param("metric_curvature", marks=pytest.mark.slow)]
+)
 def test_kernel_gradients_in_float32_match_float64(name):
     """float32 central differences cannot resolve these; the float64 gradient can."""
     g32 = kernel_gradients(*kernel_loss(name, "delaunay", 3, "clip", "indefinite", np.float32))
@@ -358,8 +402,14 @@ DEFAULT_SIMULATIONS = [("metric_full", "iso", "delaunay", 3, "clip", "indefinite
 
 
 def test_simulation_grid_covers_every_pair_of_factors():
-    levels = [jaxgeom.VISCOUS_WEIGHTS, ("iso", "aniso"), ("delaunay", "knn"), (2, 3), ("clip", "softabs"),
-              tuple(LANDSCAPES)]
+    levels = [
+        jaxgeom.VISCOUS_WEIGHTS,
+        ("iso", "aniso"),
+        ("delaunay", "knn"),
+        (2, 3),
+        ("clip", "softabs"),
+        tuple(LANDSCAPES),
+    ]
     for (a, la), (b, lb) in itertools.combinations(enumerate(levels), 2):
         missing = {(u, v) for u in la for v in lb} - {(row[a], row[b]) for row in SIMULATION_GRID}
         assert not missing, f"factors {a} and {b}: {missing} not covered"
@@ -369,8 +419,17 @@ def simulation_loss(weights, noise, kind, d, floor, landscape, dtype=np.float64,
     fitness = LANDSCAPES[landscape]
     x0 = np.random.default_rng(1).uniform(-1.5, 1.5, (40 if d == 2 else 60, d)).astype(dtype)
     state = jaxgeom.init_swarm(fitness, x0, key=0, graph=kind, k=8)
-    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, eps_sigma=0.1, weights=weights,
-                                 anisotropic=noise == "aniso", floor=floor, cloning=False)
+    params = jaxgeom.SwarmParams(
+        dt=0.02,
+        temperature=0.3,
+        gamma=1.0,
+        nu=0.3,
+        eps_sigma=0.1,
+        weights=weights,
+        anisotropic=noise == "aniso",
+        floor=floor,
+        cloning=False,
+    )
     tuned = tuple(name for name in FIVE if not ignored_parameter(name, params, ("mean_fitness",)))
     return jaxgeom.simulation_loss(fitness, state, "mean_fitness", n_steps=n_steps, params=params, tuned=tuned)
 
@@ -417,8 +476,10 @@ def test_simulation_gradient_in_float32_equals_central_differences():
     np.testing.assert_allclose(g, fd, rtol=2e-2, atol=2e-3 * np.abs(fd).max())
 
 
-@pytest.mark.parametrize("weights, noise, floor", [("metric_full", "iso", "clip"),
-                                                    pytest.param("kernel", "aniso", "softabs", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "weights, noise, floor",
+    [("metric_full", "iso", "clip"), pytest.param("kernel", "aniso", "softabs", marks=pytest.mark.slow)],
+)
 def test_no_nan_anywhere_in_a_gradient_through_simulate(weights, noise, floor):
     """Under jax.debug_nans every primitive's output is checked: a state that carried NaN as a
     marker (unbounded cells' volumes), or a NaN the gradient later masked, would raise."""

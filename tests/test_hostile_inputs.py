@@ -26,8 +26,14 @@ def run_capped(argv, timeout=240, cap=MEMORY_CAP):
     """(exit status, output, seconds) of `argv` in a child process whose address space is capped."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     began = time.perf_counter()
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, env=env,
-                          preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)))
+    proc = subprocess.run(
+        argv,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)),
+    )
     return proc.returncode, proc.stdout + proc.stderr, time.perf_counter() - began
 
 
@@ -36,8 +42,26 @@ def test_tune_on_rosenbrock_ends_with_the_cause_instead_of_exhausting_memory(dim
     """Once: 24 GB resident and the kernel's OOM killer (a diverged swarm's coordinates sent CDT
     into an endless allocation); then `target 'velocity_variance' must be a finite number; got nan`."""
     status, out, seconds = run_capped(
-        [sys.executable, "-m", "jaxgeom.cli", "tune", "--tune", "nu", "eps_sigma", "--dim", str(dim), "--weights",
-         "metric_full", "--landscape", "rosenbrock", "--max-steps", "3", "--no-progress"], cap=3 * 2**30)
+        [
+            sys.executable,
+            "-m",
+            "jaxgeom.cli",
+            "tune",
+            "--tune",
+            "nu",
+            "eps_sigma",
+            "--dim",
+            str(dim),
+            "--weights",
+            "metric_full",
+            "--landscape",
+            "rosenbrock",
+            "--max-steps",
+            "3",
+            "--no-progress",
+        ],
+        cap=3 * 2**30,
+    )
     assert status == 2 and "Traceback" not in out, out
     assert "the simulation at the true values diverged by step" in out, out
     assert "reduce --dt below" in out and "|grad V| reaches" in out, out
@@ -72,8 +96,9 @@ DRIVERS = textwrap.dedent("""
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("cases", [("host", "callback", "seeds"), ("callback-knn", "callback-3d", "seeds-knn", "device")],
-                         ids=" ".join)
+@pytest.mark.parametrize(
+    "cases", [("host", "callback", "seeds"), ("callback-knn", "callback-3d", "seeds-knn", "device")], ids=" ".join
+)
 def test_a_diverging_swarm_never_grows_memory_in_any_driver(cases, tmp_path):
     """Every driver meets the diverged walkers' coordinates (1e6 swarm radii, then inf) in its
     rebuilds; under a capped address space each ends with its divergence report."""
@@ -113,8 +138,11 @@ def saddle(p):
 def test_a_nan_metric_array_is_refused_like_an_asymmetric_one(tess):
     g = np.broadcast_to(np.eye(2), (200, 2, 2)).copy()
     g[[3, 17]] = np.nan
-    with pytest.raises(ValueError, match=r"`metric` must be finite; 2 walker\(s\) have NaN or inf entries, first "
-                                         r"rows \[3, 17\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"`metric` must be finite; 2 walker\(s\) have NaN or inf entries, first "
+        r"rows \[3, 17\]",
+    ):
         jaxgeom.ricci_scalar(tess, metric=g)
     with pytest.raises(ValueError, match="must be finite"):
         jaxgeom.ricci_scalar(tess, metric=np.full((200, 2, 2), np.nan))
@@ -130,11 +158,15 @@ def test_metric_defects_flags_nan_rows_of_callables(tess):
 
 
 @pytest.mark.parametrize("metric", [nan_metric, saddle], ids=["nan", "indefinite"])
-@pytest.mark.parametrize("kernel", [
-    lambda t, g: jaxgeom.ricci_scalar(t, metric=g),
-    lambda t, g: jaxgeom.viscous_force(t, np.ones((200, 2)), nu=0.1, weights="metric_full", metric=g),
-    lambda t, g: jaxgeom.edge_lengths(t, metric=g),
-], ids=["ricci_scalar", "viscous_force", "edge_lengths"])
+@pytest.mark.parametrize(
+    "kernel",
+    [
+        lambda t, g: jaxgeom.ricci_scalar(t, metric=g),
+        lambda t, g: jaxgeom.viscous_force(t, np.ones((200, 2)), nu=0.1, weights="metric_full", metric=g),
+        lambda t, g: jaxgeom.edge_lengths(t, metric=g),
+    ],
+    ids=["ricci_scalar", "viscous_force", "edge_lengths"],
+)
 def test_a_defective_callable_metric_warns_with_the_count_and_the_remedy(tess, kernel, metric):
     with pytest.warns(RuntimeWarning, match=r"at 200 of 200 walkers.*jaxgeom\.metric_defects"):
         kernel(tess, metric)
@@ -151,10 +183,12 @@ def test_a_sound_callable_metric_gives_no_warning(tess):
 
 def test_a_non_traceable_objective_is_named_with_the_fix():
     """Once: JAX's TracerArrayConversionError from inside the user's objective."""
+
     def V(p):
         return jnp.sum(p**2)
 
     state = jaxgeom.init_swarm(V, np.random.default_rng(0).random((40, 2)))
     with pytest.raises(TypeError, match=r"the objective must be JAX-traceable.*TracerArrayConversionError"):
-        jaxgeom.simulation_loss(V, state, lambda h: float(np.asarray(h["mean_fitness"])[-1]), n_steps=2,
-                                params=jaxgeom.SwarmParams())
+        jaxgeom.simulation_loss(
+            V, state, lambda h: float(np.asarray(h["mean_fitness"])[-1]), n_steps=2, params=jaxgeom.SwarmParams()
+        )

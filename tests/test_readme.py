@@ -167,8 +167,8 @@ def _count_traces(out: list):
 def test_every_command_line_option_in_the_readme_exists(capsys):
     text = sections()["The command line"]
     for command in ("simulate", "analyze", "tune"):
-        block = text[text.index(f"`jaxgeom {command}"):]
-        block = block[:block.index("\n- ", 1)] if "\n- " in block[1:] else block
+        block = text[text.index(f"`jaxgeom {command}") :]
+        block = block[: block.index("\n- ", 1)] if "\n- " in block[1:] else block
         flags = set(re.findall(r"(--[a-z][a-z0-9-]*)", block))
         with pytest.raises(SystemExit):
             main([command, "--help"])
@@ -220,10 +220,16 @@ def test_the_hero_image_is_what_simulate_draws_at_its_defaults(tmp_path):
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["simulate", "--no-progress", "--out", str(tmp_path)]) == 0
     fresh = json.loads((tmp_path / "history.json").read_text())
-    assert {k: v for k, v in kept["config"].items() if k != "out"} == \
-        {k: v for k, v in fresh["config"].items() if k != "out"}
+    assert {k: v for k, v in kept["config"].items() if k != "out"} == {
+        k: v for k, v in fresh["config"].items() if k != "out"
+    }
     for name, series in fresh["series"].items():
-        np.testing.assert_allclose(np.asarray(kept["series"][name][:10], float), np.asarray(series[:10], float),
-                                   rtol=1e-6, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(
+            np.asarray(kept["series"][name][:10], float),
+            np.asarray(series[:10], float),
+            rtol=1e-6,
+            atol=1e-9,
+            err_msg=name,
+        )
     a, b = matplotlib.image.imread(hero), matplotlib.image.imread(tmp_path / "swarm.png")
     assert a.shape == b.shape and np.abs(a - b).mean() < 0.1

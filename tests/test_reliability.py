@@ -6,14 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import padded_sets, scipy_neighbor_sets
 
 import jaxgeom
+from jaxgeom.cli import main
+from jaxgeom.swarm._divergence import SimulationDiverged
 from jaxgeom.tessellation._delaunay import CapacityError
 from jaxgeom.tessellation._planar import sort_rows
-from jaxgeom.swarm._divergence import SimulationDiverged
-from jaxgeom.cli import main
-
-from helpers import padded_sets, scipy_neighbor_sets
 
 
 def ring_with_hub(n):
@@ -70,15 +69,17 @@ def bowl_swarm(rng):
 @pytest.mark.parametrize("rebuild", ["host", "callback"])
 def test_a_diverging_swarm_stops_with_the_step_and_the_cause(bowl_swarm, rebuild):
     with pytest.raises(SimulationDiverged, match=r"diverged by step \d+ .*reduce dt below"):
-        jaxgeom.simulate(bowl, bowl_swarm, jaxgeom.SwarmParams(dt=10.0), n_steps=30, rebuild=rebuild,
-                         observe=("mean_fitness",))
+        jaxgeom.simulate(
+            bowl, bowl_swarm, jaxgeom.SwarmParams(dt=10.0), n_steps=30, rebuild=rebuild, observe=("mean_fitness",)
+        )
 
 
 def test_a_diverging_swarm_is_flagged_under_jit(bowl_swarm):
     def last_fitness(dt):
         params = jaxgeom.SwarmParams(dt=dt, cloning=False)
-        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=8, rebuild="callback",
-                                observe=("mean_fitness",))[1]["diverged_step"]
+        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=8, rebuild="callback", observe=("mean_fitness",))[1][
+            "diverged_step"
+        ]
 
     assert int(jax.jit(last_fitness)(10.0)) > 0 and int(jax.jit(last_fitness)(0.01)) == -1
 
@@ -91,8 +92,25 @@ def test_huge_forces_are_a_divergence_not_a_degenerate_swarm(rng):
 
 
 def test_the_cli_exits_non_zero_on_divergence(capsys):
-    assert main(["simulate", "--n", "100", "--steps", "20", "--dt", "5", "--gap-every", "0", "--no-progress",
-                 "--precision", "float64"]) == 2  # the CLI sets jax_enable_x64 for the process
+    assert (
+        main(
+            [
+                "simulate",
+                "--n",
+                "100",
+                "--steps",
+                "20",
+                "--dt",
+                "5",
+                "--gap-every",
+                "0",
+                "--no-progress",
+                "--precision",
+                "float64",
+            ]
+        )
+        == 2
+    )  # the CLI sets jax_enable_x64 for the process
     assert "diverged by step" in capsys.readouterr().err
 
 
@@ -117,7 +135,9 @@ def test_a_zero_metric_is_named_not_run_on(rng):
     assert np.all(np.isnan(np.asarray(force)))  # not 0: row normalisation keeps the NaN
     state = jaxgeom.init_swarm(linear, x)
     params = jaxgeom.SwarmParams(eps_sigma=0.0, weights="metric_full")
-    with pytest.raises(SimulationDiverged, match=r"eps_sigma = 0\) is singular.*the zero metric at 200.*raise eps_sigma"):
+    with pytest.raises(
+        SimulationDiverged, match=r"eps_sigma = 0\) is singular.*the zero metric at 200.*raise eps_sigma"
+    ):
         jaxgeom.simulate(linear, state, params, n_steps=3, observe=("mean_fitness",))
 
 
@@ -140,8 +160,9 @@ def test_cloning_onto_one_point_separates_the_walkers(rng, rebuild, triangulator
 def test_simulate_jits_vmaps_and_differentiates_with_the_callback_rebuild(bowl_swarm):
     def loss(nu):
         params = jaxgeom.SwarmParams(nu=nu, cloning=False)
-        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=4, rebuild="callback",
-                                observe=("mean_fitness",))[1]["mean_fitness"][-1]
+        return jaxgeom.simulate(bowl, bowl_swarm, params, n_steps=4, rebuild="callback", observe=("mean_fitness",))[1][
+            "mean_fitness"
+        ][-1]
 
     eager = [float(loss(nu)) for nu in (0.1, 0.3)]
     np.testing.assert_allclose(float(jax.jit(loss)(0.1)), eager[0], rtol=1e-12)
@@ -269,7 +290,10 @@ def test_float32_curvature_error_stays_below_the_stated_resolution(rng, d):
     r = {}
     for dtype in (np.float32, np.float64):
         tess = jaxgeom.delaunay(x.astype(dtype), box=(0.3, 0.31))
-        r[dtype] = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric)), np.asarray(jaxgeom.ricci_resolution(tess, metric=metric))
+        r[dtype] = (
+            np.asarray(jaxgeom.ricci_scalar(tess, metric=metric)),
+            np.asarray(jaxgeom.ricci_resolution(tess, metric=metric)),
+        )
     interior = np.asarray(tess.interior)
     ratio = np.abs(r[np.float32][0] - r[np.float64][0])[interior] / r[np.float32][1][interior]
     assert np.percentile(ratio, 99) < 1.0 and np.all(np.isfinite(ratio))
@@ -288,11 +312,18 @@ def test_float32_curvature_and_volumes_work_at_extreme_but_representable_scales(
     ref = jaxgeom.delaunay(x)
     tess = jaxgeom.delaunay((x * scale).astype(np.float32))
     interior = np.asarray(ref.interior)
-    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess))[interior] / scale**3,
-                               np.asarray(jaxgeom.voronoi_volumes(ref))[interior], rtol=1e-3)
-    ricci = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric.astype(np.float32) / scale**2))[interior]  # R is invariant
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.voronoi_volumes(tess))[interior] / scale**3,
+        np.asarray(jaxgeom.voronoi_volumes(ref))[interior],
+        rtol=1e-3,
+    )
+    ricci = np.asarray(jaxgeom.ricci_scalar(tess, metric=metric.astype(np.float32) / scale**2))[
+        interior
+    ]  # R is invariant
     assert np.all(np.isfinite(ricci))
-    np.testing.assert_allclose(ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric=metric))[interior], rtol=2e-2, atol=2e-2)
+    np.testing.assert_allclose(
+        ricci, np.asarray(jaxgeom.ricci_scalar(ref, metric=metric))[interior], rtol=2e-2, atol=2e-2
+    )
 
 
 @pytest.mark.slow  # meaningful at XLA's default optimisation level: CI runs this module's slow tests that way
@@ -340,8 +371,9 @@ def test_a_failing_spectral_gap_never_ends_a_run(monkeypatch, bowl_swarm):
 
     monkeypatch.setattr(sim, "bulk_spectral_gap", broken)
     with pytest.warns(RuntimeWarning, match="spectral gap failed"):
-        _, history = jaxgeom.simulate(bowl, bowl_swarm, jaxgeom.SwarmParams(), n_steps=2, spectral_gap_every=1,
-                                      observe=("mean_fitness",))
+        _, history = jaxgeom.simulate(
+            bowl, bowl_swarm, jaxgeom.SwarmParams(), n_steps=2, spectral_gap_every=1, observe=("mean_fitness",)
+        )
     assert np.isnan(history["spectral_gap"]).all() and len(history["mean_fitness"]) == 3
 
 
@@ -397,5 +429,6 @@ def test_volume_distortion_without_a_box_matches_the_boxed_value(rng):
     reached 424x the mean volume and counted as interior."""
     x = rng.uniform(-5.0, 5.0, (5000, 2))
     free, boxed = jaxgeom.delaunay(x), jaxgeom.delaunay(x, box=(-5.0, 5.0))
-    np.testing.assert_allclose(float(jaxgeom.volume_distortion(free)), float(jaxgeom.volume_distortion(boxed)),
-                               rtol=0.05)
+    np.testing.assert_allclose(
+        float(jaxgeom.volume_distortion(free)), float(jaxgeom.volume_distortion(boxed)), rtol=0.05
+    )

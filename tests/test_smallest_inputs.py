@@ -31,8 +31,11 @@ CHILD = Path(__file__).with_name("smallest_inputs_child.py")
 
 
 def delaunay_cases(dtype, domain, sizes="all"):
-    return [f"delaunay:{d}:{n}:{dtype}:{domain}" for d in (2, 3, 4)
-            for n in (range(d + 2, 3 * (d + 1) + 1) if sizes == "all" else [d + 2])]
+    return [
+        f"delaunay:{d}:{n}:{dtype}:{domain}"
+        for d in (2, 3, 4)
+        for n in (range(d + 2, 3 * (d + 1) + 1) if sizes == "all" else [d + 2])
+    ]
 
 
 def knn_cases(dtype, domains=("open", "box", "periodic")):
@@ -41,8 +44,11 @@ def knn_cases(dtype, domains=("open", "box", "periodic")):
 
 def child_env(dump: Path) -> dict:
     """The environment without the suite's XLA settings and compile caches, dumping LLVM IR."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("XLA_FLAGS", "JAXGEOM_COMPILE_CACHE_DIR") and not k.startswith("JAX_COMPILATION_CACHE")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("XLA_FLAGS", "JAXGEOM_COMPILE_CACHE_DIR") and not k.startswith("JAX_COMPILATION_CACHE")
+    }
     return {**env, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": f"--xla_dump_to={dump}", "JAXGEOM_COMPILE_CACHE": "0"}
 
 
@@ -54,8 +60,13 @@ def sweep(cases, kernels, workdir: Path, timeout=900):
     read = 0
     while pending:
         dump = workdir / f"xla-{len(results)}"
-        proc = subprocess.run([sys.executable, str(CHILD), f"--kernels={kernels}", *pending], env=child_env(dump),
-                              capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(
+            [sys.executable, str(CHILD), f"--kernels={kernels}", *pending],
+            env=child_env(dump),
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
         in_flight = None
         for line in proc.stdout.splitlines():
             if line.startswith("start "):
@@ -72,14 +83,16 @@ def sweep(cases, kernels, workdir: Path, timeout=900):
         if in_flight is None:  # died between cases: nothing to skip
             raise AssertionError(f"the child exited {proc.returncode} outside a case:\n{proc.stderr[-3000:]}")
         deaths.append((in_flight, proc.returncode, proc.stderr[-1500:]))
-        pending = pending[pending.index(in_flight) + 1:]
+        pending = pending[pending.index(in_flight) + 1 :]
     assert read > 0, "XLA wrote no optimised LLVM IR (*ir-with-opt.ll) to read: the IR check would pass unread"
     return results, deaths, findings
 
 
 def check_sweep(cases, kernels, workdir):
     results, deaths, findings = sweep(cases, kernels, workdir)
-    assert not deaths, "cases that killed their process:\n" + "\n".join(f"{c} (exit {rc}):\n{tail}" for c, rc, tail in deaths)
+    assert not deaths, "cases that killed their process:\n" + "\n".join(
+        f"{c} (exit {rc}):\n{tail}" for c, rc, tail in deaths
+    )
     assert not findings, f"XLA:CPU kernels reading or writing past their buffers: {findings[:5]}"
     assert set(results) == set(cases)
     failed = {c: r["graph"] for c, r in results.items() if r["graph"] != "ok"}
@@ -131,5 +144,6 @@ define ptr @k(ptr %0) {
 !2 = !{i64 544}
 """
     from xla_ir_check import check
+
     assert check(kernel.replace("{offset}", "608"))
     assert not check(kernel.replace("{offset}", "536"))

@@ -7,14 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import scipy_voronoi_volumes
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 
 import jaxgeom
 from jaxgeom.apps._landscapes import LANDSCAPES
-from jaxgeom.geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from jaxgeom.cli import main
-
-from helpers import scipy_voronoi_volumes
+from jaxgeom.geometry._spectral import bulk_spectral_gap, gap_rounding_level
 
 
 def bowl(x):
@@ -28,12 +27,14 @@ def flat(x):
 @pytest.mark.parametrize("d", [2, 3])
 def test_velocity_variance_is_per_component(rng, d):
     state = jaxgeom.init_swarm(bowl, rng.normal(size=(60, d)), rng.normal(size=(60, d)) * np.arange(1, d + 1), key=1)
-    final, history = jaxgeom.simulate(bowl, state, jaxgeom.SwarmParams(nu=0.0, cloning=False), n_steps=2,
-                                      observe=("velocity_variance",))
+    final, history = jaxgeom.simulate(
+        bowl, state, jaxgeom.SwarmParams(nu=0.0, cloning=False), n_steps=2, observe=("velocity_variance",)
+    )
     v = np.asarray(final.velocities)
     np.testing.assert_allclose(history["velocity_variance"][-1], np.var(v, axis=0).mean(), rtol=1e-12)
-    np.testing.assert_allclose(history["velocity_variance"][0], np.var(np.asarray(state.velocities), axis=0).mean(),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        history["velocity_variance"][0], np.var(np.asarray(state.velocities), axis=0).mean(), rtol=1e-12
+    )
 
 
 def test_a_continued_simulation_equals_one_uninterrupted_call(rng):
@@ -111,8 +112,9 @@ def test_a_gap_at_rounding_level_is_flagged_in_the_history(monkeypatch, rng):
 
     monkeypatch.setattr(sim, "bulk_spectral_gap", lambda tess: (2.5e-15, 64, 10))
     state = jaxgeom.init_swarm(bowl, rng.normal(size=(60, 2)), key=0)
-    _, history = jaxgeom.simulate(bowl, state, jaxgeom.SwarmParams(), n_steps=2, spectral_gap_every=1,
-                                  observe=("mean_fitness",))
+    _, history = jaxgeom.simulate(
+        bowl, state, jaxgeom.SwarmParams(), n_steps=2, spectral_gap_every=1, observe=("mean_fitness",)
+    )
     assert history["spectral_gap_rounding"].tolist() == [True, True, True]
 
 
@@ -187,8 +189,7 @@ def test_analyze_dim_5_names_the_flag(capsys):
 
 
 def test_knn_table_leaves_out_the_voronoi_observables(capsys):
-    assert main(["simulate", "--graph", "knn", "--n", "80", "--steps", "2", "--gap-every", "0",
-                 "--no-progress"]) == 0
+    assert main(["simulate", "--graph", "knn", "--n", "80", "--steps", "2", "--gap-every", "0", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "nan" not in out.lower().replace("nan at step", "")
     assert "Not reported on a k-NN graph" in out and "mean_ricci" in out and "NaN at step 0" not in out
@@ -206,7 +207,7 @@ def test_readme_quick_tour_enables_float64():
 
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     start = readme.index("## Quick tour")
-    tour = readme[start:readme.index("\n## ", start + 1)]
+    tour = readme[start : readme.index("\n## ", start + 1)]
     assert 'jax.config.update("jax_enable_x64", True)' in tour
     assert "estimation.png" in readme
 
@@ -231,17 +232,26 @@ def _overlapping_tick_labels(ax) -> list:
     for axis in (ax.xaxis, ax.yaxis):
         labels = [t for t in axis.get_ticklabels(which="both") if t.get_visible() and t.get_text()]
         boxes = [t.get_window_extent(renderer) for t in labels]
-        pairs += [(labels[i].get_text(), labels[j].get_text()) for i in range(len(boxes))
-                  for j in range(i + 1, len(boxes)) if boxes[i].overlaps(boxes[j])]
+        pairs += [
+            (labels[i].get_text(), labels[j].get_text())
+            for i in range(len(boxes))
+            for j in range(i + 1, len(boxes))
+            if boxes[i].overlaps(boxes[j])
+        ]
     return pairs
 
 
 def _tune_result(values_path):
     from types import SimpleNamespace
 
-    iterations = [{"iteration": i, "loss": 10.0 ** -i, "values": v} for i, v in enumerate(values_path)]
-    return SimpleNamespace(iterations=iterations, values=values_path[-1], solver="bfgs", message="converged",
-                           standard_errors={name: 0.02 for name in values_path[-1]})
+    iterations = [{"iteration": i, "loss": 10.0**-i, "values": v} for i, v in enumerate(values_path)]
+    return SimpleNamespace(
+        iterations=iterations,
+        values=values_path[-1],
+        solver="bfgs",
+        message="converged",
+        standard_errors={name: 0.02 for name in values_path[-1]},
+    )
 
 
 def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(saved_figures, tmp_path):
@@ -260,8 +270,7 @@ def test_tune_figure_ticks_do_not_overlap_and_one_parameter_shows_the_truth(save
 
 
 @pytest.mark.parametrize("layout", ["one cluster", "three wells"])
-def test_swarm_panels_show_every_walker_then_the_largest_cluster_then_the_distribution(saved_figures, tmp_path,
-                                                                                      layout):
+def test_swarm_panels_show_every_walker_then_the_largest_cluster_then_the_distribution(saved_figures, tmp_path, layout):
     """Top row: one frame holding every walker (comparable panels). Middle row: each snapshot
     zoomed on its most populated cluster (once: a few dots in the whole box), holding 95% of
     it and at most 10x its spread wide; a uniform swarm gets a window a quarter of the frame
@@ -335,8 +344,11 @@ def test_observables_figure_labels_the_estimators(saved_figures, tmp_path):
     from jaxgeom.apps._plots import plot_observables
 
     t = np.arange(4) * 0.1
-    series = {"time": t, "velocity_variance": np.array([1.0, 0.9, 0.8, 0.7]),
-              "mean_expansion": np.array([np.nan, -1.0, -2.0, -1.5])}
+    series = {
+        "time": t,
+        "velocity_variance": np.array([1.0, 0.9, 0.8, 0.7]),
+        "mean_expansion": np.array([np.nan, -1.0, -2.0, -1.5]),
+    }
     plot_observables(series, [0, 2], [0.1, 2e-16], tmp_path / "o.png", gap_rounding=[False, True])
     labels = {ax.get_title(): ax.get_ylabel() for ax in saved_figures[-1].axes}
     assert labels["velocity variance per component"] == "tr Cov(v) / d"

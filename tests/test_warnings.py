@@ -47,16 +47,22 @@ def test_heat_distances_on_a_metric_that_varies_too_fast(tess):
 
 
 def test_singular_heat_systems(tess, monkeypatch):
-    monkeypatch.setattr(geodesic_module, "_heat_jit", lambda tess, sources, *rest: (
-        jnp.full((len(sources), tess.n_points), jnp.nan), jnp.asarray(0)))
+    monkeypatch.setattr(
+        geodesic_module,
+        "_heat_jit",
+        lambda tess, sources, *rest: (jnp.full((len(sources), tess.n_points), jnp.nan), jnp.asarray(0)),
+    )
     with pytest.warns(UserWarning, match="singular") as record:
         jaxgeom.geodesic_distances(tess, [0])
     attributed_here(record, "singular")
 
 
 def test_a_triangulator_replaced_by_qhull(tess, monkeypatch):
-    monkeypatch.setattr(delaunay_module, "build_delaunay", lambda *a, **k: (
-        tess, ("the backend failed its check; Qhull built this graph instead",)))
+    monkeypatch.setattr(
+        delaunay_module,
+        "build_delaunay",
+        lambda *a, **k: (tess, ("the backend failed its check; Qhull built this graph instead",)),
+    )
     with pytest.warns(RuntimeWarning, match="Qhull built this graph") as record:
         jaxgeom.delaunay(np.asarray(tess.points))
     attributed_here(record, "Qhull built this graph")

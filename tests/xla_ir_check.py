@@ -23,10 +23,25 @@ import re
 import sys
 
 BYTES = {"double": 8, "float": 4, "i64": 8, "i32": 4, "i16": 2, "i8": 1, "i1": 1, "half": 2, "bfloat": 2, "ptr": 8}
-COMPARE = {"ult": int.__lt__, "slt": int.__lt__, "ule": int.__le__, "sle": int.__le__, "ugt": int.__gt__,
-           "sgt": int.__gt__, "uge": int.__ge__, "sge": int.__ge__, "eq": int.__eq__, "ne": int.__ne__}
-ARITHMETIC = {"add": int.__add__, "sub": int.__sub__, "mul": int.__mul__, "or": int.__or__,
-              "shl": lambda x, y: x << y if 0 <= y < 64 else None}
+COMPARE = {
+    "ult": int.__lt__,
+    "slt": int.__lt__,
+    "ule": int.__le__,
+    "sle": int.__le__,
+    "ugt": int.__gt__,
+    "sgt": int.__gt__,
+    "uge": int.__ge__,
+    "sge": int.__ge__,
+    "eq": int.__eq__,
+    "ne": int.__ne__,
+}
+ARITHMETIC = {
+    "add": int.__add__,
+    "sub": int.__sub__,
+    "mul": int.__mul__,
+    "or": int.__or__,
+    "shl": lambda x, y: x << y if 0 <= y < 64 else None,
+}
 
 LABEL = re.compile(r"^([\w.]+):")
 DEF = re.compile(r"^\s*(%[\w.]+) = (.*)$")
@@ -78,7 +93,9 @@ class Function:
         self.loops = {}  # counter -> (first, last)
         for name, rhs in self.defs.items():
             phi = PHI.fullmatch(rhs)
-            step = phi and re.fullmatch(rf"add (?:nuw )?(?:nsw )?i64 {re.escape(name)}, (\d+)", self.defs.get(phi.group(2), ""))
+            step = phi and re.fullmatch(
+                rf"add (?:nuw )?(?:nsw )?i64 {re.escape(name)}, (\d+)", self.defs.get(phi.group(2), "")
+            )
             end = step and re.search(rf"icmp eq i64 {re.escape(phi.group(2))}, (\d+)", text)
             if end:
                 self.loops[name] = (int(phi.group(1)), int(end.group(1)) - int(step.group(1)))
@@ -93,7 +110,11 @@ class Function:
                 found = frozenset([v])
             else:
                 parts = GEP.fullmatch(rhs) or ARITH.fullmatch(rhs) or ICMP.fullmatch(rhs)
-                found = frozenset().union(*(self.depends(a) for a in parts.groups() if a.startswith("%"))) if parts else frozenset()
+                found = (
+                    frozenset().union(*(self.depends(a) for a in parts.groups() if a.startswith("%")))
+                    if parts
+                    else frozenset()
+                )
             self._depends[v] = found
         return self._depends[v]
 

@@ -78,8 +78,9 @@ def sample_boltzmann(name, n: int, dim: int, *, beta: float = 2.0, seed: int = 0
         scales = np.sqrt(1.0 / (beta * np.arange(1, dim + 1)))
         return _truncated_normal(rng, np.broadcast_to(scales, (n, dim)), half), box
     if name == "rastrigin":
-        return _rejection_1d(rng, lambda t: np.exp(-beta * (t**2 - 10.0 * np.cos(2 * np.pi * t) + 10.0)),
-                             n * dim, half, beta).reshape(n, dim), box
+        return _rejection_1d(
+            rng, lambda t: np.exp(-beta * (t**2 - 10.0 * np.cos(2 * np.pi * t) + 10.0)), n * dim, half, beta
+        ).reshape(n, dim), box
     if name == "double_well" and dim > 1:
         return _double_well_sample(rng, n, dim, beta, half), box
     return _rejection(fitness, n, dim, beta, rng, (-half, half), v_min), box
@@ -118,8 +119,10 @@ def _rejection_1d(rng, density, n: int, half: float, beta: float) -> np.ndarray:
     with np.errstate(all="ignore"):
         top = 1.05 * density(np.linspace(-half, half, 20001)).max()
     if not (np.isfinite(top) and top > 0):
-        raise ValueError(f"the density exp(-beta V) with beta = {beta} is not a positive finite function on the "
-                         f"box [-{half}, {half}] (its maximum is {top}); give a finite beta > 0 (or 0 for uniform).")
+        raise ValueError(
+            f"the density exp(-beta V) with beta = {beta} is not a positive finite function on the "
+            f"box [-{half}, {half}] (its maximum is {top}); give a finite beta > 0 (or 0 for uniform)."
+        )
 
     def accepted():
         t = rng.uniform(-half, half, max(4 * n, 1024))
@@ -137,8 +140,10 @@ def _collect(accepted, n: int, beta: float, max_rounds: int = 200) -> np.ndarray
         total += len(out[-1])
         if total >= n:
             return np.concatenate(out)[:n]
-    raise ValueError(f"sampling exp(-{beta} V) by rejection accepted {total} of {n} walkers in {max_rounds} rounds; "
-                     "lower beta, shrink the box, or give the walkers yourself (--points).")
+    raise ValueError(
+        f"sampling exp(-{beta} V) by rejection accepted {total} of {n} walkers in {max_rounds} rounds; "
+        "lower beta, shrink the box, or give the walkers yourself (--points)."
+    )
 
 
 def _truncated_normal(rng, scale, half: float) -> np.ndarray:
@@ -152,6 +157,7 @@ def _truncated_normal(rng, scale, half: float) -> np.ndarray:
 def _double_well_sample(rng, n: int, dim: int, beta: float, half: float) -> np.ndarray:
     """x_0 from its marginal exp(-beta (x_0^2 - 1)^2) Z(x_0)^(d-1), Z the truncated Gaussian
     integral of each other coordinate; then x_k | x_0 ~ N(0, 1 / (beta (1 + x_0^2))) on the box."""
+
     def log_marginal(t):
         s = np.sqrt(beta * (1.0 + t**2))
         z = np.sqrt(2.0 * np.pi) / s * scipy.special.erf(half * s / np.sqrt(2.0))

@@ -9,19 +9,31 @@ import numpy as np
 NEIGHBOUR_COUNTS = (6, 10, 16, 30)
 
 
-ESTIMATION_KEYS = ("points", "valid", "values", "hessian_fd", "hessian_geometric", "eigenvalues_fd",
-                   "eigenvalues_geometric", "metrics")
+ESTIMATION_KEYS = (
+    "points",
+    "valid",
+    "values",
+    "hessian_fd",
+    "hessian_geometric",
+    "eigenvalues_fd",
+    "eigenvalues_geometric",
+    "metrics",
+)
 
 
 def _check_estimation_result(result) -> None:
     if not isinstance(result, dict):
-        raise TypeError(f"`result` must be the dict of jaxgeom.compare_estimation_methods or "
-                        f"validate_on_synthetic_function; got {type(result).__name__}.")
+        raise TypeError(
+            f"`result` must be the dict of jaxgeom.compare_estimation_methods or "
+            f"validate_on_synthetic_function; got {type(result).__name__}."
+        )
     comparison = result.get("comparison", result)
     missing = [key for key in ESTIMATION_KEYS if not isinstance(comparison, dict) or key not in comparison]
     if missing:
-        raise ValueError(f"`result` lacks {missing}: pass the dict that jaxgeom.compare_estimation_methods or "
-                         "jaxgeom.validate_on_synthetic_function returned.")
+        raise ValueError(
+            f"`result` lacks {missing}: pass the dict that jaxgeom.compare_estimation_methods or "
+            "jaxgeom.validate_on_synthetic_function returned."
+        )
 
 
 def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
@@ -54,8 +66,11 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     error = relative_error(h_fd, reference)
     fig, axes = plt.subplots(2, 2, figsize=(11, 9))
     e_fd = np.asarray(comparison["eigenvalues_fd"])[valid]
-    e_ref = np.linalg.eigvalsh(reference[valid]) if truth is not None else \
-        np.asarray(comparison["eigenvalues_geometric"])[valid]
+    e_ref = (
+        np.linalg.eigvalsh(reference[valid])
+        if truth is not None
+        else np.asarray(comparison["eigenvalues_geometric"])[valid]
+    )
     _eigenvalue_panel(axes[0, 0], e_ref.ravel(), e_fd.ravel(), label)
     ok = valid & np.isfinite(error)
     sc = axes[0, 1].scatter(points[ok, 0], points[ok, 1], c=np.log10(error[ok] + 1e-16), s=4, cmap="magma")
@@ -69,28 +84,46 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
             slope = medians[-1] * (np.asarray(sizes, float) / sizes[-1]) ** (-1.0 / d)
             axes[1, 0].loglog(sizes, slope, "k--", lw=0.8, label=f"~ h ~ N^(-1/{d})")
         axes[1, 0].legend(fontsize=8)
-        axes[1, 0].set(xlabel="walkers N", ylabel="median relative error vs exact",
-                       title=f"convergence with walkers (k = {subset_neighbours(points.shape[1])})")
+        axes[1, 0].set(
+            xlabel="walkers N",
+            ylabel="median relative error vs exact",
+            title=f"convergence with walkers (k = {subset_neighbours(points.shape[1])})",
+        )
     else:
         sizes, medians = _error_by_neighbour_count(points, comparison["values"], reference, valid)
         axes[1, 0].loglog(sizes, medians, "o-")
-        axes[1, 0].set(xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}",
-                       title="error against neighbours")
+        axes[1, 0].set(
+            xlabel="k (k-NN neighbours)", ylabel=f"median relative error vs {label}", title="error against neighbours"
+        )
     if medians:
         axes[1, 0].set_ylim(*_decade_limits(medians))
     else:
-        axes[1, 0].text(0.5, 0.5, f"too few walkers ({len(points)}) to refit on subsets", ha="center",
-                        transform=axes[1, 0].transAxes)
+        axes[1, 0].text(
+            0.5,
+            0.5,
+            f"too few walkers ({len(points)}) to refit on subsets",
+            ha="center",
+            transform=axes[1, 0].transAxes,
+        )
     axes[1, 1].hist(np.log10(error[ok] + 1e-16), bins=40)
-    axes[1, 1].set(xlabel=f"log10 relative Hessian error vs {label}", ylabel="walkers",
-                   title=f"error distribution (median {np.median(error[ok]) if ok.any() else np.nan:.2g})")
+    axes[1, 1].set(
+        xlabel=f"log10 relative Hessian error vs {label}",
+        ylabel="walkers",
+        title=f"error distribution (median {np.median(error[ok]) if ok.any() else np.nan:.2g})",
+    )
     if truth is None:
-        fig.suptitle("reference: the geometric Hessian C^-1 - eps_Sigma I, which measures walker spacing (~1/h^2), "
-                     "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
-                     "errors are expected", fontsize=9)
+        fig.suptitle(
+            "reference: the geometric Hessian C^-1 - eps_Sigma I, which measures walker spacing (~1/h^2), "
+            "not V;\nit matches H only for adaptive-gas equilibrium samples: for other samples large "
+            "errors are expected",
+            fontsize=9,
+        )
     else:
-        fig.suptitle("least-squares Hessian estimated from the fitness values at the walkers, against the "
-                     "landscape's exact Hessian (autodiff)", fontsize=10)
+        fig.suptitle(
+            "least-squares Hessian estimated from the fitness values at the walkers, against the "
+            "landscape's exact Hessian (autodiff)",
+            fontsize=10,
+        )
     return save_figure(fig, path, dpi=dpi)
 
 
@@ -112,8 +145,13 @@ def _eigenvalue_panel(ax, reference, estimate, label: str) -> None:
     ax.scatter(reference, estimate, s=3, alpha=0.5)
     ax.plot([low, high], [low, high], "k--", lw=0.8, label="equal")
     rho = float(np.corrcoef(reference, estimate)[0, 1]) if reference.size > 1 else float("nan")
-    ax.set(xlim=(low, high), ylim=(low, high), xlabel=f"{label} eigenvalue", ylabel="least-squares eigenvalue",
-           title=f"eigenvalues, rho = {rho:.2f} ({outside} beyond the axes)")
+    ax.set(
+        xlim=(low, high),
+        ylim=(low, high),
+        xlabel=f"{label} eigenvalue",
+        ylabel="least-squares eigenvalue",
+        title=f"eigenvalues, rho = {rho:.2f} ({outside} beyond the axes)",
+    )
     ax.legend(fontsize=8, loc="upper left")
 
 
@@ -144,7 +182,7 @@ def _decade_limits(values) -> tuple[float, float]:
     if not finite.size:
         return 0.1, 1.0
     low, high = np.floor(np.log10(finite.min())), np.ceil(np.log10(finite.max()))
-    return 10.0 ** low, 10.0 ** max(high, low + 1)
+    return 10.0**low, 10.0 ** max(high, low + 1)
 
 
 def relative_error(estimate, reference):
@@ -261,8 +299,9 @@ def _shared_ricci_norm(snapshots):
     from matplotlib.colors import SymLogNorm
 
     later = [s for s in snapshots[1:] if s["ricci"] is not None and np.isfinite(s["ricci"]).any()] or snapshots
-    pooled = np.concatenate([np.abs(s["ricci"][np.isfinite(s["ricci"])]) for s in later
-                             if s["ricci"] is not None] or [np.ones(1)])
+    pooled = np.concatenate(
+        [np.abs(s["ricci"][np.isfinite(s["ricci"])]) for s in later if s["ricci"] is not None] or [np.ones(1)]
+    )
     top = max(float(np.percentile(pooled, 99)), 1e-12)
     return SymLogNorm(linthresh=max(float(np.percentile(pooled, 25)), 1e-4 * top), vmin=-top, vmax=top, base=10)
 
@@ -272,7 +311,7 @@ def _symlog_ticks(norm):
     decade beyond four), so the colour bar's labels do not overlap."""
     decades = np.arange(np.ceil(np.log10(norm.linthresh)), np.floor(np.log10(norm.vmax)) + 1)
     decades = decades[:: 1 + (len(decades) > 4)]
-    return np.concatenate([-(10.0 ** decades[::-1]), [0.0], 10.0 ** decades])
+    return np.concatenate([-(10.0 ** decades[::-1]), [0.0], 10.0**decades])
 
 
 def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str, str] | None = None) -> Path:
@@ -296,16 +335,24 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str,
 
     d = snapshots[0]["positions"].shape[1]
     has_ricci = colour is None and any(s["ricci"] is not None for s in snapshots)
-    colours = [np.asarray(snap["values"], np.float64) if colour else _colour_values(fitness, snap, has_ricci)
-               for snap in snapshots]
+    colours = [
+        np.asarray(snap["values"], np.float64) if colour else _colour_values(fitness, snap, has_ricci)
+        for snap in snapshots
+    ]
     norm = _shared_ricci_norm(snapshots) if has_ricci else _value_norm(colours[1:] or colours)
     cmap = "coolwarm" if has_ricci else "viridis"
     n = len(snapshots)
-    fig, axes = plt.subplots(3, n, figsize=(3.7 * n + 1.2, 11.0), squeeze=False, layout="constrained",
-                             gridspec_kw={"height_ratios": [1.0, 1.0, 0.7]})
+    fig, axes = plt.subplots(
+        3,
+        n,
+        figsize=(3.7 * n + 1.2, 11.0),
+        squeeze=False,
+        layout="constrained",
+        gridspec_kw={"height_ratios": [1.0, 1.0, 0.7]},
+    )
     lo, hi = _frame(np.concatenate([snap["positions"] for snap in snapshots]), box)
     gx, gy, values = _landscape_grid(fitness, lo, hi, d)
-    for col, (snap, c) in enumerate(zip(snapshots, colours)):
+    for col, (snap, c) in enumerate(zip(snapshots, colours, strict=True)):
         x = snap["positions"]
         zoom_lo, zoom_hi = cluster_frame(x, max_width=0.25 * float(np.max(hi - lo)))
         top, mid, bottom = axes[:, col]
@@ -330,14 +377,22 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str,
     bar = fig.colorbar(mapped, ax=axes[:2].ravel().tolist(), label=label, fraction=0.03, pad=0.01, extend="both")
     if has_ricci:
         bar.set_ticks(_symlog_ticks(norm))
-    what = ("walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull tiers, "
-            "no R)" if has_ricci else colour[1] if colour else
-            "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V")
+    what = (
+        "walkers coloured by the Ricci scalar of the Hessian metric g = H + eps_Sigma I (black: hull tiers, no R)"
+        if has_ricci
+        else colour[1]
+        if colour
+        else "k-NN graph (no simplices, so no Ricci scalar): walkers coloured by V"
+    )
     where = (f"{d}D swarm projected on (x_1, x_2)" if d > 2 else "") + (
-        "" if fitness is None else (", contours of V(x_1, x_2, 0, ..., 0)" if d > 2 else "contours of V"))
+        "" if fitness is None else (", contours of V(x_1, x_2, 0, ..., 0)" if d > 2 else "contours of V")
+    )
     where = where or "no landscape (no contours)"
-    fig.suptitle(f"{what}; {where}\ntop: every walker, one frame; middle: the most populated cluster (dashed "
-                 "square above); bottom: the distribution of the colour over the walkers", fontsize=10)
+    fig.suptitle(
+        f"{what}; {where}\ntop: every walker, one frame; middle: the most populated cluster (dashed "
+        "square above); bottom: the distribution of the colour over the walkers",
+        fontsize=10,
+    )
     return save_figure(fig, path, dpi=100, layout=False)
 
 
@@ -400,8 +455,14 @@ def _draw_histogram(ax, c, norm, cmap: str, symlog: bool, label: str | None = No
     counts, _ = np.histogram(np.clip(ok, edges[0], edges[-1]), bins=edges)
     share = counts / max(ok.size, 1)
     centres = np.asarray(norm.inverse(np.linspace(0.0, 1.0, 81)[1::2]), np.float64)
-    ax.bar(edges[:-1], share, width=np.diff(edges), align="edge",
-           color=matplotlib.colormaps[cmap](norm(centres)), edgecolor="none")
+    ax.bar(
+        edges[:-1],
+        share,
+        width=np.diff(edges),
+        align="edge",
+        color=matplotlib.colormaps[cmap](norm(centres)),
+        edgecolor="none",
+    )
     if symlog:
         ax.set_xscale("symlog", linthresh=norm.linthresh)
         ax.set_xticks(_symlog_ticks(norm))
@@ -410,8 +471,9 @@ def _draw_histogram(ax, c, norm, cmap: str, symlog: bool, label: str | None = No
         median = float(np.median(ok))
         ax.axvline(median, color="k", ls="--", lw=0.8)
         beyond = int(np.sum((ok < edges[0]) | (ok > edges[-1])))
-        ax.set_title(f"median {median:.3g}; {int(c.size - ok.size)} without a value, {beyond} off the scale",
-                     fontsize=9)
+        ax.set_title(
+            f"median {median:.3g}; {int(c.size - ok.size)} without a value, {beyond} off the scale", fontsize=9
+        )
     ax.set_xlabel(label or ("Ricci scalar R" if symlog else "V"))
 
 
@@ -431,8 +493,9 @@ def _constant(values) -> bool:
     return finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300)
 
 
-def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None, gap_times=None,
-                     time_label: str = "time (steps x dt)") -> Path:
+def plot_observables(
+    series: dict, gap_steps, gaps, path, gap_rounding=None, gap_times=None, time_label: str = "time (steps x dt)"
+) -> Path:
     """Every observable of a `jaxgeom.simulate` history against time, one panel each, with
     labelled axes. Constant series (nu, eps_Sigma without annealing) are named in the title
     instead of drawn; observables that are NaN throughout (the Voronoi ones on a k-NN graph)
@@ -447,9 +510,9 @@ def plot_observables(series: dict, gap_steps, gaps, path, gap_rounding=None, gap
     t = np.asarray(series["time"])
     dt = t[1] - t[0] if len(t) > 1 else 1.0
     gap_times = np.asarray(gap_steps) * dt if gap_times is None else np.asarray(gap_times)
-    for ax, name in zip(axes.ravel(), names):
+    for ax, name in zip(axes.ravel(), names, strict=False):  # the grid has spare panels
         _plot_one(ax, name, series, t, gap_times, gaps, gap_rounding, time_label)
-    for ax in axes.ravel()[len(names):]:
+    for ax in axes.ravel()[len(names) :]:
         ax.axis("off")
     notes = []
     if constant:

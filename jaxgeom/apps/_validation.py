@@ -20,8 +20,9 @@ SYNTHETIC = {"quadratic": (quadratic, 2.0), "rosenbrock": (rosenbrock, 2.0), "ra
 PASS_THRESHOLDS = {"quadratic": (1e-8, 1e-8), "rosenbrock": (0.2, 0.3), "rastrigin": (0.5, 0.8)}
 
 
-def compare_estimation_methods(tess: Tessellation, values, *, eps_sigma, compute_full_hessian: bool = True,
-                               eps_reg: float = 1e-5) -> dict:
+def compare_estimation_methods(
+    tess: Tessellation, values, *, eps_sigma, compute_full_hessian: bool = True, eps_reg: float = 1e-5
+) -> dict:
     """Finite-difference (least-squares) estimates against the geometric Hessian.
 
     **Arguments:**
@@ -57,14 +58,29 @@ def compare_estimation_methods(tess: Tessellation, values, *, eps_sigma, compute
     finite = jnp.all(jnp.isfinite(h_fd.reshape(tess.n_points, -1)), axis=1) & jnp.all(jnp.isfinite(grad), axis=1)
     warn_if_undetermined(tess, np.asarray(finite), "compare_estimation_methods")
     valid = np.asarray(tess.interior & finite & jnp.all(jnp.isfinite(h_geo.reshape(tess.n_points, -1)), axis=1))
-    eig_fd = jnp.linalg.eigvalsh(jnp.where(valid[:, None, None], h_fd, 0.0)) if compute_full_hessian \
+    eig_fd = (
+        jnp.linalg.eigvalsh(jnp.where(valid[:, None, None], h_fd, 0.0))
+        if compute_full_hessian
         else jnp.sort(h_fd, axis=1)
+    )
     eig_geo = jnp.linalg.eigvalsh(jnp.where(valid[:, None, None], h_geo, 0.0))
-    metrics = _agreement(np.asarray(eig_fd)[valid], np.asarray(eig_geo)[valid],
-                         np.asarray(h_fd)[valid] if compute_full_hessian else None, np.asarray(h_geo)[valid])
-    return {"gradient": grad, "hessian_fd": h_fd, "hessian_geometric": h_geo, "eigenvalues_fd": eig_fd,
-            "eigenvalues_geometric": eig_geo, "valid": valid, "metrics": metrics,
-            "points": np.asarray(tess.points), "values": np.asarray(values)}
+    metrics = _agreement(
+        np.asarray(eig_fd)[valid],
+        np.asarray(eig_geo)[valid],
+        np.asarray(h_fd)[valid] if compute_full_hessian else None,
+        np.asarray(h_geo)[valid],
+    )
+    return {
+        "gradient": grad,
+        "hessian_fd": h_fd,
+        "hessian_geometric": h_geo,
+        "eigenvalues_fd": eig_fd,
+        "eigenvalues_geometric": eig_geo,
+        "valid": valid,
+        "metrics": metrics,
+        "points": np.asarray(tess.points),
+        "values": np.asarray(values),
+    }
 
 
 def warn_if_undetermined(tess: Tessellation, determined: np.ndarray, caller: str) -> None:
@@ -73,11 +89,17 @@ def warn_if_undetermined(tess: Tessellation, determined: np.ndarray, caller: str
     if determined.sum() >= 0.5 * n:
         return
     needed = (d + 1) * (d + 2) // 2
-    fix = (f"build the k-NN graph with k >= {2 * needed} (knn_graph(points, k), or analyze's --k)"
-           if tess.simplices is None else "use a k-NN graph with more neighbours")
-    warn_at_caller(f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
-                   f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
-                   f"{tess.neighbors.shape[1]} neighbour slots; {fix}.", RuntimeWarning)
+    fix = (
+        f"build the k-NN graph with k >= {2 * needed} (knn_graph(points, k), or analyze's --k)"
+        if tess.simplices is None
+        else "use a k-NN graph with more neighbours"
+    )
+    warn_at_caller(
+        f"{caller}: the Hessian fit is undetermined (NaN) at {n - int(determined.sum())} of {n} walkers: "
+        f"a quadratic fit in d = {d} has (d + 1)(d + 2)/2 = {needed} coefficients and each walker has "
+        f"{tess.neighbors.shape[1]} neighbour slots; {fix}.",
+        RuntimeWarning,
+    )
 
 
 def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:
@@ -94,8 +116,9 @@ def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:
     return out
 
 
-def validate_on_synthetic_function(name: str, *, n_walkers: int = 100, dim: int = 2, eps_sigma: float = 0.1,
-                                   seed: int = 0, k: int | None = None) -> dict:
+def validate_on_synthetic_function(
+    name: str, *, n_walkers: int = 100, dim: int = 2, eps_sigma: float = 0.1, seed: int = 0, k: int | None = None
+) -> dict:
     """Estimation errors against analytic derivatives (jax autodiff) on a synthetic function.
 
     Walkers are uniform in the function's box ([-2, 2]^d, Rastrigin [-5.12, 5.12]^d),
@@ -133,9 +156,19 @@ def validate_on_synthetic_function(name: str, *, n_walkers: int = 100, dim: int 
     rel_grad = rmse / scale if scale > 0 else rmse
     rel_hess = float(np.median(hess_err / np.linalg.norm(true_hess[scored], axis=(1, 2))))
     g_tol, h_tol = PASS_THRESHOLDS[name]
-    return {"function": name, "n_walkers": n_walkers, "dim": dim, "k": k, "n_scored": int(scored.sum()),
-            "gradient_rmse": rmse, "gradient_relative_rmse": rel_grad, "hessian_frobenius_error": rel_hess,
-            "fd_geometric_correlation": comparison["metrics"]["eigenvalue_correlation"],
-            "thresholds": {"gradient_relative_rmse": g_tol, "hessian_frobenius_error": h_tol},
-            "passed": bool(rel_grad < g_tol and rel_hess < h_tol), "comparison": comparison,
-            "true_hessian": true_hess, "scored": scored}
+    return {
+        "function": name,
+        "n_walkers": n_walkers,
+        "dim": dim,
+        "k": k,
+        "n_scored": int(scored.sum()),
+        "gradient_rmse": rmse,
+        "gradient_relative_rmse": rel_grad,
+        "hessian_frobenius_error": rel_hess,
+        "fd_geometric_correlation": comparison["metrics"]["eigenvalue_correlation"],
+        "thresholds": {"gradient_relative_rmse": g_tol, "hessian_frobenius_error": h_tol},
+        "passed": bool(rel_grad < g_tol and rel_hess < h_tol),
+        "comparison": comparison,
+        "true_hessian": true_hess,
+        "scored": scored,
+    }

@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 
-
 def reject_tracer(value, name: str, func: str) -> None:
     if isinstance(value, jax.core.Tracer):
         raise TypeError(
@@ -59,8 +58,10 @@ def real_array(value, name: str) -> np.ndarray:
     if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
         raise TypeError(f"`{name}` must be numeric; got {type(value).__name__} with dtype {arr.dtype}.")
     if np.iscomplexobj(arr):
-        raise TypeError(f"`{name}` must be real; got complex dtype {arr.dtype}. Pass `x.real` if the "
-                        "imaginary part is meant to be zero.")
+        raise TypeError(
+            f"`{name}` must be real; got complex dtype {arr.dtype}. Pass `x.real` if the "
+            "imaginary part is meant to be zero."
+        )
     return arr
 
 
@@ -71,13 +72,21 @@ def check_number(value, name: str, *, low=None, high=None, strict: bool = False,
         return
     arr = real_array(value, name)
     if arr.ndim != 0:
-        raise ValueError(f"`{name}` must be a scalar; got shape {arr.shape}. For an ensemble of values, "
-                         "jax.vmap a function that builds the object from one value.")
+        raise ValueError(
+            f"`{name}` must be a scalar; got shape {arr.shape}. For an ensemble of values, "
+            "jax.vmap a function that builds the object from one value."
+        )
     v = float(arr)
     below = low is not None and (v <= low if strict else v < low)
     if not np.isfinite(v) or below or (high is not None and v > high):
-        rule = " and ".join(r for r in (f"{'>' if strict else '>='} {low}" if low is not None else "",
-                                         f"<= {high}" if high is not None else "") if r)
+        rule = " and ".join(
+            r
+            for r in (
+                f"{'>' if strict else '>='} {low}" if low is not None else "",
+                f"<= {high}" if high is not None else "",
+            )
+            if r
+        )
         raise ValueError(f"`{name}` must be a finite number{' ' + rule if rule else ''}{hint}; got {v:g}.")
 
 
@@ -115,16 +124,20 @@ def check_walker_array(value, name: str, shape: tuple, *, nonnegative: bool = Fa
         value = real_array(value, name)
         if nonnegative and np.any(value < 0):
             rows = np.flatnonzero(value < 0) if value.ndim == 1 else []
-            raise ValueError(f"`{name}` must be >= 0 (cell volumes or weights); got negative entries, first "
-                             f"rows {list(map(int, rows[:5]))}.")
+            raise ValueError(
+                f"`{name}` must be >= 0 (cell volumes or weights); got negative entries, first "
+                f"rows {list(map(int, rows[:5]))}."
+            )
     if np.shape(value) != shape:
         raise ValueError(f"`{name}` must have shape {shape}, one entry per walker of `tess`; got {np.shape(value)}.")
 
 
 def _check_real_dtype(dtype, name: str) -> None:
     if np.issubdtype(dtype, np.complexfloating):
-        raise TypeError(f"`{name}` must be real; got complex dtype {dtype}. Pass `x.real` if the imaginary part "
-                        "is meant to be zero.")
+        raise TypeError(
+            f"`{name}` must be real; got complex dtype {dtype}. Pass `x.real` if the imaginary part "
+            "is meant to be zero."
+        )
 
 
 def check_walker_mask(value, name: str, shape: tuple) -> None:
@@ -136,8 +149,10 @@ def check_walker_mask(value, name: str, shape: tuple) -> None:
             raise TypeError(f"`{name}` must be a bool array of shape {shape}; got the string {value!r}.")
         value = real_array(value, name)
     if value.dtype != np.bool_:
-        raise TypeError(f"`{name}` must be a bool mask; got dtype {value.dtype}. Compare to get one, e.g. "
-                        f"`{name}=tess.interior` or `values > 0`.")
+        raise TypeError(
+            f"`{name}` must be a bool mask; got dtype {value.dtype}. Compare to get one, e.g. "
+            f"`{name}=tess.interior` or `values > 0`."
+        )
     if np.shape(value) != shape:
         raise ValueError(f"`{name}` must have shape {shape}, one entry per walker; got {np.shape(value)}.")
 
@@ -164,19 +179,25 @@ def check_metric_array(metric, n: int, d: int) -> None:
     nonfinite = ~np.isfinite(g).all(axis=(1, 2))
     if nonfinite.any():
         rows = np.flatnonzero(nonfinite)
-        raise ValueError(f"`metric` must be finite; {rows.size} walker(s) have NaN or inf entries, first rows "
-                         f"{rows[:5].tolist()}. (The emergent metric of a walker without neighbours is NaN: give it "
-                         "neighbours, e.g. a larger k, or a metric of its own.)")
+        raise ValueError(
+            f"`metric` must be finite; {rows.size} walker(s) have NaN or inf entries, first rows "
+            f"{rows[:5].tolist()}. (The emergent metric of a walker without neighbours is NaN: give it "
+            "neighbours, e.g. a larger k, or a metric of its own.)"
+        )
     asym, indefinite = metric_defect_masks(g, np)
     if asym.any():
         rows = np.flatnonzero(asym)
-        raise ValueError(f"`metric` must be symmetric; {rows.size} walker(s) are not, first rows "
-                         f"{rows[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2)).")
+        raise ValueError(
+            f"`metric` must be symmetric; {rows.size} walker(s) are not, first rows "
+            f"{rows[:5].tolist()}. Symmetrise with 0.5 * (g + g.swapaxes(-1, -2))."
+        )
     if indefinite.any():
         rows = np.flatnonzero(indefinite)
-        raise ValueError(f"`metric` must be positive definite; {rows.size} walker(s) have an eigenvalue <= 0, "
-                         f"first rows {rows[:5].tolist()}. Floor the spectrum, e.g. "
-                         "jaxgeom.hessian_metric(V, eps_sigma) for a Hessian.")
+        raise ValueError(
+            f"`metric` must be positive definite; {rows.size} walker(s) have an eigenvalue <= 0, "
+            f"first rows {rows[:5].tolist()}. Floor the spectrum, e.g. "
+            "jaxgeom.hessian_metric(V, eps_sigma) for a Hessian."
+        )
     _remember_checked(metric)
 
 
@@ -208,8 +229,9 @@ def metric_defect_masks(g, xp):
     c = {(i, j): g[:, i, j].astype(wide) for i in range(d) for j in range(d)}
     finite = functools.reduce(xp.logical_and, [xp.isfinite(v) for v in c.values()])
     scale = functools.reduce(xp.maximum, [xp.abs(v) for v in c.values()])
-    skew = functools.reduce(xp.maximum, [xp.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)],
-                            0 * scale)
+    skew = functools.reduce(
+        xp.maximum, [xp.abs(c[i, j] - c[j, i]) for i in range(d) for j in range(i + 1, d)], 0 * scale
+    )
     # definiteness of g / scale: the minors of g itself overflow or underflow (g = 1e-200 I)
     unit = xp.where(scale > 0, scale, 1.0)
     c = {key: v / unit for key, v in c.items()}
@@ -226,8 +248,11 @@ def _positive_definite(c: dict, g, d: int, xp):
     if d >= 2:
         ok &= c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0] > 0
     if d == 3:
-        det = (c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1]) - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
-               + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0]))
+        det = (
+            c[0, 0] * (c[1, 1] * c[2, 2] - c[1, 2] * c[2, 1])
+            - c[0, 1] * (c[1, 0] * c[2, 2] - c[1, 2] * c[2, 0])
+            + c[0, 2] * (c[1, 0] * c[2, 1] - c[1, 1] * c[2, 0])
+        )
         ok &= det > 0
     return ok
 
@@ -296,13 +321,13 @@ def refuse_unresolved_positions(spacing: float, largest: float, dtype, name: str
         return
     rounding = float(np.finfo(dtype).eps) * largest
     if rounding > RESOLUTION_LIMIT * spacing:
-        fix = (" or use float64 (jax.config.update('jax_enable_x64', True))"
-               if np.dtype(dtype) == np.float32 else "")
+        fix = " or use float64 (jax.config.update('jax_enable_x64', True))" if np.dtype(dtype) == np.float32 else ""
         raise ValueError(
             f"`{name}` cannot be resolved in {np.dtype(dtype).name}: at |x| up to {largest:.3g} its "
             f"rounding is {rounding:.3g}, {rounding / spacing:.2g} of the mean walker spacing {spacing:.3g} (at most "
             f"{RESOLUTION_LIMIT:g}); walkers collapse and cell volumes lose their sign. Centre the walkers "
-            f"(points - points.mean(axis=0)){fix}.")
+            f"(points - points.mean(axis=0)){fix}."
+        )
 
 
 def flat_word(d: int, other: str = "on a hyperplane") -> str:
@@ -352,22 +377,20 @@ def host_box(box, points: np.ndarray, *, periodic: bool) -> np.ndarray | None:
     """Validate `box=(lower, upper)` and that every walker lies inside it."""
     if box is None:
         if periodic:
-            raise ValueError(
-                "`periodic=True` needs `box=(lower, upper)`: the periodic cell is not known otherwise."
-            )
+            raise ValueError("`periodic=True` needs `box=(lower, upper)`: the periodic cell is not known otherwise.")
         return None
     reject_tracer(box, "box", "jaxgeom")
     d = points.shape[1]
     if isinstance(box, str):
-        raise TypeError(f"`box` must be (lower, upper) with scalars or length-{d} vectors, e.g. box=(0.0, 1.0); "
-                        f"got the string {box!r}.")
+        raise TypeError(
+            f"`box` must be (lower, upper) with scalars or length-{d} vectors, e.g. box=(0.0, 1.0); "
+            f"got the string {box!r}."
+        )
     arr = real_array(box, "box").astype(np.float64)
     if arr.ndim == 1 and arr.size == 2:
         arr = np.repeat(arr[:, None], d, axis=1)
     if arr.shape != (2, d):
-        raise ValueError(
-            f"`box` must be (lower, upper) with scalars or length-{d} vectors; got shape {arr.shape}."
-        )
+        raise ValueError(f"`box` must be (lower, upper) with scalars or length-{d} vectors; got shape {arr.shape}.")
     if not np.isfinite(arr).all() or np.any(arr[1] <= arr[0]):
         raise ValueError(f"`box` must satisfy lower < upper in every coordinate; got lower={arr[0]}, upper={arr[1]}.")
     upper_ok = points < arr[1] if periodic else points <= arr[1]
@@ -387,8 +410,10 @@ def refuse_unused(arguments: dict, *, of: str, chosen: str, why: str = "") -> No
     "method='heat'") when the caller chose `chosen`, which ignores them; `why` says how."""
     given = [name for name, value in arguments.items() if value is not None]
     if given:
-        raise ValueError(f"{', '.join(f'`{g}`' for g in given)} of {of} given with {chosen}, which does not use "
-                         f"them{why}. Drop them, or use {of}.")
+        raise ValueError(
+            f"{', '.join(f'`{g}`' for g in given)} of {of} given with {chosen}, which does not use "
+            f"them{why}. Drop them, or use {of}."
+        )
 
 
 def check_choice(value: str, name: str, valid: Iterable[str]) -> str:
@@ -415,7 +440,9 @@ def warn_at_caller(message: str, category: type[Warning] = UserWarning) -> None:
     """`warnings.warn` attributed to the first frame outside jaxgeom, JAX, equinox and jaxtyping:
     the user's own line, however deep the library's call (decorators, jit tracing) runs."""
     inside, frame, level = _library_dirs(), sys._getframe(1), 2
-    while frame is not None and (os.path.abspath(frame.f_code.co_filename).startswith(inside)
-                                 or os.path.abspath(frame.f_code.co_filename) in _STDLIB_WRAPPERS):
+    while frame is not None and (
+        os.path.abspath(frame.f_code.co_filename).startswith(inside)
+        or os.path.abspath(frame.f_code.co_filename) in _STDLIB_WRAPPERS
+    ):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, category, stacklevel=level)

@@ -56,8 +56,9 @@ class H5MDTrajectory(_OpenFile):
         try:
             self._file = h5py.File(self.path, "r")
         except (OSError, ValueError) as err:
-            raise ValueError(f"{self.path}: not a readable HDF5 file ({err}); a truncated or partly written "
-                             "file cannot be read.") from None
+            raise ValueError(
+                f"{self.path}: not a readable HDF5 file ({err}); a truncated or partly written file cannot be read."
+            ) from None
         try:
             self._open(group)
         except Exception:
@@ -67,17 +68,22 @@ class H5MDTrajectory(_OpenFile):
     def _open(self, group):
         f = self._file
         if "particles" not in f:
-            raise ValueError(f"{self.path}: no 'particles' group; an H5MD file holds its trajectories in "
-                             "particles/<group>/position.")
+            raise ValueError(
+                f"{self.path}: no 'particles' group; an H5MD file holds its trajectories in particles/<group>/position."
+            )
         groups = [name for name in f["particles"] if "position" in f["particles"][name]]
         if group is None:
             if len(groups) != 1:
-                raise ValueError(f"{self.path}: particles/ holds {len(groups)} groups with positions "
-                                 f"({', '.join(groups) or 'none'}); name one with group=.")
+                raise ValueError(
+                    f"{self.path}: particles/ holds {len(groups)} groups with positions "
+                    f"({', '.join(groups) or 'none'}); name one with group=."
+                )
             group = groups[0]
         if group not in groups:
-            raise ValueError(f"{self.path}: no dataset particles/{group}/position/value (groups with positions: "
-                             f"{', '.join(groups) or 'none'}).")
+            raise ValueError(
+                f"{self.path}: no dataset particles/{group}/position/value (groups with positions: "
+                f"{', '.join(groups) or 'none'})."
+            )
         self.group = group
         g = f["particles"][group]
         self._value = {}
@@ -88,14 +94,16 @@ class H5MDTrajectory(_OpenFile):
                 self._value[element] = g[element]["value"]
         position = self._value["position"]
         if position.ndim != 3:
-            raise ValueError(f"{self.path}: particles/{group}/position/value must be (frames, N, d); got shape "
-                             f"{position.shape}.")
+            raise ValueError(
+                f"{self.path}: particles/{group}/position/value must be (frames, N, d); got shape {position.shape}."
+            )
         self.n_frames, self.n, self.d = position.shape
         for element, data in self._value.items():
             want = (self.n_frames, self.n) + ((self.d,) if element in ("position", "velocity") else ())
             if data.shape != want:
-                raise ValueError(f"{self.path}: particles/{group}/{element}/value has shape {data.shape}; the "
-                                 f"positions give {want}.")
+                raise ValueError(
+                    f"{self.path}: particles/{group}/{element}/value has shape {data.shape}; the positions give {want}."
+                )
         self.has = tuple(e for e in ELEMENTS[1:] if e in self._value)
         self.steps = self._series(g["position"], "step", np.arange(self.n_frames))
         self.times = self._series(g["position"], "time", self.steps.astype(float))
@@ -109,16 +117,19 @@ class H5MDTrajectory(_OpenFile):
             return data.attrs.get("offset", 0) + np.arange(self.n_frames) * data[()]
         values = np.asarray(data[()])
         if values.shape != (self.n_frames,):
-            raise ValueError(f"{self.path}: particles/{self.group}/position/{name} has shape {values.shape}; "
-                             f"{self.n_frames} frames need ({self.n_frames},).")
+            raise ValueError(
+                f"{self.path}: particles/{self.group}/position/{name} has shape {values.shape}; "
+                f"{self.n_frames} frames need ({self.n_frames},)."
+            )
         return values
 
     def _box(self, g):
         if "box" not in g:
             return None, False
         box = g["box"]
-        boundary = [b.decode() if isinstance(b, bytes) else str(b) for b in np.atleast_1d(box.attrs.get("boundary",
-                                                                                                          []))]
+        boundary = [
+            b.decode() if isinstance(b, bytes) else str(b) for b in np.atleast_1d(box.attrs.get("boundary", []))
+        ]
         periodic = [b == "periodic" for b in boundary]
         if "edges" not in box:
             if any(periodic):
@@ -128,23 +139,30 @@ class H5MDTrajectory(_OpenFile):
         if isinstance(edges, h5py_group()):  # a time-dependent box: jaxgeom needs it fixed
             values = np.asarray(edges["value"][()], float)
             if len(values) and np.any(values != values[:1]):
-                raise ValueError(f"{self.path}: particles/{self.group}/box/edges changes over time; jaxgeom "
-                                 "analyses trajectories in a fixed box.")
+                raise ValueError(
+                    f"{self.path}: particles/{self.group}/box/edges changes over time; jaxgeom "
+                    "analyses trajectories in a fixed box."
+                )
             edges = values[0]
         else:
             edges = np.asarray(edges[()], float)
         if edges.ndim == 2:  # H5MD allows the box's edge vectors; jaxgeom's boxes are rectangular
             if np.any(edges != np.diag(np.diag(edges))):
-                raise ValueError(f"{self.path}: particles/{self.group}/box/edges is a triclinic box; jaxgeom "
-                                 "analyses rectangular boxes only.")
+                raise ValueError(
+                    f"{self.path}: particles/{self.group}/box/edges is a triclinic box; jaxgeom "
+                    "analyses rectangular boxes only."
+                )
             edges = np.diag(edges)
         if edges.shape != (self.d,) or not np.all(np.isfinite(edges)) or np.any(edges <= 0):
-            raise ValueError(f"{self.path}: particles/{self.group}/box/edges must be {self.d} positive lengths; "
-                             f"got {edges}.")
+            raise ValueError(
+                f"{self.path}: particles/{self.group}/box/edges must be {self.d} positive lengths; got {edges}."
+            )
         lower = np.asarray(box["jaxgeom_lower"][()], float) if "jaxgeom_lower" in box else np.zeros(self.d)
         if any(periodic) and not all(periodic):
-            raise ValueError(f"{self.path}: particles/{self.group}/box is periodic along some axes only "
-                             f"({boundary}); jaxgeom wraps all axes or none.")
+            raise ValueError(
+                f"{self.path}: particles/{self.group}/box is periodic along some axes only "
+                f"({boundary}); jaxgeom wraps all axes or none."
+            )
         return (lower, lower + edges), all(periodic) and len(periodic) == self.d
 
     def frame(self, t: int) -> dict:
@@ -153,13 +171,22 @@ class H5MDTrajectory(_OpenFile):
         return {names[e]: np.asarray(data[t]) for e, data in self._value.items()}
 
 
-
 class H5MDWriter(_OpenFile):
     """Writes frames into a new H5MD file, one `append` per frame (datasets grown by a frame at a
     time, so memory does not grow with the run), and the observables' series at the end."""
 
-    def __init__(self, path, n: int, d: int, *, box=None, periodic: bool = False, group: str = "swarm",
-                 elements=("position", "velocity", "fitness", "parents"), creator_version: str = ""):
+    def __init__(
+        self,
+        path,
+        n: int,
+        d: int,
+        *,
+        box=None,
+        periodic: bool = False,
+        group: str = "swarm",
+        elements=("position", "velocity", "fitness", "parents"),
+        creator_version: str = "",
+    ):
         h5py = require_h5py()
         self.path = Path(path)
         self._file = f = h5py.File(self.path, "w")
@@ -178,10 +205,12 @@ class H5MDWriter(_OpenFile):
             dtype = np.int32 if element == "parents" else np.float64
             e = g.create_group(element)
             self._elements[element] = (
-                e.create_dataset("value", shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype,
-                                 chunks=(1,) + shape),
+                e.create_dataset(
+                    "value", shape=(0,) + shape, maxshape=(None,) + shape, dtype=dtype, chunks=(1,) + shape
+                ),
                 e.create_dataset("step", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(1024,)),
-                e.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,)))
+                e.create_dataset("time", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(1024,)),
+            )
         self.n_frames = 0
 
     @property
@@ -235,8 +264,9 @@ def write_h5md_observables(path, series: dict, *, creator_version: str = "") -> 
         _write_header(f, creator_version)
         for name, (values, steps, times) in series.items():
             if not len(values) == len(steps) == len(times):
-                raise ValueError(f"write_h5md_observables: {name} has {len(values)} values, {len(steps)} steps and "
-                                 f"{len(times)} times.")
+                raise ValueError(
+                    f"write_h5md_observables: {name} has {len(values)} values, {len(steps)} steps and "
+                    f"{len(times)} times."
+                )
             _write_series(f, name, values, steps, times)
     return path
-

@@ -37,8 +37,10 @@ def _device_list(devices) -> list:
     if devices is None:
         return jax.devices()
     if isinstance(devices, (str, bytes)) or not hasattr(devices, "__iter__"):
-        raise TypeError(f"`devices` must be a sequence of JAX devices (e.g. jax.devices()[:2]) or None; got "
-                        f"{devices!r}. For a platform's devices use jax.devices('cpu').")
+        raise TypeError(
+            f"`devices` must be a sequence of JAX devices (e.g. jax.devices()[:2]) or None; got "
+            f"{devices!r}. For a platform's devices use jax.devices('cpu')."
+        )
     devices = list(devices)
     if not devices:
         raise ValueError("`devices` is empty; give at least one device (jax.devices()).")
@@ -46,8 +48,9 @@ def _device_list(devices) -> list:
     if strange:
         raise TypeError(f"`devices` must hold JAX devices (jax.devices()); got {strange[0]!r}.")
     if len({id(d) for d in devices}) < len(devices):
-        raise ValueError(f"`devices` lists a device more than once ({devices}); each device can hold one part "
-                         "of the mesh.")
+        raise ValueError(
+            f"`devices` lists a device more than once ({devices}); each device can hold one part of the mesh."
+        )
     return devices
 
 
@@ -63,8 +66,10 @@ def check_mesh(mesh, batch: int | None, what: str, axis: str = BATCH_AXIS) -> No
         raise ValueError(f"`mesh` must have an axis named {axis!r} ({maker}); got {mesh.axis_names}.")
     size = mesh.shape[axis]
     if batch is not None and batch % size:
-        raise ValueError(f"{what} = {batch} must be a multiple of the mesh's {size} devices along {axis!r}; "
-                         f"use {size * -(-batch // size)} or a mesh over fewer devices.")
+        raise ValueError(
+            f"{what} = {batch} must be a multiple of the mesh's {size} devices along {axis!r}; "
+            f"use {size * -(-batch // size)} or a mesh over fewer devices."
+        )
 
 
 def over_batch(fn, mesh: Mesh | None):
@@ -73,8 +78,13 @@ def over_batch(fn, mesh: Mesh | None):
     lanes = jax.vmap(fn, in_axes=(0, None))
     if mesh is None:
         return lanes
-    return jax.shard_map(lanes, mesh=mesh, in_specs=(PartitionSpec(BATCH_AXIS), PartitionSpec()),
-                         out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)
+    return jax.shard_map(
+        lanes,
+        mesh=mesh,
+        in_specs=(PartitionSpec(BATCH_AXIS), PartitionSpec()),
+        out_specs=PartitionSpec(BATCH_AXIS),
+        check_vma=False,
+    )
 
 
 def shard_batch(tree, mesh: Mesh):
@@ -118,8 +128,13 @@ def split_rows(fn, mesh: Mesh | None, rows, n: int, *shared):
     per_device = -(-m // devices)
     padded = jax.numpy.pad(rows, (0, per_device * devices - m), constant_values=n)
     dealt = padded.reshape(per_device, devices).T.reshape(-1)  # device d: rows d, d + D, ...
-    out = jax.shard_map(fn, mesh=mesh, in_specs=(PartitionSpec(WALKER_AXIS),) + (PartitionSpec(),) * len(shared),
-                        out_specs=PartitionSpec(WALKER_AXIS), check_vma=False)(dealt, *shared)
+    out = jax.shard_map(
+        fn,
+        mesh=mesh,
+        in_specs=(PartitionSpec(WALKER_AXIS),) + (PartitionSpec(),) * len(shared),
+        out_specs=PartitionSpec(WALKER_AXIS),
+        check_vma=False,
+    )(dealt, *shared)
 
     def undeal(a):
         a = a.reshape((devices, per_device) + a.shape[1:]).swapaxes(0, 1)

@@ -31,11 +31,11 @@ def dot(u, v):
 
 
 def _sub(u, v):
-    return [a - b for a, b in zip(u, v)]
+    return [a - b for a, b in zip(u, v, strict=True)]
 
 
 def _vdot(u, v):
-    return sum(a * b for a, b in zip(u, v))
+    return sum(a * b for a, b in zip(u, v, strict=True))
 
 
 def _cross3(u, v):
@@ -120,13 +120,13 @@ def max_scalar(values):
     return functools.reduce(jnp.maximum, values)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def faces(d: int) -> tuple[tuple[int, ...], ...]:
     """All faces of a d-simplex with at least two vertices, as sorted vertex tuples."""
     return tuple(f for k in range(2, d + 2) for f in itertools.combinations(range(d + 1), k))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def chains(d: int) -> tuple[tuple[int, tuple[tuple[int, ...], ...], float], ...]:
     """Flags {i} < F_1 < ... < F_d = simplex, one per vertex i and order of the others.
 
@@ -199,7 +199,9 @@ def _triangle_pieces(p):
 
 def _dual_pieces_2d(rel):
     twice_area = rel[1][0] * rel[2][1] - rel[1][1] * rel[2][0]
-    ok = jnp.abs(twice_area) > 10.0 * jnp.finfo(jnp.result_type(twice_area)).eps * (_vdot(rel[1], rel[1]) + _vdot(rel[2], rel[2]))
+    ok = jnp.abs(twice_area) > 10.0 * jnp.finfo(jnp.result_type(twice_area)).eps * (
+        _vdot(rel[1], rel[1]) + _vdot(rel[2], rel[2])
+    )
     denom = 8.0 * jnp.abs(jnp.where(ok, twice_area, 1.0))
     return jnp.stack([jnp.where(ok, num / denom, 0.0) for num in _triangle_pieces(rel)])
 
@@ -218,7 +220,7 @@ def _dual_pieces_3d(rel):
         side = jnp.sign(_vdot(normal, _sub(rel[opposite], p[0])))
         # H_f |n| = side n.(c - p0) and a_{f,i} 8 |n| = num_i, so H_f a_i = side n.(c - p0) num_i / (8 |n|^2)
         height = side * _vdot(normal, _sub(offset, p[0])) / (24.0 * jnp.where(n_sq > 0, n_sq, 1.0))
-        for v, num in zip(f, _triangle_pieces(p)):
+        for v, num in zip(f, _triangle_pieces(p), strict=True):
             pieces[v] = pieces[v] + height * num
     return jnp.stack([jnp.where(ok, piece, 0.0) for piece in pieces])
 
@@ -233,7 +235,7 @@ def _dual_pieces_flags(rel):
     centers, ok = {}, None
     for f in faces(d):
         offset, ok = circumcenter_offset([_sub(rel[v], rel[f[0]]) for v in f[1:]])
-        centers[f] = [a + b for a, b in zip(rel[f[0]], offset)]
+        centers[f] = [a + b for a, b in zip(rel[f[0]], offset, strict=True)]
     orientation = det_entries(rel[1:])  # the last face is the whole simplex: `ok` is its flag
     pieces = [0.0] * (d + 1)
     for i, flag, sign in chains(d):
@@ -258,7 +260,7 @@ def simplex_circumcenter_and_flat(coords):
     """(circumcentre (d,), flat): `simplex_circumcenter` and whether the simplex is degenerate."""
     verts = _vertices(coords)
     offset, ok = circumcenter_offset([_sub(p, verts[0]) for p in verts[1:]])
-    return jnp.stack([a + b for a, b in zip(verts[0], offset)]), ~ok
+    return jnp.stack([a + b for a, b in zip(verts[0], offset, strict=True)]), ~ok
 
 
 def simplex_circumradius(coords):
@@ -416,17 +418,19 @@ def _spectral_derivative_jvp(fn, eigh, n_p, n_h, primals, tangents):
     t_h, t_p, t_dps, t_dhs = tangents
     out = _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps, dhs)
     # multilinear in dps and dhs, so a tangent of one direction replaces it
-    tangent = (_spectral_derivative(fn, eigh, n_p, n_h + 1, h, p, dps, dhs + (t_h,))
-               + _spectral_derivative(fn, eigh, n_p + 1, n_h, h, p, dps + (t_p,), dhs))
+    tangent = _spectral_derivative(fn, eigh, n_p, n_h + 1, h, p, dps, dhs + (t_h,)) + _spectral_derivative(
+        fn, eigh, n_p + 1, n_h, h, p, dps + (t_p,), dhs
+    )
     for i in range(n_p):
-        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps[:i] + (t_dps[i],) + dps[i + 1:], dhs)
+        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps[:i] + (t_dps[i],) + dps[i + 1 :], dhs)
     for i in range(n_h):
-        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps, dhs[:i] + (t_dhs[i],) + dhs[i + 1:])
+        tangent = tangent + _spectral_derivative(fn, eigh, n_p, n_h, h, p, dps, dhs[:i] + (t_dhs[i],) + dhs[i + 1 :])
     return out, tangent
 
 
 def _lambda_derivatives(fn, n_p: int, p):
     """j -> the elementwise function lambda -> d^j/dlambda^j d^n_p/dp^n_p fn(lambda, p)."""
+
     def in_p(lam, p_, order):
         if order == 0:
             return fn(lam, p_)
@@ -437,7 +441,7 @@ def _lambda_derivatives(fn, n_p: int, p):
             return in_p(lam, p, n_p)
         return jax.jvp(lambda x: in_lambda(x, order - 1), (lam,), (jnp.ones_like(lam),))[1]
 
-    return lambda order: (lambda lam: in_lambda(lam, order))
+    return lambda order: lambda lam: in_lambda(lam, order)
 
 
 def _divided_difference_table(value_of, lam, k: int):
@@ -462,7 +466,7 @@ def _divided_difference_table(value_of, lam, k: int):
                 order = hi - lo
                 spread = points[hi] - points[lo]
                 close = spread <= eps ** (1.0 / (order + 2)) * scale
-                centroid = jnp.mean(points[lo: hi + 1], axis=0)
+                centroid = jnp.mean(points[lo : hi + 1], axis=0)
                 taylor = value_of(order)(centroid) / math.factorial(order)
                 far = (divided(lo + 1, hi) - divided(lo, hi - 1)) / jnp.where(close, 1.0, spread)
                 memo[lo, hi] = jnp.where(close, taylor, far)

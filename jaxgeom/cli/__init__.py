@@ -20,7 +20,6 @@ from ._analyze import add_analyze_parser, analyze_main
 from ._simulate import INTERRUPTED, add_simulate_parser, simulate_main
 from ._tune import add_tune_parser, tune_main
 
-
 PRECISIONS = ("float64", "float32")
 # JAX's persistent compilation cache: the command line's programs are compiled once per machine
 # and read back afterwards (the README's first command: its second run takes ~half the first).
@@ -32,11 +31,16 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxgeom", description="Geometry of walker swarms.")
     sub = parser.add_subparsers(dest="command", required=True)
     for command in (add_analyze_parser(sub), add_simulate_parser(sub), add_tune_parser(sub)):
-        command.add_argument("--precision", choices=PRECISIONS, default="float64",
-                             help="floating-point type of the computation")
-        command.add_argument("--compile-cache", action=argparse.BooleanOptionalAction, default=None,
-                             help=f"keep compiled programs in {default_cache_dir()} (or ${CACHE_DIR_ENV}) and reuse "
-                                  f"them in later runs (None: on unless ${CACHE_ENV}=0)")
+        command.add_argument(
+            "--precision", choices=PRECISIONS, default="float64", help="floating-point type of the computation"
+        )
+        command.add_argument(
+            "--compile-cache",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help=f"keep compiled programs in {default_cache_dir()} (or ${CACHE_DIR_ENV}) and reuse "
+            f"them in later runs (None: on unless ${CACHE_ENV}=0)",
+        )
     return parser
 
 
@@ -82,11 +86,21 @@ def use_compile_cache(choice) -> Path | None:
 
 def check_arguments(parser: argparse.ArgumentParser, args) -> None:
     """Refuse bad numbers and an unusable --out before any work (argparse's exit code 2)."""
-    rules = [("eps_sigma", "--eps-sigma", 0.0, None), ("seed", "--seed", 0, None), ("n", "--n", 1, None),
-             ("clone_rate", "--clone-rate", 0.0, 1.0), ("nu", "--nu", 0.0, None), ("gap_every", "--gap-every", 0, None),
-             ("beta", "--beta", 0.0, None), ("k", "--k", 1, None), ("seeds", "--seeds", 1, None),
-             ("max_steps", "--max-steps", 1, None), ("steps", "--steps", 1, None), ("every", "--every", 1, None),
-             ("snapshots", "--snapshots", 1, None)]
+    rules = [
+        ("eps_sigma", "--eps-sigma", 0.0, None),
+        ("seed", "--seed", 0, None),
+        ("n", "--n", 1, None),
+        ("clone_rate", "--clone-rate", 0.0, 1.0),
+        ("nu", "--nu", 0.0, None),
+        ("gap_every", "--gap-every", 0, None),
+        ("beta", "--beta", 0.0, None),
+        ("k", "--k", 1, None),
+        ("seeds", "--seeds", 1, None),
+        ("max_steps", "--max-steps", 1, None),
+        ("steps", "--steps", 1, None),
+        ("every", "--every", 1, None),
+        ("snapshots", "--snapshots", 1, None),
+    ]
     for attr, flag, low, high in rules:
         value = getattr(args, attr, None)
         if value is not None and not (np.isfinite(value) and value >= low and (high is None or value <= high)):

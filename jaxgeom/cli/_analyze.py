@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 import jaxgeom
+
 from ..apps._landscapes import LANDSCAPES, sample_boltzmann
 from ..apps._plots import pyplot, relative_error, save_figure
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM
@@ -29,10 +30,10 @@ from ._simulate import HelpFormatter, load_landscape
 from ._trajectory import add_trajectory_arguments, refuse_mixed_options, trajectory_main
 
 
-
 @dataclasses.dataclass
 class Analysis:
     """What every report section can read; `timings` collects seconds per stage."""
+
     args: argparse.Namespace
     points: np.ndarray
     box: tuple | None
@@ -61,14 +62,25 @@ def _stats(values: np.ndarray, prefix: str) -> dict:
     v = values[np.isfinite(values)]
     if not v.size:
         return {f"{prefix}_count": 0}
-    return {f"{prefix}_mean": float(v.mean()), f"{prefix}_median": float(np.median(v)),
-            f"{prefix}_std": float(v.std()), f"{prefix}_min": float(v.min()), f"{prefix}_max": float(v.max())}
+    return {
+        f"{prefix}_mean": float(v.mean()),
+        f"{prefix}_median": float(np.median(v)),
+        f"{prefix}_std": float(v.std()),
+        f"{prefix}_min": float(v.min()),
+        f"{prefix}_max": float(v.max()),
+    }
 
 
 def section_swarm(a: Analysis) -> dict:
     n, d = a.points.shape
-    out = {"source": a.source, "n_walkers": n, "dim": d, "graph": a.args.graph, "periodic": a.args.periodic,
-           "landscape": a.args.landscape or NO_LANDSCAPE}
+    out = {
+        "source": a.source,
+        "n_walkers": n,
+        "dim": d,
+        "graph": a.args.graph,
+        "periodic": a.args.periodic,
+        "landscape": a.args.landscape or NO_LANDSCAPE,
+    }
     if a.args.graph == "knn":
         out["k"] = a.args.k
     if a.box is not None:
@@ -91,6 +103,7 @@ def section_graph(a: Analysis) -> dict:
 
 def needs_simplices(section: Callable[[Analysis], dict]) -> Callable[[Analysis], dict]:
     """Report sections that need Delaunay simplices are skipped, with a note, on k-NN graphs."""
+
     def guarded(a: Analysis) -> dict:
         if a.tess.simplices is None:
             return {"skipped": "needs a Delaunay graph (--graph delaunay)"}
@@ -139,14 +152,18 @@ def section_metric(a: Analysis) -> dict:
 @needs_simplices
 def section_curvature(a: Analysis) -> dict:
     metric, vol = analysis_metric(a), a.cache.get("volumes")
-    riem = np.asarray(timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric=metric, volumes=vol))
+    riem = np.asarray(
+        timed_warm(a, "riemannian_volumes", jaxgeom.riemannian_volumes, a.tess, metric=metric, volumes=vol)
+    )
     ricci = np.asarray(timed_warm(a, "ricci_scalar", jaxgeom.ricci_scalar, a.tess, metric=metric, volumes=vol))
     resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric=metric, volumes=vol))
     a.cache.update(ricci=ricci, riemannian_volumes=riem)
     interior = np.asarray(a.tess.interior)
-    out = {"tier2_volume_weighted_ricci": float(jaxgeom.riemannian_mean(ricci, riem, interior)),
-           "tier2_volume_weighted_ricci_resolution": float(jaxgeom.riemannian_mean(resolution, riem, interior)),
-           "precision": str(a.tess.points.dtype)}
+    out = {
+        "tier2_volume_weighted_ricci": float(jaxgeom.riemannian_mean(ricci, riem, interior)),
+        "tier2_volume_weighted_ricci_resolution": float(jaxgeom.riemannian_mean(resolution, riem, interior)),
+        "precision": str(a.tess.points.dtype),
+    }
     out.update(_stats(ricci[interior], "tier2_ricci"))
     out["tier2_ricci_resolution_median"] = float(np.nanmedian(resolution[interior])) if interior.any() else np.nan
     if a.tess.dim in (2, 3):
@@ -160,35 +177,60 @@ def section_metric_curvature(a: Analysis) -> dict:
     its region average over tier-2 walkers in the Riemannian measure, beside the Regge proxy's
     (same walkers, same weights) where the graph is Delaunay."""
     if a.args.metric != "hessian":
-        why = "the Euclidean metric is flat (S = 0)" if a.args.metric == "none" else (
-            "the emergent metric is known only at the walkers, and curvature needs its derivatives")
+        why = (
+            "the Euclidean metric is flat (S = 0)"
+            if a.args.metric == "none"
+            else ("the emergent metric is known only at the walkers, and curvature needs its derivatives")
+        )
         return {"skipped": f"needs the Hessian metric of a landscape (--metric hessian): {why}"}
     d = a.points.shape[1]
     probes = None if d <= EXACT_HESSIAN_MAX_DIM else DEFAULT_PROBES
     key = jax.random.key(a.args.seed) if probes else None
-    s, info = timed_warm(a, "metric_curvature", jaxgeom.metric_curvature, analysis_metric(a), a.points, probes=probes,
-                         key=key, with_info=True)
+    s, info = timed_warm(
+        a,
+        "metric_curvature",
+        jaxgeom.metric_curvature,
+        analysis_metric(a),
+        a.points,
+        probes=probes,
+        key=key,
+        with_info=True,
+    )
     g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
     log_w, ok = riemannian_log_weights(a.tess, g)
     ok = np.asarray(ok & a.tess.interior)
     values, se = np.asarray(s), np.asarray(info.standard_error)
     usable = ok & np.isfinite(values)
-    out = {"method": info.method, "probes": probes, "tier2_walkers_used": int(usable.sum()),
-           "floor_active_walkers": int(np.asarray(info.floor_active).sum()),
-           "not_positive_definite_walkers": int(np.asarray(info.not_positive_definite).sum()),
-           "flagged_nan_walkers": int(np.isnan(values).sum()),
-           "weights": "Voronoi volume x sqrt(det g)" if a.tess.simplices is not None else "r_k^d x sqrt(det g) (k-NN)"}
+    out = {
+        "method": info.method,
+        "probes": probes,
+        "tier2_walkers_used": int(usable.sum()),
+        "floor_active_walkers": int(np.asarray(info.floor_active).sum()),
+        "not_positive_definite_walkers": int(np.asarray(info.not_positive_definite).sum()),
+        "flagged_nan_walkers": int(np.isnan(values).sum()),
+        "weights": "Voronoi volume x sqrt(det g)" if a.tess.simplices is not None else "r_k^d x sqrt(det g) (k-NN)",
+    }
     out["tier2_riemannian_mean_exact_ricci"] = float(weighted_mean_from_logs(s, log_w, usable))
     if probes:  # sqrt(sum w^2 se^2) / sum w
         log_used = np.asarray(log_w)[usable]
         w = np.exp(log_used - log_used.max()) if log_used.size else log_used
-        out["standard_error_of_the_mean"] = float(np.sqrt(np.sum((w * se[usable]) ** 2)) / w.sum()) if w.size else np.nan
+        out["standard_error_of_the_mean"] = (
+            float(np.sqrt(np.sum((w * se[usable]) ** 2)) / w.sum()) if w.size else np.nan
+        )
     if "ricci" in a.cache:  # the Regge proxy on the same walkers with the same weights
         both = usable & np.isfinite(a.cache["ricci"])
         out["regge_same_walkers"] = float(weighted_mean_from_logs(a.cache["ricci"], log_w, both))
         out["exact_same_walkers"] = float(weighted_mean_from_logs(s, log_w, both))
-        comparable, why = regge_comparison(a.tess, values, np.asarray(log_w), both, np.asarray(info.floor_active),
-                                           ANALYSIS_FLOOR, out["regge_same_walkers"], out["exact_same_walkers"])
+        comparable, why = regge_comparison(
+            a.tess,
+            values,
+            np.asarray(log_w),
+            both,
+            np.asarray(info.floor_active),
+            ANALYSIS_FLOOR,
+            out["regge_same_walkers"],
+            out["exact_same_walkers"],
+        )
         out["regge_vs_exact"] = "comparable" if comparable else "not comparable"
         out["regge_vs_exact_why"] = why
     out.update(_stats(values[ok], "tier2_exact_ricci"))
@@ -199,8 +241,16 @@ ANALYSIS_FLOOR = "clip"  # the Hessian metric's floor in `analyze` (jaxgeom.hess
 RESOLVED_SPREAD = 0.25  # regge_comparison: the largest neighbour spread of S, against its mean, called resolved
 
 
-def regge_comparison(tess, exact: np.ndarray, log_w: np.ndarray, used: np.ndarray, floor_active: np.ndarray,
-                     floor: str, regge_mean: float, exact_mean: float) -> tuple[bool, str]:
+def regge_comparison(
+    tess,
+    exact: np.ndarray,
+    log_w: np.ndarray,
+    used: np.ndarray,
+    floor_active: np.ndarray,
+    floor: str,
+    regge_mean: float,
+    exact_mean: float,
+) -> tuple[bool, str]:
     """(comparable, why): whether the Regge and the exact region averages over the walkers `used`
     estimate the same quantity, so that their difference measures the Regge proxy's error.
 
@@ -216,9 +266,11 @@ def regge_comparison(tess, exact: np.ndarray, log_w: np.ndarray, used: np.ndarra
         return False, "no tier-2 walker has both values"
     share = float(floor_active[used].mean())
     if floor == "clip" and 0.0 < share < 1.0:
-        return False, (f"the clip floor is active at {share:.0%} of these walkers: g has a kink where an eigenvalue "
-                       "of Hess V crosses 0, whose curvature the deficit angles include and the pointwise exact "
-                       "scalar omits")
+        return False, (
+            f"the clip floor is active at {share:.0%} of these walkers: g has a kink where an eigenvalue "
+            "of Hess V crosses 0, whose curvature the deficit angles include and the pointwise exact "
+            "scalar omits"
+        )
     neighbors, mask = np.asarray(tess.neighbors), np.asarray(tess.neighbor_mask)
     safe = np.minimum(neighbors, len(exact) - 1)
     other = np.where(mask & np.isfinite(exact)[safe], exact[safe], np.nan)
@@ -229,11 +281,15 @@ def regge_comparison(tess, exact: np.ndarray, log_w: np.ndarray, used: np.ndarra
     spread = float(np.sum(weights * jump[ok]) / np.sum(weights)) if ok.any() else float("nan")
     scale = max(abs(regge_mean), abs(exact_mean))
     if not spread <= RESOLVED_SPREAD * scale and not (spread == 0.0 and scale == 0.0):
-        return False, (f"unresolved by the sample: the exact scalar changes by {spread:.3g} between neighbouring "
-                       f"cells against means of {scale:.3g}; more walkers resolve it")
+        return False, (
+            f"unresolved by the sample: the exact scalar changes by {spread:.3g} between neighbouring "
+            f"cells against means of {scale:.3g}; more walkers resolve it"
+        )
     floor_note = "the floor is inactive" if share == 0.0 else "the floor is active at every one of these walkers"
-    return True, (f"{floor_note}, and the exact scalar changes by {spread:.3g} between neighbouring cells against "
-                  f"means of {scale:.3g}: both estimate the region's average")
+    return True, (
+        f"{floor_note}, and the exact scalar changes by {spread:.3g} between neighbouring cells against "
+        f"means of {scale:.3g}: both estimate the region's average"
+    )
 
 
 def section_ollivier_ricci(a: Analysis) -> dict:
@@ -241,8 +297,10 @@ def section_ollivier_ricci(a: Analysis) -> dict:
     alpha = 0.5, uniform measure, ground cost = shortest path of <= 3 edges in the analysis metric.
     Delaunay graphs have the Regge curvature (section `curvature`)."""
     if a.tess.simplices is not None:
-        return {"skipped": "reported for k-NN graphs (--graph knn); a Delaunay graph has the Regge curvature "
-                           "(section curvature); jaxgeom.ollivier_ricci computes it on either"}
+        return {
+            "skipped": "reported for k-NN graphs (--graph knn); a Delaunay graph has the Regge curvature "
+            "(section curvature); jaxgeom.ollivier_ricci computes it on either"
+        }
     tess = a.tess
     if tess.neighbors.shape[1] > ORC_K:  # the analysis k (a Hessian fit's) would cost O(k^3) per edge
         periodic = bool(getattr(a.args, "periodic", False))
@@ -252,11 +310,18 @@ def section_ollivier_ricci(a: Analysis) -> dict:
     edges = np.asarray(orc.edge_mask)
     kappa = np.asarray(orc.edge_curvature)[edges]
     tier2 = np.asarray(orc.interior & ~orc.isolated)
-    out = {"k": tess.neighbors.shape[1], "alpha": 0.5, "measure": "uniform", "cost": "graph (<= 3 edges, metric lengths)",
-           "edges": int(edges.sum()) // 2, "undirected_degree_max": int(edges.sum(axis=1).max()),
-           "isolated_walkers": int(np.asarray(orc.isolated).sum()),
-           "not_converged_walkers": int(np.asarray(orc.not_converged).sum()), "overflow": bool(orc.overflow),
-           "mean_edge_curvature": float(kappa.mean()) if kappa.size else float("nan")}
+    out = {
+        "k": tess.neighbors.shape[1],
+        "alpha": 0.5,
+        "measure": "uniform",
+        "cost": "graph (<= 3 edges, metric lengths)",
+        "edges": int(edges.sum()) // 2,
+        "undirected_degree_max": int(edges.sum(axis=1).max()),
+        "isolated_walkers": int(np.asarray(orc.isolated).sum()),
+        "not_converged_walkers": int(np.asarray(orc.not_converged).sum()),
+        "overflow": bool(orc.overflow),
+        "mean_edge_curvature": float(kappa.mean()) if kappa.size else float("nan"),
+    }
     out.update(_stats(np.asarray(orc.walker_curvature)[tier2], "tier2_walker_curvature"))
     out["tier2_mean_orc_scalar_estimate"] = float(orc.mean_scalar_curvature)
     out["scalar_estimate_note"] = ORC_SCALE_NOTE
@@ -264,9 +329,11 @@ def section_ollivier_ricci(a: Analysis) -> dict:
 
 
 ORC_K = 10  # the k-NN graph of the Ollivier-Ricci section (a larger analysis k is rebuilt at this k)
-ORC_SCALE_NOTE = ("2 n^2 kappa / ((1 - alpha) E|w|^2) (Ollivier's expansion) holds at a mesoscopic scale; at the "
-                  "k-NN scale the discrete measures dominate kappa and the estimate does not converge to the "
-                  "scalar curvature (bench/README.md, 'Ollivier-Ricci curvature')")
+ORC_SCALE_NOTE = (
+    "2 n^2 kappa / ((1 - alpha) E|w|^2) (Ollivier's expansion) holds at a mesoscopic scale; at the "
+    "k-NN scale the discrete measures dominate kappa and the estimate does not converge to the "
+    "scalar curvature (bench/README.md, 'Ollivier-Ricci curvature')"
+)
 
 
 @needs_simplices
@@ -292,8 +359,11 @@ def section_graph_proxies(a: Analysis) -> dict:
     graphs, Dijkstra's graph distance on k-NN graphs)."""
     gap, components, outside = timed(a, "spectral_gap", bulk_spectral_gap, a.tess, length_scale=a.args.length_scale)
     level = gap_rounding_level(a.tess.n_points - outside)
-    out = {"kernel_graph_components": components, "walkers_outside_largest_component": outside,
-           "spectral_gap_largest_component": gap if not gap < level else f"< {level:.1e} (float64 rounding)"}
+    out = {
+        "kernel_graph_components": components,
+        "walkers_outside_largest_component": outside,
+        "spectral_gap_largest_component": gap if not gap < level else f"< {level:.1e} (float64 rounding)",
+    }
     if a.fitness is not None:  # from the best (lowest-V) walker
         fitness = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
         source, role = int(np.argmin(fitness)), "best_walker"
@@ -303,12 +373,18 @@ def section_graph_proxies(a: Analysis) -> dict:
         out.update(central_walker=source)
     metric = analysis_metric(a)
     method = "heat" if a.tess.simplices is not None else "dijkstra"  # a k-NN graph has no simplices
-    dist = np.asarray(timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, source, metric=metric,
-                            method=method))[0]
+    dist = np.asarray(
+        timed(a, "geodesic_distances", jaxgeom.geodesic_distances, a.tess, source, metric=metric, method=method)
+    )[0]
     reachable = np.isfinite(dist)
-    out.update({"geodesic_method": method, f"{role}_geodesic_eccentricity": float(dist[reachable].max()),
-                f"{role}_mean_geodesic_distance": float(dist[reachable].mean()),
-                "unreachable_walkers": int((~reachable).sum())})
+    out.update(
+        {
+            "geodesic_method": method,
+            f"{role}_geodesic_eccentricity": float(dist[reachable].max()),
+            f"{role}_mean_geodesic_distance": float(dist[reachable].mean()),
+            "unreachable_walkers": int((~reachable).sum()),
+        }
+    )
     return out
 
 
@@ -320,8 +396,9 @@ def section_estimation(a: Analysis) -> dict:
     if a.fitness is None:
         return {"skipped": f"needs fitness values: {NO_LANDSCAPE}"}
     values = np.asarray(jax.vmap(a.fitness)(np.asarray(a.points)))
-    result = timed(a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values,
-                   eps_sigma=a.args.eps_sigma)
+    result = timed(
+        a, "compare_estimation_methods", jaxgeom.compare_estimation_methods, a.tess, values, eps_sigma=a.args.eps_sigma
+    )
     exact = np.asarray(jax.vmap(jax.hessian(a.fitness))(np.asarray(a.points)))  # the landscape's own Hessian
     a.cache["estimation"] = {"comparison": result, "true_hessian": exact}
     valid = result["valid"]
@@ -330,16 +407,19 @@ def section_estimation(a: Analysis) -> dict:
     eig = np.asarray(result["eigenvalues_fd"])[valid]
     out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))
     out.update(_stats(eig[:, -1], "tier2_hessian_max_eigenvalue"))
-    out.update(_stats(relative_error(np.asarray(result["hessian_fd"])[valid], exact[valid]),
-                      "tier2_hessian_error_vs_exact"))  # the figure's per-walker error
+    out.update(
+        _stats(relative_error(np.asarray(result["hessian_fd"])[valid], exact[valid]), "tier2_hessian_error_vs_exact")
+    )  # the figure's per-walker error
     out.update({f"agreement_{k}": v for k, v in result["metrics"].items()})
     out["geometric_reference"] = GEOMETRIC_REFERENCE_NOTE
     return out
 
 
-GEOMETRIC_REFERENCE_NOTE = ("the geometric Hessian C^-1 - eps_Sigma I measures walker spacing (~1/h^2), not V: it "
-                            "matches H only for adaptive-gas equilibrium samples; for a Boltzmann or uniform sample "
-                            "'poor' agreement and relative errors near 1 are expected")
+GEOMETRIC_REFERENCE_NOTE = (
+    "the geometric Hessian C^-1 - eps_Sigma I measures walker spacing (~1/h^2), not V: it "
+    "matches H only for adaptive-gas equilibrium samples; for a Boltzmann or uniform sample "
+    "'poor' agreement and relative errors near 1 are expected"
+)
 
 
 REPORT_SECTIONS: list[tuple[str, Callable[[Analysis], dict]]] = [
@@ -366,10 +446,14 @@ def write_maps(a: Analysis, path: Path) -> None:
     metric = a.args.metric + (f" of {a.args.landscape}" if a.args.metric == "hessian" else "")
     ricci = a.cache["ricci"]
     flat = not np.any(ricci[np.isfinite(ricci)])
-    first = (("volumes", "Voronoi cell volume (log10)", "cividis", np.log10) if flat
-             else ("ricci", f"Ricci scalar R (metric: {metric})", "coolwarm", None))
-    for ax, (key, title, cmap, transform) in zip(axes, [first, ("shape", "shape distortion r_in / r_circ (1: round)",
-                                                                 "viridis", None)]):
+    first = (
+        ("volumes", "Voronoi cell volume (log10)", "cividis", np.log10)
+        if flat
+        else ("ricci", f"Ricci scalar R (metric: {metric})", "coolwarm", None)
+    )
+    for ax, (key, title, cmap, transform) in zip(
+        axes, [first, ("shape", "shape distortion r_in / r_circ (1: round)", "viridis", None)], strict=True
+    ):
         values = a.cache[key] if transform is None else transform(a.cache[key])
         ok = np.isfinite(values)
         ax.scatter(pts[~ok, 0], pts[~ok, 1], s=3, c="k", label="no value (hull tiers)")
@@ -399,8 +483,10 @@ def resolve_options(args) -> None:
     if args.metric is None:
         args.metric = "hessian" if args.landscape else "none"
     if args.metric == "hessian" and not args.landscape:
-        raise ValueError("--metric hessian is the Hessian metric of a landscape: give --landscape with --points, "
-                         "or choose --metric none / emergent.")
+        raise ValueError(
+            "--metric hessian is the Hessian metric of a landscape: give --landscape with --points, "
+            "or choose --metric none / emergent."
+        )
     if args.dim < 1:
         raise ValueError(f"--dim must be >= 1; got {args.dim}.")
     if args.box is not None:
@@ -408,16 +494,20 @@ def resolve_options(args) -> None:
         if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
             raise ValueError(f"--box LOWER UPPER must be finite with LOWER < UPPER; got {lower} {upper}.")
         if args.points is None:
-            raise ValueError("--box applies to walkers given with --points; a sampled swarm lives in its landscape's "
-                             "box (a .py landscape sets it with BOX = (lower, upper)), which --periodic wraps.")
+            raise ValueError(
+                "--box applies to walkers given with --points; a sampled swarm lives in its landscape's "
+                "box (a .py landscape sets it with BOX = (lower, upper)), which --periodic wraps."
+            )
     if args.graph == "delaunay" and args.points is None:
         check_delaunay_dim(args.dim, "--dim")
 
 
 def check_delaunay_dim(d: int, what: str) -> None:
     if not 2 <= d <= 4:
-        raise ValueError(f"{what} {d} needs --graph knn (Delaunay tessellations exist for d = 2, 3, 4; "
-                         "k-NN graphs in any dimension).")
+        raise ValueError(
+            f"{what} {d} needs --graph knn (Delaunay tessellations exist for d = 2, 3, 4; "
+            "k-NN graphs in any dimension)."
+        )
 
 
 def default_k(d: int) -> int:
@@ -447,12 +537,16 @@ def load_points(path: Path) -> np.ndarray:
     try:
         pts = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
-        raise ValueError(f"--points must be a .npy file written by numpy.save; {path} is not one (for a text "
-                         f"file: numpy.save('points.npy', numpy.loadtxt(...))). numpy said: {err}") from None
+        raise ValueError(
+            f"--points must be a .npy file written by numpy.save; {path} is not one (for a text "
+            f"file: numpy.save('points.npy', numpy.loadtxt(...))). numpy said: {err}"
+        ) from None
     if not isinstance(pts, np.ndarray) or pts.ndim != 2 or not np.issubdtype(pts.dtype, np.floating):
         shape = getattr(pts, "shape", None)
-        raise ValueError(f"--points must hold an (N, d) float array; {path} holds shape {shape}, "
-                         f"dtype {getattr(pts, 'dtype', None)}.")
+        raise ValueError(
+            f"--points must hold an (N, d) float array; {path} holds shape {shape}, "
+            f"dtype {getattr(pts, 'dtype', None)}."
+        )
     return pts
 
 
@@ -509,37 +603,66 @@ def format_report(report: dict, explain: bool = False) -> str:
 
 
 def add_analyze_parser(sub) -> argparse.ArgumentParser:
-    an = sub.add_parser("analyze", help="tessellate a swarm and report its geometry",
-                        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    an = sub.add_parser(
+        "analyze",
+        help="tessellate a swarm and report its geometry",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=HelpFormatter,
+    )
     an.add_argument("--points", type=Path, help="(N, d) .npy file; None: sample exp(-beta V) of --landscape")
-    an.add_argument("--landscape", default=None,
-                    help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
-                         "BOX = (lower, upper)): the sampled density, the Hessian metric, the fitness values "
-                         "(None: double_well for a sampled swarm; with --points no landscape, so only "
-                         "landscape-free geometry is reported)")
-    an.add_argument("--beta", type=float, default=2.0,
-                    help="inverse temperature of the default sample (0: uniform on the box)")
+    an.add_argument(
+        "--landscape",
+        default=None,
+        help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
+        "BOX = (lower, upper)): the sampled density, the Hessian metric, the fitness values "
+        "(None: double_well for a sampled swarm; with --points no landscape, so only "
+        "landscape-free geometry is reported)",
+    )
+    an.add_argument(
+        "--beta", type=float, default=2.0, help="inverse temperature of the default sample (0: uniform on the box)"
+    )
     an.add_argument("--dim", type=int, default=2, help="dimension of the sampled walkers")
     an.add_argument("--n", type=int, default=5000, help="walkers sampled")
     an.add_argument("--seed", type=int, default=0, help="seed of the sample")
     an.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
-    an.add_argument("--k", type=int, default=None,
-                    help="neighbours per walker with --graph knn (None: max(12, (d + 1)(d + 2)/2 + d), what a "
-                         "quadratic fit of the Hessian needs plus d)")
+    an.add_argument(
+        "--k",
+        type=int,
+        default=None,
+        help="neighbours per walker with --graph knn (None: max(12, (d + 1)(d + 2)/2 + d), what a "
+        "quadratic fit of the Hessian needs plus d)",
+    )
     an.add_argument("--periodic", action="store_true", help="wrap the box (the sampling box by default)")
-    an.add_argument("--box", type=float, nargs=2, metavar=("LOWER", "UPPER"),
-                    help="domain bounds for every axis of --points (a sampled swarm uses its landscape's box)")
-    an.add_argument("--metric", choices=["none", "hessian", "emergent"], default=None,
-                    help="metric for curvature and Riemannian volumes (hessian: of the landscape; None: hessian "
-                         "when there is a landscape, else none)")
+    an.add_argument(
+        "--box",
+        type=float,
+        nargs=2,
+        metavar=("LOWER", "UPPER"),
+        help="domain bounds for every axis of --points (a sampled swarm uses its landscape's box)",
+    )
+    an.add_argument(
+        "--metric",
+        choices=["none", "hessian", "emergent"],
+        default=None,
+        help="metric for curvature and Riemannian volumes (hessian: of the landscape; None: hessian "
+        "when there is a landscape, else none)",
+    )
     an.add_argument("--eps-sigma", type=float, default=0.1, help="spectral floor of the Hessian metric")
-    an.add_argument("--length-scale", type=float, default=None,
-                    help="width l of the kernel weights exp(-|x_j - x_i|^2 / 2 l^2) of the spectral gap's graph "
-                         "(None: the adaptive rule, 3 x the nearest-neighbour distance); edges lighter than "
-                         "1e-8 of the heaviest split it into components")
+    an.add_argument(
+        "--length-scale",
+        type=float,
+        default=None,
+        help="width l of the kernel weights exp(-|x_j - x_i|^2 / 2 l^2) of the spectral gap's graph "
+        "(None: the adaptive rule, 3 x the nearest-neighbour distance); edges lighter than "
+        "1e-8 of the heaviest split it into components",
+    )
     an.add_argument("--explain", action="store_true", help="define every row of the report, with its unit")
-    an.add_argument("--out", type=Path, help="directory for summary.json and proxies.png (with --trajectory: "
-                                             "observables.json, observables.h5md, observables.png, swarm.png)")
+    an.add_argument(
+        "--out",
+        type=Path,
+        help="directory for summary.json and proxies.png (with --trajectory: "
+        "observables.json, observables.h5md, observables.png, swarm.png)",
+    )
     add_trajectory_arguments(an)
     ANALYZE_DEFAULTS.update({action.dest: action.default for action in an._actions})
     return an

@@ -3,11 +3,15 @@
 
 from __future__ import annotations
 
-UNITS = ("Units: [x] the walkers' coordinates, [V] the landscape's values, [t] the time of --dt, [g] a length "
-         "measured in the metric in use ([x] without one; [V]^(1/2) for the Hessian metric), [1] none.")
+UNITS = (
+    "Units: [x] the walkers' coordinates, [V] the landscape's values, [t] the time of --dt, [g] a length "
+    "measured in the metric in use ([x] without one; [V]^(1/2) for the Hessian metric), [1] none."
+)
 
-KERNEL_GRAPH = ("the Delaunay (or k-NN) graph with kernel weights exp(-|x_j - x_i|^2 / 2 l^2), l = 3 x the mean "
-                "nearest-neighbour distance, edges lighter than 1e-8 x the heaviest dropped")
+KERNEL_GRAPH = (
+    "the Delaunay (or k-NN) graph with kernel weights exp(-|x_j - x_i|^2 / 2 l^2), l = 3 x the mean "
+    "nearest-neighbour distance, edges lighter than 1e-8 x the heaviest dropped"
+)
 
 SIMULATE_ROWS = {
     "mean_fitness": "mean of V over the living walkers [V]",
@@ -15,30 +19,36 @@ SIMULATE_ROWS = {
     "velocity_variance": "tr Cov(v) / d over the walkers: the kinetic temperature, T at equilibrium [x^2/t^2]",
     "degree_weighted_variance": "the same, each walker weighted by the sum of its viscous edge weights [x^2/t^2]",
     "mean_ricci": "Regge Ricci scalar (deficit angles) in the Hessian metric, Riemannian-volume mean over tier-2 "
-                  "walkers [1/g^2]",
+    "walkers [1/g^2]",
     "ricci_resolution": "the smallest |mean_ricci| the float type resolves: below it mean_ricci is rounding [1/g^2]",
     "volume_distortion": "Var(V_i / <V_i>) of the tier-2 Voronoi cell volumes: 0 for equal cells [1]",
     "mean_shape_distortion": "mean over tier-2 cells of inradius / circumradius about the walker: 1 regular, "
-                             "towards 0 elongated [1]",
+    "towards 0 elongated [1]",
     "mean_expansion": "Raychaudhuri expansion d ln(sum V_i) / dt over the walkers tier 2 at both steps; NaN at "
-                      "step 0, which has no step before [1/t]",
+    "step 0, which has no step before [1/t]",
     "n_clones": "walkers that cloned in the step leading to the state [count]",
     "nu": "the viscous coupling in force at the step [1/t]",
     "eps_sigma": "the Hessian-metric floor in force (raised x10 where adapt_eps_sigma finds cond(g) > 1e6) [V/x^2]",
     "mean_metric_curvature": "exact Ricci scalar of the Hessian metric (metric_curvature), Riemannian-volume mean "
-                             "over tier-2 walkers [1/g^2]",
+    "over tier-2 walkers [1/g^2]",
     "prism_fraction": "share of the walkers tier 2 at both steps whose cell kept its neighbours [1]",
     "simple_scutoid_fraction": "share whose cell lost at most one neighbour and gained at most one, not none [1]",
     "complex_scutoid_fraction": "share whose cell lost or gained two neighbours or more [1]",
     "mean_neighbor_change": "mean number of neighbours lost plus gained over the step [count]",
     "spectral_gap": "second-smallest eigenvalue of the normalized Laplacian of the largest connected component "
-                    f"of {KERNEL_GRAPH}; measured every --gap-every steps; 'rounding' below 2 n eps [1]",
+    f"of {KERNEL_GRAPH}; measured every --gap-every steps; 'rounding' below 2 n eps [1]",
     "kernel_graph_components": f"connected components of {KERNEL_GRAPH} (the Delaunay graph itself is "
-                               "connected); at the spectral gap's steps [count]",
+    "connected); at the spectral gap's steps [count]",
 }
 
-STAT_SUFFIXES = {"mean": "mean", "median": "median", "std": "standard deviation", "min": "minimum",
-                 "max": "maximum", "count": "number of finite values (0: none, so no statistics)"}
+STAT_SUFFIXES = {
+    "mean": "mean",
+    "median": "median",
+    "std": "standard deviation",
+    "min": "minimum",
+    "max": "maximum",
+    "count": "number of finite values (0: none, so no statistics)",
+}
 
 ANALYZE_STATS = {  # analyze rows `<base>_<suffix>` with a suffix of STAT_SUFFIXES
     "tier2": "Voronoi volumes of the tier-2 cells [x^d]",
@@ -52,21 +62,27 @@ ANALYZE_STATS = {  # analyze rows `<base>_<suffix>` with a suffix of STAT_SUFFIX
     "tier2_hessian_min_eigenvalue": "smallest eigenvalue of the estimated Hessian of V [V/x^2]",
     "tier2_hessian_max_eigenvalue": "largest eigenvalue of the estimated Hessian of V [V/x^2]",
     "tier2_hessian_error_vs_exact": "relative error |H_fd - H|_F / |H|_F of the estimated Hessian against the "
-                                    "landscape's exact one [1]",
+    "landscape's exact one [1]",
 }
 
 ANALYZE_ROWS = {
     "swarm": {
         "source": "where the walkers come from (a .npy file, or a sample of exp(-beta V))",
-        "n_walkers": "walkers N [count]", "dim": "dimension d [count]", "graph": "the neighbour graph built",
-        "periodic": "whether the box wraps (a torus)", "landscape": "the landscape V, or none",
+        "n_walkers": "walkers N [count]",
+        "dim": "dimension d [count]",
+        "graph": "the neighbour graph built",
+        "periodic": "whether the box wraps (a torus)",
+        "landscape": "the landscape V, or none",
         "k": "neighbours per walker of the k-NN graph [count]",
-        "box_lower": "the box's lower corner [x]", "box_upper": "the box's upper corner [x]",
+        "box_lower": "the box's lower corner [x]",
+        "box_upper": "the box's upper corner [x]",
     },
     "graph": {
         "tier0": "walkers whose cell is unbounded or reaches the box [count]",
-        "tier1": "neighbours of tier 0 [count]", "tier2": "interior walkers, over which means are taken [count]",
-        "degree_mean": "mean neighbours per walker [count]", "degree_min": "fewest neighbours [count]",
+        "tier1": "neighbours of tier 0 [count]",
+        "tier2": "interior walkers, over which means are taken [count]",
+        "degree_mean": "mean neighbours per walker [count]",
+        "degree_min": "fewest neighbours [count]",
         "degree_max": "most neighbours [count]",
         "capacity_neighbors": "width of the padded neighbour rows [count]",
         "capacity_simplices": "rows of the padded simplex table [count]",
@@ -80,7 +96,8 @@ ANALYZE_ROWS = {
     },
     "metric": {
         "kind": "the metric of curvature and Riemannian volumes: none, hessian or emergent",
-        "landscape": "the landscape whose Hessian makes the metric", "eps_sigma": "the metric's floor [V/x^2]",
+        "landscape": "the landscape whose Hessian makes the metric",
+        "eps_sigma": "the metric's floor [V/x^2]",
         "tier2_min_eigenvalue": "smallest metric eigenvalue at a tier-2 walker [V/x^2 or 1/x^2]",
     },
     "curvature": {
@@ -97,25 +114,28 @@ ANALYZE_ROWS = {
         "floor_active_walkers": "walkers where the metric's floor changes Hess V + eps_Sigma I [count]",
         "not_positive_definite_walkers": "walkers where the metric is not positive definite [count]",
         "flagged_nan_walkers": "walkers whose exact scalar is NaN (flagged, never averaged) [count]",
-        "weights": "the measure of the means", "standard_error_of_the_mean": "of the stochastic form's mean [1/g^2]",
+        "weights": "the measure of the means",
+        "standard_error_of_the_mean": "of the stochastic form's mean [1/g^2]",
         "tier2_riemannian_mean_exact_ricci": "exact Ricci scalar, Riemannian-volume mean over tier-2 walkers [1/g^2]",
         "regge_same_walkers": "Regge scalar's mean over the walkers where both are finite, same weights [1/g^2]",
         "exact_same_walkers": "exact scalar's mean over those walkers [1/g^2]",
         "regge_vs_exact": "whether the two means estimate the same quantity here (comparable / not comparable)",
         "regge_vs_exact_why": "the criterion behind regge_vs_exact: the floor's kink, and how much the exact "
-                              "scalar changes between neighbouring cells against its mean",
+        "scalar changes between neighbouring cells against its mean",
     },
     "ollivier_ricci": {
         "k": "neighbours of the k-NN graph the curvature is computed on [count]",
-        "alpha": "laziness of the random walk's measures [1]", "measure": "the walk's measure on the neighbours",
-        "cost": "the transport's ground cost", "edges": "undirected edges [count]",
+        "alpha": "laziness of the random walk's measures [1]",
+        "measure": "the walk's measure on the neighbours",
+        "cost": "the transport's ground cost",
+        "edges": "undirected edges [count]",
         "undirected_degree_max": "most undirected edges at a walker [count]",
         "isolated_walkers": "walkers without an edge [count]",
         "not_converged_walkers": "walkers whose transport did not converge [count]",
         "overflow": "whether a capacity was too small",
         "mean_edge_curvature": "kappa = 1 - W1 / d, mean over edges [1]",
         "tier2_mean_orc_scalar_estimate": "2 n^2 kappa / ((1 - alpha) E|w|^2) averaged: see scalar_estimate_note "
-                                          "[1/g^2]",
+        "[1/g^2]",
         "scalar_estimate_note": "why that estimate is not the scalar curvature at the k-NN scale",
     },
     "cells": {
@@ -127,8 +147,9 @@ ANALYZE_ROWS = {
         "kernel_graph_components": f"connected components of {KERNEL_GRAPH} (--length-scale sets l) [count]",
         "walkers_outside_largest_component": "walkers in the smaller components [count]",
         "spectral_gap_largest_component": "second-smallest eigenvalue of the normalized Laplacian of the largest "
-                                          "component; '< level (float64 rounding)' below 2 n eps [1]",
-        "best_walker": "index of the lowest-V walker, the geodesics' source", "best_fitness": "its V [V]",
+        "component; '< level (float64 rounding)' below 2 n eps [1]",
+        "best_walker": "index of the lowest-V walker, the geodesics' source",
+        "best_fitness": "its V [V]",
         "central_walker": "index of the walker nearest the centroid, the geodesics' source",
         "geodesic_method": "heat (Delaunay) or dijkstra (graph distance, k-NN)",
         "best_walker_geodesic_eccentricity": "largest geodesic distance from the source [g]",
@@ -141,7 +162,7 @@ ANALYZE_ROWS = {
         "walkers_with_hessian": "walkers whose least-squares fit is determined [count]",
         "walkers": "walkers [count]",
         "agreement_eigenvalue_correlation": "correlation of the eigenvalues of the least-squares Hessian and the "
-                                            "geometric one [1]",
+        "geometric one [1]",
         "agreement_n_valid": "walkers compared [count]",
         "agreement_frobenius_agreement": "mean of 1 - |H_fd - H_geo|_F / (|H_fd|_F + |H_geo|_F): 1 for equal [1]",
         "agreement_method_preference": "the chapter's reading of the correlation (excellent > 0.8 > good > 0.6)",

@@ -14,16 +14,17 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
+
 from ..apps._landscapes import LANDSCAPES
 from ..apps._plots import plot_observables, plot_swarm_snapshots
 from ..base._progress import close_bar, open_bar, take_interrupt
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..swarm._drivers import SimulationInterrupted
 from ..swarm._dynamics import metric_field
-from ..swarm._swarm_init import check_traceable_fitness
 from ..swarm._observables import OBSERVABLE_TABLE, SCUTOID_OBSERVABLES
-from ._legend import UNITS, simulate_definition
+from ..swarm._swarm_init import check_traceable_fitness
 from ..tessellation._triangulators import TRIANGULATORS, resolve_triangulator
+from ._legend import UNITS, simulate_definition
 
 N_SNAPSHOTS = 4  # figure panels at t = 0, T/3, 2T/3, T
 INTERRUPTED = 130  # the shell's exit status for SIGINT (128 + 2)
@@ -34,8 +35,12 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
 
 
 def add_progress_flag(parser) -> None:
-    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                        help="a progress bar on stderr (None: only when stderr is a terminal)")
+    parser.add_argument(
+        "--progress",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="a progress bar on stderr (None: only when stderr is a terminal)",
+    )
 
 
 def progress_choice(args):
@@ -55,11 +60,18 @@ few hundred steps. The library's defaults suit a unit-scale landscape."""
 
 
 def add_simulate_parser(sub) -> argparse.ArgumentParser:
-    sim = sub.add_parser("simulate", help="run a swarm (Langevin + viscous force + cloning) on a landscape",
-                         description=SIMULATE_DESCRIPTION, formatter_class=HelpFormatter)
-    sim.add_argument("--landscape", default="rastrigin",
-                     help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
-                          "BOX = (lower, upper))")
+    sim = sub.add_parser(
+        "simulate",
+        help="run a swarm (Langevin + viscous force + cloning) on a landscape",
+        description=SIMULATE_DESCRIPTION,
+        formatter_class=HelpFormatter,
+    )
+    sim.add_argument(
+        "--landscape",
+        default="rastrigin",
+        help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x) (and optionally "
+        "BOX = (lower, upper))",
+    )
     sim.add_argument("--n", type=int, default=3000, help="walkers")
     sim.add_argument("--dim", type=int, default=2, help="2 or 3 (higher with --graph knn)")
     sim.add_argument("--steps", type=int, default=300, help="time steps")
@@ -68,29 +80,43 @@ def add_simulate_parser(sub) -> argparse.ArgumentParser:
     sim.add_argument("--temperature", type=float, default=1.0, help="temperature T (SwarmParams default: 0.1)")
     sim.add_argument("--weights", default="kernel", choices=VISCOUS_WEIGHTS, help="viscous edge weights")
     sim.add_argument("--nu", type=float, default=0.1, help="viscous coupling nu")
-    sim.add_argument("--eps-sigma", type=float, default=0.1,
-                     help="Hessian-metric floor eps_Sigma (curvature, metric weights, --anisotropic)")
+    sim.add_argument(
+        "--eps-sigma",
+        type=float,
+        default=0.1,
+        help="Hessian-metric floor eps_Sigma (curvature, metric weights, --anisotropic)",
+    )
     sim.add_argument("--clone-rate", type=float, default=0.1, help="scale of the cloning probability, in [0, 1]")
     sim.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=True, help="Fractal Gas cloning")
     sim.add_argument("--anisotropic", action="store_true", help="diffusion D = g^-1 (adaptive gas)")
     sim.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
     sim.add_argument("--k", type=int, default=12, help="neighbours with --graph knn")
-    sim.add_argument("--triangulator", choices=TRIANGULATORS, default="auto",
-                     help="host Delaunay backend (auto: the fastest installed; jaxgeom.delaunay)")
+    sim.add_argument(
+        "--triangulator",
+        choices=TRIANGULATORS,
+        default="auto",
+        help="host Delaunay backend (auto: the fastest installed; jaxgeom.delaunay)",
+    )
     sim.add_argument("--rebuild-every", type=int, default=1, help="steps between graph rebuilds")
     sim.add_argument("--gap-every", type=int, default=50, help="spectral gap every M steps (0: off)")
     sim.add_argument("--explain", action="store_true", help="define every row of the table, with its unit")
-    sim.add_argument("--scutoids", action="store_true",
-                     help="also observe each step's scutoids (jaxgeom.scutoids): the fractions of prisms, simple "
-                          "and complex scutoids among the walkers tier 2 at both steps, and their mean neighbour "
-                          "change (Delaunay graphs)")
+    sim.add_argument(
+        "--scutoids",
+        action="store_true",
+        help="also observe each step's scutoids (jaxgeom.scutoids): the fractions of prisms, simple "
+        "and complex scutoids among the walkers tier 2 at both steps, and their mean neighbour "
+        "change (Delaunay graphs)",
+    )
     sim.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
     sim.add_argument("--out", type=Path, help="directory for history.json, swarm.png, observables.png")
-    sim.add_argument("--trajectory", action="store_true",
-                     help="also write DIR/trajectory.h5md (H5MD: positions, velocities, fitness and clone parents "
-                          "every --save-every steps (clone parents with --save-every 1 only: a state holds its "
-                          "last step's), the observables' series); needs --out and h5py "
-                          "(pip install 'jaxgeom[h5md]')")
+    sim.add_argument(
+        "--trajectory",
+        action="store_true",
+        help="also write DIR/trajectory.h5md (H5MD: positions, velocities, fitness and clone parents "
+        "every --save-every steps (clone parents with --save-every 1 only: a state holds its "
+        "last step's), the observables' series); needs --out and h5py "
+        "(pip install 'jaxgeom[h5md]')",
+    )
     sim.add_argument("--save-every", type=int, default=1, help="steps between saved frames with --trajectory")
     add_progress_flag(sim)
     return sim
@@ -103,8 +129,10 @@ def load_landscape(spec: str, dim: int):
         return fitness, (-half, half)
     path = Path(spec)
     if path.suffix != ".py" or not path.is_file():
-        raise ValueError(f"--landscape must be one of {', '.join(sorted(LANDSCAPES))} or an existing .py file "
-                         f"defining V(x); got {spec!r}.")
+        raise ValueError(
+            f"--landscape must be one of {', '.join(sorted(LANDSCAPES))} or an existing .py file "
+            f"defining V(x); got {spec!r}."
+        )
     module_spec = importlib.util.spec_from_file_location("jaxgeom_user_landscape", path)
     module = importlib.util.module_from_spec(module_spec)
     try:
@@ -133,8 +161,9 @@ def landscape_box(box, path) -> tuple[float, float]:
 
 def _validate(args) -> None:
     if args.n < 10 or args.steps < 1 or args.rebuild_every < 1:
-        raise ValueError(f"need --n >= 10, --steps >= 1, --rebuild-every >= 1; got {args.n}, {args.steps}, "
-                         f"{args.rebuild_every}.")
+        raise ValueError(
+            f"need --n >= 10, --steps >= 1, --rebuild-every >= 1; got {args.n}, {args.steps}, {args.rebuild_every}."
+        )
     if args.graph == "delaunay" and args.dim not in (2, 3):
         raise ValueError(f"--dim {args.dim} needs --graph knn (Delaunay simulations run in 2 or 3 dimensions).")
     if args.gap_every < 0:
@@ -156,9 +185,17 @@ def run_simulation(args) -> dict:
     fitness, (lo, hi) = load_landscape(args.landscape, args.dim)
     dtype = np.dtype(args.precision)
     x0 = np.random.default_rng(args.seed).uniform(lo, hi, (args.n, args.dim)).astype(dtype)
-    params = jaxgeom.SwarmParams(dt=args.dt, gamma=args.gamma, temperature=args.temperature, nu=args.nu,
-                                 eps_sigma=args.eps_sigma, weights=args.weights, clone_rate=args.clone_rate,
-                                 cloning=args.cloning, anisotropic=args.anisotropic)
+    params = jaxgeom.SwarmParams(
+        dt=args.dt,
+        gamma=args.gamma,
+        temperature=args.temperature,
+        nu=args.nu,
+        eps_sigma=args.eps_sigma,
+        weights=args.weights,
+        clone_rate=args.clone_rate,
+        cloning=args.cloning,
+        anisotropic=args.anisotropic,
+    )
     start = time.perf_counter()
     state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph, k=args.k, triangulator=args.triangulator)
     seconds_init = time.perf_counter() - start
@@ -175,9 +212,16 @@ def run_simulation(args) -> dict:
             if writer is not None:
                 n = min(n, args.save_every - done % args.save_every)
             try:
-                state, history = jaxgeom.simulate(fitness, state, params, n_steps=n, observe=observed(args),
-                                                  rebuild_every=args.rebuild_every, spectral_gap_every=args.gap_every,
-                                                  progress=bar if bar is not None else False)
+                state, history = jaxgeom.simulate(
+                    fitness,
+                    state,
+                    params,
+                    n_steps=n,
+                    observe=observed(args),
+                    rebuild_every=args.rebuild_every,
+                    spectral_gap_every=args.gap_every,
+                    progress=bar if bar is not None else False,
+                )
             except SimulationInterrupted as stop:  # Ctrl-C: keep the steps that ran
                 state, history, n, interrupted = stop.state, stop.history, stop.steps, True
             parts.append((done, {key: np.asarray(value) for key, value in history.items()}))
@@ -200,15 +244,22 @@ def run_simulation(args) -> dict:
     result = _merge(parts, float(args.dt))
     if writer is not None:
         steps = np.arange(len(next(iter(result["series"].values()))))
-        writer.write_observables({k: v for k, v in result["series"].items() if k != "time"}, steps,
-                                 float(args.dt) * steps)
+        writer.write_observables(
+            {k: v for k, v in result["series"].items() if k != "time"}, steps, float(args.dt) * steps
+        )
         writer.close()
         result["trajectory"] = str(writer.path)
     result["interrupted_at"] = done if interrupted else None
-    result.update(config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-                  seconds_total=time.perf_counter() - start, seconds_init=seconds_init,
-                  seconds_snapshots=sum(snap.pop("seconds") for snap in snapshots), snapshots=snapshots,
-                  fitness=fitness, box=(lo, hi), dtype=str(jnp.dtype(dtype)))
+    result.update(
+        config={k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        seconds_total=time.perf_counter() - start,
+        seconds_init=seconds_init,
+        seconds_snapshots=sum(snap.pop("seconds") for snap in snapshots),
+        snapshots=snapshots,
+        fitness=fitness,
+        box=(lo, hi),
+        dtype=str(jnp.dtype(dtype)),
+    )
     return result
 
 
@@ -220,14 +271,19 @@ def _open_trajectory(args, state):
     n, d = state.positions.shape
     # a state knows its last step's clone parents only: frames further apart would record a part
     elements = ("position", "velocity", "fitness") + (("parents",) if args.save_every == 1 else ())
-    return jaxgeom.H5MDWriter(args.out / "trajectory.h5md", n, d, elements=elements,
-                              creator_version=jaxgeom.__version__)
+    return jaxgeom.H5MDWriter(
+        args.out / "trajectory.h5md", n, d, elements=elements, creator_version=jaxgeom.__version__
+    )
 
 
 def _save_frame(writer, state, step: int, dt: float) -> None:
     """The state entering `step` (the one its observables describe) as one H5MD frame."""
-    data = {"position": state.positions, "velocity": state.velocities, "fitness": state.fitness,
-            "parents": state.scutoid_trace.parents}
+    data = {
+        "position": state.positions,
+        "velocity": state.velocities,
+        "fitness": state.fitness,
+        "parents": state.scutoid_trace.parents,
+    }
     writer.append(step, step * dt, **{name: np.asarray(data[name]) for name in writer.elements})
 
 
@@ -237,8 +293,12 @@ def _snapshot(fitness, params, state, step: int) -> dict:
     if state.tess.simplices is not None:
         g = metric_field(fitness, params, params.eps_sigma * state.eps_factor, state.positions)
         ricci = np.asarray(jaxgeom.ricci_scalar(state.tess, metric=g))
-    return {"step": step, "positions": np.asarray(state.positions), "ricci": ricci,
-            "seconds": time.perf_counter() - start}
+    return {
+        "step": step,
+        "positions": np.asarray(state.positions),
+        "ricci": ricci,
+        "seconds": time.perf_counter() - start,
+    }
 
 
 def observed(args) -> tuple[str, ...]:
@@ -256,11 +316,16 @@ def _merge(parts, dt: float) -> dict:
     components = np.concatenate([h["spectral_components"] for _, h in parts])
     rounding = np.concatenate([h["spectral_gap_rounding"] for _, h in parts])
     keep = np.r_[True, np.diff(gap_steps) > 0] if gap_steps.size else np.zeros(0, bool)
-    return {"series": series, "spectral_gap_step": gap_steps[keep], "spectral_gap": gaps[keep],
-            "spectral_components": components[keep], "spectral_gap_rounding": rounding[keep],
-            "n_reallocations": int(sum(h["n_reallocations"] for _, h in parts)),
-            "seconds_rebuild": float(sum(h["seconds_rebuild"] for _, h in parts)),
-            "seconds_steps": float(sum(h["seconds_steps"] for _, h in parts))}
+    return {
+        "series": series,
+        "spectral_gap_step": gap_steps[keep],
+        "spectral_gap": gaps[keep],
+        "spectral_components": components[keep],
+        "spectral_gap_rounding": rounding[keep],
+        "n_reallocations": int(sum(h["n_reallocations"] for _, h in parts)),
+        "seconds_rebuild": float(sum(h["seconds_rebuild"] for _, h in parts)),
+        "seconds_steps": float(sum(h["seconds_steps"] for _, h in parts)),
+    }
 
 
 def summary_table(result: dict, explain: bool = False) -> str:
@@ -274,12 +339,20 @@ def summary_table(result: dict, explain: bool = False) -> str:
     if skipped:
         rows.append(f"Not reported on a k-NN graph (they need Voronoi cells, --graph delaunay): {', '.join(skipped)}.")
     if result["spectral_gap"].size:
-        rows.append(f"spectral_gap and kernel_graph_components measured at steps {_steps(result['spectral_gap_step'])}"
-                    + (f"; at rounding level at steps {_steps(result['spectral_gap_step'][result['spectral_gap_rounding']])}"
-                       if result["spectral_gap_rounding"].any() else "") + ".")
-    rows.append(f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
-                f"capacity reallocations {result['n_reallocations']}, "
-                f"time {result['seconds_total']:.1f} s = {timing_breakdown(result)}")
+        rows.append(
+            f"spectral_gap and kernel_graph_components measured at steps {_steps(result['spectral_gap_step'])}"
+            + (
+                f"; at rounding level at steps {_steps(result['spectral_gap_step'][result['spectral_gap_rounding']])}"
+                if result["spectral_gap_rounding"].any()
+                else ""
+            )
+            + "."
+        )
+    rows.append(
+        f"total clones {int(np.nansum(result['series'].get('n_clones', [0])))}, "
+        f"capacity reallocations {result['n_reallocations']}, "
+        f"time {result['seconds_total']:.1f} s = {timing_breakdown(result)}"
+    )
     if explain:
         rows += ["", "Rows:"] + [f"  {name:<26}{simulate_definition(name)}" for name in names] + [UNITS]
     else:
@@ -315,23 +388,33 @@ def _gap_rows(result: dict) -> list[str]:
     resolved = gaps[~rounding & np.isfinite(gaps)]
     low = "rounding" if rounding.any() else (f"{resolved.min():.5g}" if resolved.size else "nan")
     high = f"{resolved.max():.5g}" if resolved.size else ("rounding" if rounding.any() else "nan")
-    ends = ["rounding" if r else f"{g:.5g}" for g, r in zip(gaps[[0, -1]], rounding[[0, -1]])]
-    return [f"{'spectral_gap':<26}" + "".join(f"{c:>12}" for c in ends + [low, high]),
-            f"{'kernel_graph_components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}"]
+    ends = ["rounding" if r else f"{g:.5g}" for g, r in zip(gaps[[0, -1]], rounding[[0, -1]], strict=True)]
+    return [
+        f"{'spectral_gap':<26}" + "".join(f"{c:>12}" for c in ends + [low, high]),
+        f"{'kernel_graph_components':<26}{comps[0]:>12d}{comps[-1]:>12d}{comps.min():>12d}{comps.max():>12d}",
+    ]
 
 
 def _steps(steps) -> str:
     """A list of steps, the middle of a long one elided."""
     steps = [int(s) for s in steps]
-    return str(steps) if len(steps) <= 8 else f"[{', '.join(map(str, steps[:3]))}, ..., {', '.join(map(str, steps[-2:]))}]"
+    return (
+        str(steps) if len(steps) <= 8 else f"[{', '.join(map(str, steps[:3]))}, ..., {', '.join(map(str, steps[-2:]))}]"
+    )
 
 
 def timing_breakdown(result: dict) -> str:
     """Where the wall time went; compilation of the step (the first call of each chunk length)
     is inside "steps", the per-walker Ricci maps' in "snapshots"."""
-    parts = {"initial graph + compile": result["seconds_init"], "steps (incl. compile)": result["seconds_steps"],
-             "graph rebuilds": result["seconds_rebuild"], "curvature snapshots": result["seconds_snapshots"]}
-    parts["other (spectral gaps, end-of-chunk observables, their compilation)"] = result["seconds_total"] - sum(parts.values())
+    parts = {
+        "initial graph + compile": result["seconds_init"],
+        "steps (incl. compile)": result["seconds_steps"],
+        "graph rebuilds": result["seconds_rebuild"],
+        "curvature snapshots": result["seconds_snapshots"],
+    }
+    parts["other (spectral gaps, end-of-chunk observables, their compilation)"] = result["seconds_total"] - sum(
+        parts.values()
+    )
     return " + ".join(f"{name} {seconds:.1f} s" for name, seconds in parts.items())
 
 
@@ -341,19 +424,31 @@ def _json_ready(values):
 
 def write_outputs(result: dict, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    payload = {"config": result["config"], "dtype": result["dtype"],
-               "series": {k: _json_ready(v) for k, v in result["series"].items()},
-               "spectral_gap": {"step": result["spectral_gap_step"].tolist(),
-                                "value": _json_ready(result["spectral_gap"]),
-                                "components": result["spectral_components"].tolist(),
-                                "at_rounding_level": result["spectral_gap_rounding"].tolist()},
-               "interrupted_at_step": result["interrupted_at"],
-               "n_reallocations": result["n_reallocations"], "seconds_total": result["seconds_total"],
-               "seconds_rebuild": result["seconds_rebuild"], "seconds_steps": result["seconds_steps"]}
+    payload = {
+        "config": result["config"],
+        "dtype": result["dtype"],
+        "series": {k: _json_ready(v) for k, v in result["series"].items()},
+        "spectral_gap": {
+            "step": result["spectral_gap_step"].tolist(),
+            "value": _json_ready(result["spectral_gap"]),
+            "components": result["spectral_components"].tolist(),
+            "at_rounding_level": result["spectral_gap_rounding"].tolist(),
+        },
+        "interrupted_at_step": result["interrupted_at"],
+        "n_reallocations": result["n_reallocations"],
+        "seconds_total": result["seconds_total"],
+        "seconds_rebuild": result["seconds_rebuild"],
+        "seconds_steps": result["seconds_steps"],
+    }
     (out / "history.json").write_text(json.dumps(payload, indent=1))
     swarm = plot_swarm_snapshots(result["fitness"], result["snapshots"], result["box"], out / "swarm.png")
-    series = plot_observables(result["series"], result["spectral_gap_step"], result["spectral_gap"],
-                              out / "observables.png", gap_rounding=result["spectral_gap_rounding"])
+    series = plot_observables(
+        result["series"],
+        result["spectral_gap_step"],
+        result["spectral_gap"],
+        out / "observables.png",
+        gap_rounding=result["spectral_gap_rounding"],
+    )
     return {"history": str(out / "history.json"), "swarm": str(swarm), "observables": str(series)}
 
 

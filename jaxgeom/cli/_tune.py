@@ -30,13 +30,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxgeom
+
 from ..apps._landscapes import LANDSCAPES
+from ..base._progress import raise_if_interrupted, take_interrupt
 from ..geometry._forces import VISCOUS_WEIGHTS
 from ..geometry._metric import HESSIAN_FLOORS
 from ..swarm._divergence import likely_cause
 from ..swarm._tune import SOLVERS
 from ..swarm._tuning import OBJECTIVES
-from ..base._progress import raise_if_interrupted, take_interrupt
 from ._simulate import HelpFormatter, add_progress_flag, load_landscape, progress_choice, say_interrupted
 
 TUNED_CHOICES = ("nu", "eps_sigma", "dt", "temperature")
@@ -44,21 +45,40 @@ MATCHED = ("velocity_variance", "mean_fitness")
 
 
 def add_tune_parser(sub) -> argparse.ArgumentParser:
-    tune = sub.add_parser("tune", help="tune nu and eps_Sigma by gradient through whole simulations",
-                          description=__doc__, formatter_class=HelpFormatter)
-    tune.add_argument("--landscape", default="rastrigin",
-                      help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x)")
+    tune = sub.add_parser(
+        "tune",
+        help="tune nu and eps_Sigma by gradient through whole simulations",
+        description=__doc__,
+        formatter_class=HelpFormatter,
+    )
+    tune.add_argument(
+        "--landscape", default="rastrigin", help=f"one of {', '.join(sorted(LANDSCAPES))}, or a .py file defining V(x)"
+    )
     tune.add_argument("--n", type=int, default=200, help="walkers per simulation")
     tune.add_argument("--dim", type=int, default=2, help="dimension of the walkers' space")
     tune.add_argument("--steps", type=int, default=10, help="steps of each simulation (longer runs: rougher losses)")
     tune.add_argument("--seeds", type=int, default=8, help="runs averaged per loss evaluation (vmapped)")
-    tune.add_argument("--rebuild-every", type=int, default=None,
-                      help="steps between graph rebuilds inside each simulation (None: --steps, one graph per "
-                           "run following the walkers, so no Delaunay flip breaks the loss's smoothness)")
-    tune.add_argument("--tune", nargs="+", default=["nu"], choices=TUNED_CHOICES, metavar="NAME",
-                      help=f"parameters to tune, from {', '.join(TUNED_CHOICES)}")
-    tune.add_argument("--objective", default="match", choices=OBJECTIVES,
-                      help="match: recover --true-* from their observables; the others: minimise that fitness")
+    tune.add_argument(
+        "--rebuild-every",
+        type=int,
+        default=None,
+        help="steps between graph rebuilds inside each simulation (None: --steps, one graph per "
+        "run following the walkers, so no Delaunay flip breaks the loss's smoothness)",
+    )
+    tune.add_argument(
+        "--tune",
+        nargs="+",
+        default=["nu"],
+        choices=TUNED_CHOICES,
+        metavar="NAME",
+        help=f"parameters to tune, from {', '.join(TUNED_CHOICES)}",
+    )
+    tune.add_argument(
+        "--objective",
+        default="match",
+        choices=OBJECTIVES,
+        help="match: recover --true-* from their observables; the others: minimise that fitness",
+    )
     tune.add_argument("--nu", type=float, default=0.05, help="viscous coupling nu: start value")
     tune.add_argument("--eps-sigma", type=float, default=0.2, help="Hessian-metric floor eps_Sigma: start value")
     tune.add_argument("--dt", type=float, default=0.05, help="time step: start value (fixed unless tuned)")
@@ -69,15 +89,28 @@ def add_tune_parser(sub) -> argparse.ArgumentParser:
     tune.add_argument("--true-temperature", type=float, default=None, help="objective match (None: --temperature)")
     tune.add_argument("--gamma", type=float, default=0.5, help="friction gamma")
     tune.add_argument("--weights", default="metric_full", choices=VISCOUS_WEIGHTS, help="viscous edge weights")
-    tune.add_argument("--floor", default="clip", choices=HESSIAN_FLOORS,
-                      help="the Hessian metric's floor: clip (max(lambda, 0) + eps_Sigma) or softabs (smooth)")
-    tune.add_argument("--anisotropic", action=argparse.BooleanOptionalAction, default=True,
-                      help="diffusion D = g^-1 (on: it makes the run depend on eps_Sigma)")
-    tune.add_argument("--cloning", action=argparse.BooleanOptionalAction, default=False,
-                      help="cloning (off: its gradient is pathwise, selection held fixed)")
+    tune.add_argument(
+        "--floor",
+        default="clip",
+        choices=HESSIAN_FLOORS,
+        help="the Hessian metric's floor: clip (max(lambda, 0) + eps_Sigma) or softabs (smooth)",
+    )
+    tune.add_argument(
+        "--anisotropic",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="diffusion D = g^-1 (on: it makes the run depend on eps_Sigma)",
+    )
+    tune.add_argument(
+        "--cloning",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="cloning (off: its gradient is pathwise, selection held fixed)",
+    )
     tune.add_argument("--graph", choices=["delaunay", "knn"], default="delaunay", help="neighbour graph")
-    tune.add_argument("--solver", default="bfgs", choices=SOLVERS,
-                      help="optimistix BFGS / nonlinear CG, or jaxopt's L-BFGS-B")
+    tune.add_argument(
+        "--solver", default="bfgs", choices=SOLVERS, help="optimistix BFGS / nonlinear CG, or jaxopt's L-BFGS-B"
+    )
     tune.add_argument("--max-steps", type=int, default=30, help="solver steps")
     tune.add_argument("--grid", type=int, default=6, help="contour grid points per axis in the figure (0: none)")
     tune.add_argument("--seed", type=int, default=0, help="seed of the initial swarm and the noise")
@@ -88,8 +121,10 @@ def add_tune_parser(sub) -> argparse.ArgumentParser:
 
 def _validate(args) -> None:
     if args.n < 10 or args.steps < 2 or args.seeds < 1 or args.max_steps < 1 or args.grid < 0:
-        raise ValueError(f"need --n >= 10, --steps >= 2, --seeds >= 1, --max-steps >= 1, --grid >= 0; got {args.n}, "
-                         f"{args.steps}, {args.seeds}, {args.max_steps}, {args.grid}.")
+        raise ValueError(
+            f"need --n >= 10, --steps >= 2, --seeds >= 1, --max-steps >= 1, --grid >= 0; got {args.n}, "
+            f"{args.steps}, {args.seeds}, {args.max_steps}, {args.grid}."
+        )
     if args.rebuild_every is not None and args.rebuild_every < 1:
         raise ValueError(f"--rebuild-every must be >= 1; got {args.rebuild_every}.")
     if len(set(args.tune)) != len(args.tune):
@@ -100,14 +135,21 @@ def _validate(args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be a finite number > 0; got {value}.")
     for flag in ("nu", "eps_sigma"):
         if flag in args.tune and not getattr(args, flag) > 0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be > 0 to be tuned (log parameters); got "
-                             f"{getattr(args, flag)}.")
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be > 0 to be tuned (log parameters); got {getattr(args, flag)}."
+            )
 
 
 def _params(args, **values) -> jaxgeom.SwarmParams:
     fields = {"dt": args.dt, "temperature": args.temperature, "nu": args.nu, "eps_sigma": args.eps_sigma, **values}
-    return jaxgeom.SwarmParams(gamma=args.gamma, weights=args.weights, anisotropic=args.anisotropic,
-                               cloning=args.cloning, floor=args.floor, **fields)
+    return jaxgeom.SwarmParams(
+        gamma=args.gamma,
+        weights=args.weights,
+        anisotropic=args.anisotropic,
+        cloning=args.cloning,
+        floor=args.floor,
+        **fields,
+    )
 
 
 def build_loss(args, target_key=None):
@@ -119,21 +161,35 @@ def build_loss(args, target_key=None):
     x0 = np.random.default_rng(args.seed).uniform(lo, hi, (args.n, args.dim)).astype(np.dtype(args.precision))
     state = jaxgeom.init_swarm(fitness, x0, key=args.seed, graph=args.graph)
     start = {name: getattr(args, name) for name in args.tune}
-    common = dict(n_steps=args.steps, tuned=tuple(args.tune), n_seeds=args.seeds,
-                  rebuild_every=args.rebuild_every or args.steps)
+    common = dict(
+        n_steps=args.steps, tuned=tuple(args.tune), n_seeds=args.seeds, rebuild_every=args.rebuild_every or args.steps
+    )
     if args.objective != "match":
         return jaxgeom.simulation_loss(fitness, state, args.objective, params=_params(args), **common), start, None
-    truth = {"nu": args.true_nu, "eps_sigma": args.true_eps_sigma, "dt": args.true_dt or args.dt,
-             "temperature": args.true_temperature or args.temperature}
-    record = jaxgeom.simulation_loss(fitness, state, lambda h: h["mean_fitness"][-1], params=_params(args, **truth),
-                                     observe=MATCHED, key=target_key, **common)
+    truth = {
+        "nu": args.true_nu,
+        "eps_sigma": args.true_eps_sigma,
+        "dt": args.true_dt or args.dt,
+        "temperature": args.true_temperature or args.temperature,
+    }
+    record = jaxgeom.simulation_loss(
+        fitness,
+        state,
+        lambda h: h["mean_fitness"][-1],
+        params=_params(args, **truth),
+        observe=MATCHED,
+        key=target_key,
+        **common,
+    )
     _, history = eqx.filter_jit(lambda loss, t: loss.histories(t))(record, record.to_theta())
     diverged = np.asarray(history["diverged_step"])
     if (diverged >= 0).any():
         cause = likely_cause(fitness, record.to_params(record.to_theta()), state).replace("reduce dt", "reduce --dt")
-        raise ValueError(f"the simulation at the true values diverged by step {int(diverged[diverged >= 0].min())} "
-                         f"in {int((diverged >= 0).sum())} of {diverged.size} runs, so it gives no targets to match. "
-                         f"{cause}")
+        raise ValueError(
+            f"the simulation at the true values diverged by step {int(diverged[diverged >= 0].min())} "
+            f"in {int((diverged >= 0).sum())} of {diverged.size} runs, so it gives no targets to match. "
+            f"{cause}"
+        )
     late = args.steps // 2
     targets = {name: float(np.mean(np.asarray(history[name])[:, late:])) for name in MATCHED}
     held = {name: value for name, value in truth.items() if name not in args.tune}  # the loss is 0 at the truth
@@ -145,34 +201,49 @@ def loss_grid(loss, result, truth, points: int):
     """The loss on a points x points grid of the first two tuned parameters (log-spaced around
     the path and the truth), under one vmap; the others at the result's values."""
     names = loss.tuned[:2]
-    seen = {name: [it["values"][name] for it in result.iterations] + ([truth[name]] if truth else [])
-            for name in names}
+    seen = {name: [it["values"][name] for it in result.iterations] + ([truth[name]] if truth else []) for name in names}
     axes = [np.geomspace(min(seen[n]) / 1.5, max(seen[n]) * 1.5, points) for n in names]
     mesh = np.meshgrid(*axes, indexing="ij")
-    values = [{**result.values, **{n: float(m.ravel()[i]) for n, m in zip(names, mesh)}} for i in range(mesh[0].size)]
+    values = [
+        {**result.values, **{n: float(m.ravel()[i]) for n, m in zip(names, mesh, strict=True)}}
+        for i in range(mesh[0].size)
+    ]
     thetas = jnp.stack([loss.to_theta(v) for v in values])
     losses = eqx.filter_jit(lambda l, t: jax.vmap(l)(t))(loss, thetas)
-    return {"names": list(names), "axes": [a.tolist() for a in axes],
-            "loss": np.asarray(losses).reshape(mesh[0].shape).tolist()}
+    return {
+        "names": list(names),
+        "axes": [a.tolist() for a in axes],
+        "loss": np.asarray(losses).reshape(mesh[0].shape).tolist(),
+    }
 
 
 def iteration_table(result, truth) -> str:
     names = list(result.values)
     rows = [f"{'iter':>4}{'loss':>14}{'|grad|':>12}" + "".join(f"{n:>14}" for n in names)]
     for it in result.iterations:
-        rows.append(f"{it['iteration']:>4}{it['loss']:>14.6g}{it['grad_norm']:>12.3g}"
-                    + "".join(f"{it['values'][n]:>14.6g}" for n in names))
+        rows.append(
+            f"{it['iteration']:>4}{it['loss']:>14.6g}{it['grad_norm']:>12.3g}"
+            + "".join(f"{it['values'][n]:>14.6g}" for n in names)
+        )
     rows.append(f"{result.solver}: {result.message} after {result.n_steps} solver steps, {result.seconds:.1f} s")
     errors = result.standard_errors
-    rows.append("found:  " + "  ".join(f"{n}={result.values[n]:.6g} +- {errors.get(n, float('nan')):.2g}"
-                                       for n in names))
-    rows.append("+- one standard error (sandwich): the spread of fits to independent data of as many runs as "
-                "--seeds" if not result.error_note else f"no standard errors: {result.error_note}")
+    rows.append(
+        "found:  " + "  ".join(f"{n}={result.values[n]:.6g} +- {errors.get(n, float('nan')):.2g}" for n in names)
+    )
+    rows.append(
+        "+- one standard error (sandwich): the spread of fits to independent data of as many runs as --seeds"
+        if not result.error_note
+        else f"no standard errors: {result.error_note}"
+    )
     if truth:
-        rows.append("true values:  " + "  ".join(f"{n}={v:.6g} ({100 * abs(result.values[n] / v - 1):.2f}% off)"
-                                                 for n, v in truth.items()))
-        rows.append("The loss is 0 at the true values: the targets come from the same seeds, and the parameters "
-                    "not tuned are held at their true values.")
+        rows.append(
+            "true values:  "
+            + "  ".join(f"{n}={v:.6g} ({100 * abs(result.values[n] / v - 1):.2f}% off)" for n, v in truth.items())
+        )
+        rows.append(
+            "The loss is 0 at the true values: the targets come from the same seeds, and the parameters "
+            "not tuned are held at their true values."
+        )
     return "\n".join(rows)
 
 
@@ -184,8 +255,14 @@ def tune_main(args) -> int:
     try:
         loss, start, truth = build_loss(args)
         raise_if_interrupted()  # a Ctrl-C while the targets were simulated (and compiled)
-        result = jaxgeom.tune(loss, start, solver=args.solver, max_steps=args.max_steps, target_seeds=args.seeds,
-                              progress=progress_choice(args))
+        result = jaxgeom.tune(
+            loss,
+            start,
+            solver=args.solver,
+            max_steps=args.max_steps,
+            target_seeds=args.seeds,
+            progress=progress_choice(args),
+        )
     except (ValueError, TypeError, OSError, FloatingPointError) as err:
         print(f"jaxgeom tune: error: {err}", file=sys.stderr)
         return 2
@@ -211,11 +288,22 @@ def tune_main(args) -> int:
 def write_outputs(args, result, truth, grid, seconds: float) -> dict:
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    payload = {"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-               "solver": result.solver, "message": result.message, "converged": result.converged,
-               "values": result.values, "loss": result.loss, "truth": truth, "iterations": result.iterations,
-               "n_steps": result.n_steps, "scale": result.scale, "grid": grid, "seconds_total": seconds,
-               "standard_errors": result.standard_errors, "error_note": result.error_note}
+    payload = {
+        "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "solver": result.solver,
+        "message": result.message,
+        "converged": result.converged,
+        "values": result.values,
+        "loss": result.loss,
+        "truth": truth,
+        "iterations": result.iterations,
+        "n_steps": result.n_steps,
+        "scale": result.scale,
+        "grid": grid,
+        "seconds_total": seconds,
+        "standard_errors": result.standard_errors,
+        "error_note": result.error_note,
+    }
     (out / "tune.json").write_text(json.dumps(payload, indent=1, default=float))
     figure = plot_tuning(result, truth, grid, out / "tune.png")
     return {"json": str(out / "tune.json"), "figure": str(figure)}

@@ -88,8 +88,11 @@ def cell_planes(tess: Tessellation, rows):
     walls = jnp.broadcast_to(jnp.concatenate([eye, -eye]), (len(rows), 2 * d, d))
     wall_offsets = jnp.concatenate([box[1] - x, x - box[0]], axis=1)
     wall_active = jnp.broadcast_to((rows < n)[:, None], wall_offsets.shape)
-    return (jnp.concatenate([normals, walls], axis=1), jnp.concatenate([0.5 * r, wall_offsets], axis=1),
-            jnp.concatenate([real, wall_active], axis=1))
+    return (
+        jnp.concatenate([normals, walls], axis=1),
+        jnp.concatenate([0.5 * r, wall_offsets], axis=1),
+        jnp.concatenate([real, wall_active], axis=1),
+    )
 
 
 def map_flagged_rows(flags, size: int, fn, empty):
@@ -106,6 +109,10 @@ def map_flagged_rows(flags, size: int, fn, empty):
 def clip_to_box(tess: Tessellation, volumes: Float[Array, " N"]) -> Float[Array, " N"]:
     """`volumes` with every tier-0 walker's cell (unbounded or reaching the box) replaced by
     its area inside `tess.box` (2D, non-periodic; 3D cells are clipped by `_dualclip`)."""
-    rows, clipped = map_flagged_rows(tess.tier == 0, CLIP_CHUNK, lambda ids: jax.vmap(polygon_area)(*cell_planes(tess, ids)),
-                                     lambda ids: jnp.zeros(ids.shape, volumes.dtype))
+    rows, clipped = map_flagged_rows(
+        tess.tier == 0,
+        CLIP_CHUNK,
+        lambda ids: jax.vmap(polygon_area)(*cell_planes(tess, ids)),
+        lambda ids: jnp.zeros(ids.shape, volumes.dtype),
+    )
     return volumes.at[rows].set(clipped, mode="drop")

@@ -10,7 +10,10 @@ from jaxtyping import Array, Float
 from ..base._checks import check_positive, check_walker_mask, walker_values
 from ..base._simplex import simplex_circumradius
 from ..tessellation._graph import (
-    Tessellation, nearest_neighbor_distances, simplex_coords, takes_tessellation,
+    Tessellation,
+    nearest_neighbor_distances,
+    simplex_coords,
+    takes_tessellation,
 )
 from ._volumes import voronoi_volumes
 

@@ -15,8 +15,13 @@ from jaxtyping import Array, Float
 from ..base._simplex import det_entries, safe_sqrt
 from ..tessellation._graph import Tessellation, edge_slots, takes_tessellation
 from ._metric import (
-    check_metric, edge_lengths, edge_pairs, riemannian_volumes, simplex_sq_lengths,
-    simplex_sq_lengths_with_references, warns_on_defective_metric,
+    check_metric,
+    edge_lengths,
+    edge_pairs,
+    riemannian_volumes,
+    simplex_sq_lengths,
+    simplex_sq_lengths_with_references,
+    warns_on_defective_metric,
 )
 from ._volumes import voronoi_volumes
 
@@ -26,7 +31,7 @@ TWO_PI = 2.0 * math.pi
 RICCI_ULPS = 64.0
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def hinges(d: int) -> tuple[tuple[tuple[int, ...], tuple[int, int]], ...]:
     """Hinges ((d-2)-faces) of a d-simplex with the two vertices opposite each."""
     out = []
@@ -39,7 +44,8 @@ def hinge_angle_vectors(sq_lengths, d: int):
     """(cos, sin)-proportional pair (x, y) of the dihedral angle at every hinge of one
     simplex, and the hinge's measure; the angle is atan2(y, x).
 
-    Only the (d+1)d/2 squared edge lengths are used (a sequence, ordered as `edge_pairs(d)`). With the Gram matrix G based
+    Only the (d+1)d/2 squared edge lengths are used (a sequence, ordered as `edge_pairs(d)`). With the Gram matrix G
+    based
     at a hinge vertex (hinge vectors H first, then the two opposite vertices c, e):
     x = det G[H+c, H+e] and y = sqrt(det G[H,H] det G) (the Desnanot-Jacobi
     identity gives x^2 + y^2 = det G[H+c, H+c] det G[H+e, H+e]). This adjugate form
@@ -51,7 +57,7 @@ def hinge_angle_vectors(sq_lengths, d: int):
     `(x, y, size)`, each (number of hinges,), ordered as `hinges(d)`.
     """
     out = [hinge_angle_vector(sq_lengths, d, k) for k in range(len(hinges(d)))]
-    return tuple(jnp.stack(parts) for parts in zip(*out))
+    return tuple(jnp.stack(parts) for parts in zip(*out, strict=True))
 
 
 def hinge_angle_vector(sq_lengths, d: int, k: int):
@@ -108,7 +114,7 @@ def _all_hinge_angles(tess: Tessellation, metric, mode: str):
     return jnp.where(valid, theta_g, 0.0), jnp.where(valid, size_g, 0.0), jnp.where(valid, theta_e, 0.0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _hinges_of_vertex(d: int) -> tuple[tuple[int, ...], ...]:
     """For each vertex of a d-simplex, the indices (in `hinges(d)`) of the hinges containing it."""
     return tuple(tuple(k for k, (h, _) in enumerate(hinges(d)) if v in h) for v in range(d + 1))
@@ -253,8 +259,9 @@ def _hinge_sums(tess: Tessellation, metric, mode: str):
     eps = jnp.finfo(sq_g.dtype).eps
     diffs, errors = [], []
     for k in range(len(hinges(d))):
-        x_g, y_g, size_g = jax.vmap(lambda sq: hinge_angle_vector(sq, d, k))(sq_g)
-        x_r, y_r, _ = jax.vmap(lambda sq: hinge_angle_vector(sq, d, k))(sq_ref[k])
+        angle = jax.vmap(functools.partial(hinge_angle_vector, d=d, k=k))
+        x_g, y_g, size_g = angle(sq_g)
+        x_r, y_r, _ = angle(sq_ref[k])
         diff = _safe_atan2(y_r * x_g - x_r * y_g, x_r * x_g + y_r * y_g)  # both angles lie in [0, pi]
         same = jnp.all(sq_ref[k] == sq_g, axis=1)  # exactly 0 (XLA's fused multiply-add would leave an ulp)
         diffs.append(jnp.where(same, 0.0, diff) * size_g * size_scale)
@@ -265,8 +272,9 @@ def _hinge_sums(tess: Tessellation, metric, mode: str):
     out = []
     for per_hinge in (diffs, errors):
         # sum each vertex's hinges inside the simplex first: d + 1 scattered values per simplex
-        per_vertex = jnp.stack([jnp.where(valid, sum(per_hinge[h] for h in hs), 0.0) for hs in _hinges_of_vertex(d)],
-                               axis=1)
+        per_vertex = jnp.stack(
+            [jnp.where(valid, sum(per_hinge[h] for h in hs), 0.0) for hs in _hinges_of_vertex(d)], axis=1
+        )
         out.append(scale * jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points))
     return tuple(out)
 
@@ -277,9 +285,9 @@ def _metric_and_reference_sq_lengths(tess: Tessellation, metric, mode: str):
     if check_metric(tess, metric, mode) is None:
         sq = jax.lax.optimization_barrier(simplex_sq_lengths(tess))
         return sq, [sq] * len(hinges(tess.dim))
-    sq_g, sq_ref = simplex_sq_lengths_with_references(tess, metric, mode=mode,
-                                                      hinge_edges=[_hinge_edge_ids(tess.dim, k)
-                                                                   for k in range(len(hinges(tess.dim)))])
+    sq_g, sq_ref = simplex_sq_lengths_with_references(
+        tess, metric, mode=mode, hinge_edges=[_hinge_edge_ids(tess.dim, k) for k in range(len(hinges(tess.dim)))]
+    )
     return jax.lax.optimization_barrier((sq_g, sq_ref))
 
 

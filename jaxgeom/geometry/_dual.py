@@ -27,8 +27,7 @@ import jax.numpy as jnp
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import (CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres,
-                        unit_vector)
+from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
 
 
 def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
@@ -68,14 +67,21 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
         volumes.append(jnp.stack(v_row))
         moments_a.append(jnp.stack(ma_row))
         moments_b.append(jnp.stack(mb_row))
-    return (jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(moments_a), jnp.stack(moments_b),
-            jnp.stack(normals))
+    return (
+        jnp.stack(pieces),
+        jnp.stack(heights),
+        jnp.stack(volumes),
+        jnp.stack(moments_a),
+        jnp.stack(moments_b),
+        jnp.stack(normals),
+    )
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
 # edge e of face f joins FACE_VERTS[f, (e + 1) % 3] and FACE_VERTS[f, (e + 2) % 3]
-EDGE_ENDS = jnp.asarray([[[FACES_3D[f][(e + 1) % 3], FACES_3D[f][(e + 2) % 3]] for e in range(3)]
-                         for f in range(4)], jnp.int32)  # (4, 3, 2)
+EDGE_ENDS = jnp.asarray(
+    [[[FACES_3D[f][(e + 1) % 3], FACES_3D[f][(e + 2) % 3]] for e in range(3)] for f in range(4)], jnp.int32
+)  # (4, 3, 2)
 
 
 def _face_keys(tess: Tessellation):
@@ -156,8 +162,10 @@ def _sum_at_ends(ends, values, moment_a, moment_b, n: int):
     d = moment_a.shape[-1]
     moments = jnp.concatenate([moment_a.reshape(-1, d), moment_b.reshape(-1, d)])
     moments = jnp.where(both[:, None] != 0, moments, 0.0)
-    return (jax.ops.segment_sum(both, ids, num_segments=n + 1)[:n],
-            jax.ops.segment_sum(moments, ids, num_segments=n + 1)[:n])
+    return (
+        jax.ops.segment_sum(both, ids, num_segments=n + 1)[:n],
+        jax.ops.segment_sum(moments, ids, num_segments=n + 1)[:n],
+    )
 
 
 def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
@@ -172,7 +180,8 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
     origin = verts[:, :1]
     pieces, heights, volumes, moment_a, moment_b, normals = jax.vmap(simplex_flags_3d)(
-        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok)
+        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
+    )
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
     # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
@@ -202,13 +211,26 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
-            tess, (centres, face_centres, ok, face_ok), hull_face, normals, outside, ends, index, areas, cell_volume,
-            moments)
+            tess,
+            (centres, face_centres, ok, face_ok),
+            hull_face,
+            normals,
+            outside,
+            ends,
+            index,
+            areas,
+            cell_volume,
+            moments,
+        )
         unbounded = jnp.zeros((n, k), bool)
     else:
         ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
-        unbounded = jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index,
-                                        num_segments=n * k + 1)[:-1].reshape(n, k) > 0
+        unbounded = (
+            jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index, num_segments=n * k + 1)[
+                :-1
+            ].reshape(n, k)
+            > 0
+        )
     vertices = jnp.zeros(n, jnp.int32)
     if counts:
         counted = jnp.broadcast_to((mask & proper)[:, None], tess.simplices.shape)
@@ -216,8 +238,9 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             counted = counted & _counted_in_box(tess, centres, wall_areas)
         vertices = _vertex_counts(tess, centres[:, None, :] - verts, counted)
         if boxed:
-            vertices = jnp.where(vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths,
-                                                                                   edges))
+            vertices = jnp.where(
+                vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths, edges)
+            )
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
 
 
@@ -234,7 +257,8 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends,
     normal_sums = jax.ops.segment_sum(jnp.concatenate([outer, outer]), index, num_segments=n * k + 1)
     flat_ends = ends.reshape(-1, 2)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
-        tess, centres, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T)
+        tess, centres, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T
+    )
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
     wall_area, wall_moment = wall_area + edge_area, wall_moment + edge_moment
@@ -274,8 +298,11 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
     counted = jnp.sum(jnp.where(faces, segments + box_edges, 0), axis=1, dtype=jnp.int32)
     on_edge = jnp.sum(faces[:, EDGE_WALLS], axis=2, dtype=jnp.int32)  # (N, 12) walls j of an edge's vertices
     on_corner = jnp.sum(faces[:, CORNER_WALLS], axis=2, dtype=jnp.int32)  # (N, 8)
-    return (counted - jnp.sum(inner * (on_edge - 1), axis=1, dtype=jnp.int32)
-            - jnp.sum(jnp.where(corners, on_corner - 1, 0), axis=1, dtype=jnp.int32))
+    return (
+        counted
+        - jnp.sum(inner * (on_edge - 1), axis=1, dtype=jnp.int32)
+        - jnp.sum(jnp.where(corners, on_corner - 1, 0), axis=1, dtype=jnp.int32)
+    )
 
 
 # circumcentres of co-spherical walkers' simplices closer than this many epsilons of the cell's
@@ -310,8 +337,10 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     def count(rows):
         valid = jnp.isfinite(rows[..., 0])
         size = jnp.max(jnp.where(valid, jnp.max(jnp.abs(rows), axis=-1), 0.0), axis=1)
-        close = jnp.max(jnp.abs(rows[:, :, None, :] - rows[:, None, :, :]), axis=-1) <= (
-            MERGE_ULPS * eps * size)[:, None, None]
+        close = (
+            jnp.max(jnp.abs(rows[:, :, None, :] - rows[:, None, :, :]), axis=-1)
+            <= (MERGE_ULPS * eps * size)[:, None, None]
+        )
         earlier = jnp.tril(jnp.ones((cap, cap), bool), -1)
         repeated = jnp.any(close & earlier & valid[:, None, :], axis=2)
         return jnp.sum(valid & ~repeated, axis=1, dtype=jnp.int32)
@@ -336,8 +365,9 @@ def triangle_flags_2d(p):
     scale = jnp.maximum(jnp.sum(e1 * e1), jnp.sum(e2 * e2))
     ok = jnp.abs(cross) > 10.0 * jnp.finfo(p.dtype).eps * scale
     safe = jnp.where(ok, cross, 1.0)
-    offset = jnp.stack([e2[1] * jnp.sum(e1 * e1) - e1[1] * jnp.sum(e2 * e2),
-                        e1[0] * jnp.sum(e2 * e2) - e2[0] * jnp.sum(e1 * e1)]) / (2.0 * safe)
+    offset = jnp.stack(
+        [e2[1] * jnp.sum(e1 * e1) - e1[1] * jnp.sum(e2 * e2), e1[0] * jnp.sum(e2 * e2) - e2[0] * jnp.sum(e1 * e1)]
+    ) / (2.0 * safe)
     centre = p[0] + jnp.where(ok, offset, 0.0)
     heights, areas, moments_a, moments_b = [], [], [], []
     for a, b, k in EDGES_2D:

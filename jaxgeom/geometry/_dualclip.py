@@ -35,8 +35,10 @@ FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces eac
 EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
 FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
 # flag (face o, edge e) as in `_dual.simplex_flags_3d`: (edge ends x, y, the face's third vertex k, o)
-FLAG_ORDER = jnp.asarray([[FACES_3D[o][(e + 1) % 3], FACES_3D[o][(e + 2) % 3], FACES_3D[o][e], o]
-                          for o in range(4) for e in range(3)], jnp.int32)  # (12, 4)
+FLAG_ORDER = jnp.asarray(
+    [[FACES_3D[o][(e + 1) % 3], FACES_3D[o][(e + 2) % 3], FACES_3D[o][e], o] for o in range(4) for e in range(3)],
+    jnp.int32,
+)  # (12, 4)
 
 
 # A tetrahedron whose |det(edges)| is below this many epsilons of the product of its edges'
@@ -106,8 +108,9 @@ def dual_centres(tess: Tessellation, verts):
     face_ids = tess.simplices[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3)
     order = jnp.argsort(face_ids, axis=-1)
     corners = jnp.take_along_axis(verts[:, jnp.asarray(FACES_3D, jnp.int32)], order[..., None], axis=-2)
-    face_centres, face_ok = jax.vmap(jax.vmap(triangle_circumcentre))(corners[..., 0, :], corners[..., 1, :],
-                                                                     corners[..., 2, :])
+    face_centres, face_ok = jax.vmap(jax.vmap(triangle_circumcentre))(
+        corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    )
     return centres, ok, counted, face_centres, face_ok
 
 
@@ -193,9 +196,15 @@ def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
     triangle = jnp.stack([middle, c_t, centre, centre])
     corners = jnp.where(kind == 1, strip, jnp.where(kind == 2, wedge, triangle))
     piece = (centre - c_t) @ normal
-    sign = jnp.where(kind == 1, jnp.where(hull & tri_ok, jnp.sign(height), 0.0),
-                     jnp.where(kind == 2, jnp.where(hull & g_ok & b_ok, 1.0, 0.0),
-                               jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0)))
+    sign = jnp.where(
+        kind == 1,
+        jnp.where(hull & tri_ok, jnp.sign(height), 0.0),
+        jnp.where(
+            kind == 2,
+            jnp.where(hull & g_ok & b_ok, 1.0, 0.0),
+            jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0),
+        ),
+    )
     orient = jnp.sign(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]) @ direction)
     return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
 
@@ -250,12 +259,19 @@ def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots,
     follows the boundary's pieces, not the simplices."""
     n, k = tess.neighbors.shape
     dtype = tess.points.dtype
-    sums = (jnp.zeros(n * k + 1, dtype), jnp.zeros((n * k + 1, 6), dtype), jnp.zeros(n + 1, dtype),
-            jnp.zeros((n + 1, 3), dtype), jnp.zeros((n + 1, 6), dtype), jnp.zeros((n + 1, 6, 3), dtype))
+    sums = (
+        jnp.zeros(n * k + 1, dtype),
+        jnp.zeros((n * k + 1, 6), dtype),
+        jnp.zeros(n + 1, dtype),
+        jnp.zeros((n + 1, 3), dtype),
+        jnp.zeros((n + 1, 6), dtype),
+        jnp.zeros((n + 1, 6, 3), dtype),
+    )
     slots, ends = (slots[0], slots[1]), (ends[0], ends[1])  # sliced once, not in every chunk
     for faces, kinds in ((outside, (0,)), (hull_face, (1, 2))):
-        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots,
-                           ends)
+        sums = _sum_pieces(
+            tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots, ends
+        )
     return tuple(a[:-1] for a in sums)
 
 
@@ -278,22 +294,41 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         q = tess.points[tess.simplices[simplex[:, None], FLAG_ORDER[within]]]  # (M, 4, 3)
         origin = q[:, 0]
         face = FLAG_ORDER[within, 3]
-        flag_centres = (centres[0][simplex] - origin, centres[1][simplex, face] - origin, centres[2][simplex],
-                        centres[3][simplex, face])
+        flag_centres = (
+            centres[0][simplex] - origin,
+            centres[1][simplex, face] - origin,
+            centres[2][simplex],
+            centres[3][simplex, face],
+        )
         slot = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([slots[0][flag], slots[1][flag]]), n * k)
         walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ends[0][flag], ends[1][flag]]), n)
-        return slot, walker, (q - origin[:, None], flag_centres, hull_face[simplex, face], box[0] - origin,
-                              box[1] - origin, kind, toward[flag])
+        return (
+            slot,
+            walker,
+            (
+                q - origin[:, None],
+                flag_centres,
+                hull_face[simplex, face],
+                box[0] - origin,
+                box[1] - origin,
+                kind,
+                toward[flag],
+            ),
+        )
 
     def add(sums, face):
         slot, walker, args = chunk_inputs(face)
         area, lengths, per_end = pieces(*args)
         both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
         areas, walls, volumes, moments, wall_areas, wall_moments = sums
-        return (areas.at[slot].add(jnp.concatenate([area, area])),
-                walls.at[slot].add(jnp.concatenate([lengths, lengths])),
-                volumes.at[walker].add(both(0)), moments.at[walker].add(both(1)),
-                wall_areas.at[walker].add(both(2)), wall_moments.at[walker].add(both(3)))
+        return (
+            areas.at[slot].add(jnp.concatenate([area, area])),
+            walls.at[slot].add(jnp.concatenate([lengths, lengths])),
+            volumes.at[walker].add(both(0)),
+            moments.at[walker].add(both(1)),
+            wall_areas.at[walker].add(both(2)),
+            wall_moments.at[walker].add(both(3)),
+        )
 
     def step(sums, face):
         # chunks past the faces' count are skipped (the sums pass through in place)
@@ -306,8 +341,9 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
 def _box_edges():
     """The 12 box edges as (axis, wall 1, wall 2) and the 8 corners as their 3 walls (walls
     ordered as `VoronoiFacets.wall_areas`: x_k = hi_k is k, x_k = lo_k is d + k)."""
-    edges = [(k, w1, w2) for k in range(3) for w1 in ((k + 1) % 3, (k + 1) % 3 + 3)
-             for w2 in ((k + 2) % 3, (k + 2) % 3 + 3)]
+    edges = [
+        (k, w1, w2) for k in range(3) for w1 in ((k + 1) % 3, (k + 1) % 3 + 3) for w2 in ((k + 2) % 3, (k + 2) % 3 + 3)
+    ]
     corners = [(wx, wy, wz) for wx in (0, 3) for wy in (1, 4) for wz in (2, 5)]
     return edges, corners
 
@@ -337,8 +373,13 @@ def box_edge_faces(tess: Tessellation):
             area, moment = jnp.zeros(6, off.dtype), jnp.zeros((6, 3), off.dtype)
             real, inner = [], []
             for k, w1, w2 in BOX_EDGES:
-                point = jnp.zeros(3, off.dtype).at[axes[w1]].set(bounds[w1] - x_i[axes[w1]]).at[axes[w2]].set(
-                    bounds[w2] - x_i[axes[w2]])
+                point = (
+                    jnp.zeros(3, off.dtype)
+                    .at[axes[w1]]
+                    .set(bounds[w1] - x_i[axes[w1]])
+                    .at[axes[w2]]
+                    .set(bounds[w2] - x_i[axes[w2]])
+                )
                 lo, hi, empty, _, _ = line_interval(point, eye[k], nrm, off, act, size)
                 length = jnp.where(empty, 0.0, jnp.maximum(hi - lo, 0.0))
                 middle = point + 0.5 * (lo + hi) * eye[k]
@@ -350,7 +391,8 @@ def box_edge_faces(tess: Tessellation):
                     moment = moment.at[wall].add(piece * (foot + 2.0 * middle) / 3.0)
                 real.append(length > tol)
                 ends = (lo > box[0, k] - x_i[k] + tol).astype(jnp.int32) + (hi < box[1, k] - x_i[k] - tol).astype(
-                    jnp.int32)
+                    jnp.int32
+                )
                 inner.append(jnp.where(length > tol, ends, 0))
             corner = bounds[CORNER_WALLS] - x_i  # (8, 3): each corner's walls are x, y and z in order
             in_cell = jnp.all(~act[None, :] | (corner @ nrm.T <= off[None, :] + tol), axis=1)
@@ -361,8 +403,13 @@ def box_edge_faces(tess: Tessellation):
     def empty(ids):
         m = len(ids)
         dt = tess.points.dtype
-        return (jnp.zeros((m, 6), dt), jnp.zeros((m, 6, 3), dt), jnp.zeros((m, 12), bool), jnp.zeros((m, 12), jnp.int32),
-                jnp.zeros((m, 8), bool))
+        return (
+            jnp.zeros((m, 6), dt),
+            jnp.zeros((m, 6, 3), dt),
+            jnp.zeros((m, 12), bool),
+            jnp.zeros((m, 12), jnp.int32),
+            jnp.zeros((m, 8), bool),
+        )
 
     rows, out = map_flagged_rows(tess.tier == 0, EDGE_CHUNK, cells, empty)
     return jax.tree_util.tree_map(lambda a: jnp.zeros((n,) + a.shape[1:], a.dtype).at[rows].set(a, mode="drop"), out)

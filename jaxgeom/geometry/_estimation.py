@@ -19,7 +19,10 @@ from jaxtyping import Array, Bool, Float, Int
 from ..base._checks import check_choice, check_nonnegative
 from ..base._simplex import safe_sqrt
 from ..tessellation._graph import (
-    Tessellation, neighbor_coord_displacements, neighbor_displacements, take_or_zero,
+    Tessellation,
+    neighbor_coord_displacements,
+    neighbor_displacements,
+    take_or_zero,
     takes_tessellation,
 )
 from ._metric import emergent_metric
@@ -106,8 +109,15 @@ def _solve_normal(a, b, rcond: float = RCOND):
 
 @takes_tessellation
 @eqx.filter_jit
-def estimate_gradient(tess: Tessellation, values, *, method: str = "wls", weights: str = "uniform",
-                      order: int | None = None, with_info: bool = False):
+def estimate_gradient(
+    tess: Tessellation,
+    values,
+    *,
+    method: str = "wls",
+    weights: str = "uniform",
+    order: int | None = None,
+    with_info: bool = False,
+):
     """Gradient of a field sampled at the walkers.
 
     **Arguments:**
@@ -198,7 +208,11 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
     coef, ok = jax.vmap(lambda a_, b_: _solve_normal(a_, b_, rcond))(a, b)
     ok = ok & (jnp.sum(usable, axis=1) >= n_coef)
     grad = coef[:, :d] / scale[:, None]
-    return jnp.where(ok[:, None, None], _unpack_hessian(coef, scale, d), jnp.nan), jnp.where(ok[:, None], grad, jnp.nan), ok
+    return (
+        jnp.where(ok[:, None, None], _unpack_hessian(coef, scale, d), jnp.nan),
+        jnp.where(ok[:, None], grad, jnp.nan),
+        ok,
+    )
 
 
 def _unpack_hessian(coef, scale, d: int):
@@ -226,8 +240,10 @@ def _two_ring(tess: Tessellation, values, walkers):
     second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, m*m)
     ring = jnp.concatenate([first, second], axis=1)
     is_self = ring == walkers[:, None]
-    dxs = [take_or_zero(tess.points[:, k], ring) - take_or_zero(tess.points[:, k], walkers)[:, None]
-           for k in range(tess.dim)]
+    dxs = [
+        take_or_zero(tess.points[:, k], ring) - take_or_zero(tess.points[:, k], walkers)[:, None]
+        for k in range(tess.dim)
+    ]
     if tess.neighbor_shifts is not None:  # compose the stored image shifts along i -> j -> k
         shifts = jnp.concatenate([tess.neighbor_shifts[:, :width], jnp.zeros((1, width, tess.dim), jnp.int8)])
         shifts = shifts.astype(jnp.int32)
@@ -293,8 +309,9 @@ def _local_quadratic(tess: Tessellation, values, weighting: str = "uniform"):
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
     walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)
-    hess2, grad2, ok2 = _quadratic_fit(*_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)),
-                                       weighting=weighting)
+    hess2, grad2, ok2 = _quadratic_fit(
+        *_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)), weighting=weighting
+    )
     ok2 = ok2 & (walkers < tess.n_points)
     hess = hess.at[walkers].set(hess2, mode="drop")
     grad = grad.at[walkers].set(grad2, mode="drop")

@@ -93,8 +93,7 @@ def voronoi_facets(tess: Tessellation) -> VoronoiFacets:
     distance to the wall), which the tests check against `voronoi_volumes`.
     """
     if tess.simplices is None:
-        raise ValueError("voronoi_facets needs a Delaunay graph (jaxgeom.delaunay): a k-NN graph has no Voronoi "
-                         "cells.")
+        raise ValueError("voronoi_facets needs a Delaunay graph (jaxgeom.delaunay): a k-NN graph has no Voronoi cells.")
     n, d = tess.points.shape
     if d not in (2, 3):
         raise ValueError(f"voronoi_facets measures faces in 2D and 3D; this graph has d = {d}.")
@@ -118,14 +117,19 @@ def _facets_from_dual(tess: Tessellation) -> VoronoiFacets:
         bounded = ~tess.hull & ~undecided
         wall_areas = jnp.zeros((n, 2 * d), areas.dtype)
     if boxed and d == 2:
+
         def clipped(ids):
             normals, offsets, active = cell_planes(tess, ids)
             area, moment, _, count = jax.vmap(_polygon_faces)(normals, offsets, active)
             return area, jnp.sum(offsets * area, axis=1) / d, moment / (d + 1), count.astype(vertices.dtype)
 
         def empty(ids):
-            return (jnp.zeros((len(ids), k + 2 * d), areas.dtype), jnp.zeros(len(ids), areas.dtype),
-                    jnp.zeros((len(ids), d), areas.dtype), jnp.zeros(len(ids), vertices.dtype))
+            return (
+                jnp.zeros((len(ids), k + 2 * d), areas.dtype),
+                jnp.zeros(len(ids), areas.dtype),
+                jnp.zeros((len(ids), d), areas.dtype),
+                jnp.zeros(len(ids), vertices.dtype),
+            )
 
         rows, (c_area, c_volume, c_moment, c_count) = map_flagged_rows(tess.tier == 0, FACET_CHUNK, clipped, empty)
         areas = areas.at[rows].set(c_area[:, :k], mode="drop")

@@ -18,7 +18,10 @@ from ..base._checks import check_nonnegative
 from ..tessellation._graph import Tessellation, takes_tessellation
 from ._metric import warns_on_defective_metric
 from ._weights import (
-    DEFAULT_ALPHA, check_weights, kernel_arguments, weights_on_graph,
+    DEFAULT_ALPHA,
+    check_weights,
+    kernel_arguments,
+    weights_on_graph,
 )
 
 VISCOUS_WEIGHTS = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "metric_full")
@@ -26,8 +29,9 @@ VISCOUS_WEIGHTS = ("uniform", "kernel", "inverse_distance", "metric_diagonal", "
 
 @takes_tessellation
 @warns_on_defective_metric
-def edge_weights(tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None,
-                 alpha: float | None = None) -> Float[Array, "N K"]:
+def edge_weights(
+    tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None, alpha: float | None = None
+) -> Float[Array, "N K"]:
     """Raw edge weights w_ij of the viscous force, aligned with `tess.neighbors` (0 on padding).
 
     `weights` and the other arguments as in [`jaxgeom.viscous_force`][]."""
@@ -42,16 +46,24 @@ def _edge_weights(tess, weights, length_scale, metric, alpha):
     return weights_on_graph(tess, weights, metric=metric, length_scale=length_scale, alpha=alpha)
 
 
-def weights_to_normalize(tess: Tessellation, *, weights: str, length_scale=None, metric=None,
-                         alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+def weights_to_normalize(
+    tess: Tessellation, *, weights: str, length_scale=None, metric=None, alpha: float = DEFAULT_ALPHA
+) -> Float[Array, "N K"]:
     """`edge_weights` up to a per-row factor that row normalisation cancels: kernel weights are
     divided by each row's largest, so that they tend to nearest-neighbour weighting as l -> 0
     instead of underflowing to 0 / 0."""
     return weights_on_graph(tess, weights, metric=metric, length_scale=length_scale, alpha=alpha, shift="row")
 
 
-def row_normalized_weights(tess: Tessellation, *, weights: str = "kernel", length_scale=None, metric=None,
-                           volume_weights=None, alpha: float = DEFAULT_ALPHA) -> Float[Array, "N K"]:
+def row_normalized_weights(
+    tess: Tessellation,
+    *,
+    weights: str = "kernel",
+    length_scale=None,
+    metric=None,
+    volume_weights=None,
+    alpha: float = DEFAULT_ALPHA,
+) -> Float[Array, "N K"]:
     """w_ij (V_j) / sum_k w_ik (V_k); rows of isolated walkers (zero degree) are all 0."""
     w = weights_to_normalize(tess, weights=weights, length_scale=length_scale, metric=metric, alpha=alpha)
     return normalize_rows(with_volume_weights(tess, w, volume_weights))[0]
@@ -87,8 +99,17 @@ def apply_viscous(tess: Tessellation, normalized_weights, velocities, nu) -> Flo
 
 @takes_tessellation
 @warns_on_defective_metric
-def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel", length_scale=None, metric=None,
-                  volume_weights=None, alpha: float | None = None) -> Float[Array, "N d"]:
+def viscous_force(
+    tess: Tessellation,
+    velocities,
+    *,
+    nu,
+    weights: str = "kernel",
+    length_scale=None,
+    metric=None,
+    volume_weights=None,
+    alpha: float | None = None,
+) -> Float[Array, "N d"]:
     """The scutoidal viscous force F_i = nu sum_j w_ij / sum_k w_ik (v_j - v_i), O(N K).
 
     **Arguments:**
@@ -124,6 +145,7 @@ def viscous_force(tess: Tessellation, velocities, *, nu, weights: str = "kernel"
 
 @eqx.filter_jit
 def _viscous_force(tess, velocities, nu, weights, length_scale, metric, volume_weights, alpha):
-    w = row_normalized_weights(tess, weights=weights, length_scale=length_scale, metric=metric,
-                               volume_weights=volume_weights, alpha=alpha)
+    w = row_normalized_weights(
+        tess, weights=weights, length_scale=length_scale, metric=metric, volume_weights=volume_weights, alpha=alpha
+    )
     return apply_viscous(tess, w, velocities, nu)

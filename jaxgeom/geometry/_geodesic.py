@@ -22,8 +22,17 @@ GEODESIC_METHODS = ("heat", "dijkstra", "bellman_ford")
 
 @takes_tessellation
 @warns_on_defective_metric
-def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = "full", method: str = "heat",
-                       t=None, boundary: str | None = None, solver: str | None = None) -> Float[Array, "M N"]:
+def geodesic_distances(
+    tess: Tessellation,
+    sources,
+    metric=None,
+    *,
+    mode: str = "full",
+    method: str = "heat",
+    t=None,
+    boundary: str | None = None,
+    solver: str | None = None,
+) -> Float[Array, "M N"]:
     """Geodesic distances from each source walker to every walker.
 
     **Arguments:**
@@ -94,29 +103,37 @@ def geodesic_distances(tess: Tessellation, sources, metric=None, *, mode: str = 
     if method == "dijkstra":
         return jnp.asarray(_dijkstra(tess, lengths, np.asarray(src)), dtype=lengths.dtype)
     symmetric = tess.simplices is not None
-    return jax.vmap(lambda s: _bellman_ford(lengths, tess.neighbors, s, symmetric))(jnp.atleast_1d(src).astype(jnp.int32))
+    return jax.vmap(lambda s: _bellman_ford(lengths, tess.neighbors, s, symmetric))(
+        jnp.atleast_1d(src).astype(jnp.int32)
+    )
 
 
 def _heat(tess: Tessellation, sources, metric, *, mode: str, t, boundary: str, solver: str):
     check_choice(boundary, "boundary", HEAT_BOUNDARIES)
     check_choice(solver, "solver", HEAT_SOLVERS)
     if tess.simplices is None:
-        raise ValueError("method='heat' needs Delaunay simplices and this is a k-NN graph: build the graph with "
-                         "jaxgeom.delaunay, or pass method='dijkstra' (or 'bellman_ford') for graph distances.")
+        raise ValueError(
+            "method='heat' needs Delaunay simplices and this is a k-NN graph: build the graph with "
+            "jaxgeom.delaunay, or pass method='dijkstra' (or 'bellman_ford') for graph distances."
+        )
     if t is not None:
         check_positive(t, "t", " (the heat time step, a length squared; None picks N^(1/(2d)) h^2)")
     if solver == "auto":
         solver = "direct" if jax.default_backend() == "cpu" else "cg"
     distances, n_open = _heat_jit(tess, sources, metric, mode, t, boundary, solver)
     if not isinstance(n_open, jax.core.Tracer) and int(n_open) > 0:
-        warn_at_caller(f"geodesic_distances: in {int(n_open)} of {int(jnp.sum(tess.simplex_mask))} simplices the metric "
-                       "edge lengths do not close (the metric varies faster than the walkers resolve it); those "
-                       "simplices take the mean of their edge metrics and non-negative cotangent weights. Heat "
-                       "distances there are coarse: add walkers, or compare method='dijkstra' (the graph distance, "
-                       "an upper bound).")
+        warn_at_caller(
+            f"geodesic_distances: in {int(n_open)} of {int(jnp.sum(tess.simplex_mask))} simplices the metric "
+            "edge lengths do not close (the metric varies faster than the walkers resolve it); those "
+            "simplices take the mean of their edge metrics and non-negative cotangent weights. Heat "
+            "distances there are coarse: add walkers, or compare method='dijkstra' (the graph distance, "
+            "an upper bound)."
+        )
     if not isinstance(distances, jax.core.Tracer) and bool(jnp.all(jnp.isnan(distances))):
-        warn_at_caller("geodesic_distances: the heat method's linear systems were singular for this metric; every "
-                       "distance is NaN. Use method='dijkstra'.")
+        warn_at_caller(
+            "geodesic_distances: the heat method's linear systems were singular for this metric; every "
+            "distance is NaN. Use method='dijkstra'."
+        )
     return distances
 
 
@@ -163,12 +180,16 @@ def _candidates(dist, lengths, neighbors, symmetric: bool):
     push_min = jax.ops.segment_min(push, targets, num_segments=n)
     push_min_pad = jnp.concatenate([push_min, jnp.full((1,), jnp.inf, dist.dtype)])
     is_best = push == push_min_pad[targets]
-    push_edge = jax.ops.segment_max(jnp.where(is_best, jnp.arange(n * k_cap, dtype=jnp.int32), -1), targets,
-                                    num_segments=n)
+    push_edge = jax.ops.segment_max(
+        jnp.where(is_best, jnp.arange(n * k_cap, dtype=jnp.int32), -1), targets, num_segments=n
+    )
     use_push = push_min < value
     safe_edge = jnp.maximum(push_edge, 0)
-    return (jnp.where(use_push, push_min, value), jnp.where(use_push, safe_edge // k_cap, pred),
-            jnp.where(use_push, safe_edge, edge))
+    return (
+        jnp.where(use_push, push_min, value),
+        jnp.where(use_push, safe_edge // k_cap, pred),
+        jnp.where(use_push, safe_edge, edge),
+    )
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))

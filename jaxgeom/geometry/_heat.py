@@ -174,8 +174,9 @@ def _expand_barycentric(inverse):
 def apply_stiffness(op: HeatOperators, u: Float[Array, " N"]) -> Float[Array, " N"]:
     """K u: each simplex's stiffness times its vertex values, summed onto the vertices."""
     local = u.at[op.simplices].get(mode="fill", fill_value=0.0)
-    return jax.ops.segment_sum(jnp.einsum("sab,sb->sa", op.stiffness, local).ravel(), op.simplices.ravel(),
-                               num_segments=op.n_points)
+    return jax.ops.segment_sum(
+        jnp.einsum("sab,sb->sa", op.stiffness, local).ravel(), op.simplices.ravel(), num_segments=op.n_points
+    )
 
 
 def stiffness_diagonal(op: HeatOperators) -> Float[Array, " N"]:
@@ -219,7 +220,7 @@ class LinearSystem(eqx.Module):
         return jnp.where(self.keep, self.diag * inner + self.scale * apply_stiffness(self.op, inner), u)
 
     @classmethod
-    def build(cls, op: HeatOperators, diag, scale, keep) -> "LinearSystem":
+    def build(cls, op: HeatOperators, diag, scale, keep) -> LinearSystem:
         """Walkers without a positive diagonal (in no valid simplex) become identity rows, so
         the system stays invertible; their distances are reported as NaN."""
         scale = jnp.asarray(scale, op.stiffness.dtype)
@@ -232,9 +233,13 @@ class LinearSystem(eqx.Module):
 def operator_key(op: HeatOperators):
     """(20,) uint8 digest of the simplices and stiffness, computed on the host once per call, so
     that each solve hashes only its small per-walker arrays (diag, keep) to find its factors."""
-    return jax.pure_callback(lambda *a: np.frombuffer(_fingerprint(*a), np.uint8).copy(),
-                             jax.ShapeDtypeStruct((20,), jnp.uint8), op.simplices, jax.lax.stop_gradient(op.stiffness),
-                             vmap_method="sequential")
+    return jax.pure_callback(
+        lambda *a: np.frombuffer(_fingerprint(*a), np.uint8).copy(),
+        jax.ShapeDtypeStruct((20,), jnp.uint8),
+        op.simplices,
+        jax.lax.stop_gradient(op.stiffness),
+        vmap_method="sequential",
+    )
 
 
 def solve_direct(system: LinearSystem, b, key):
@@ -244,8 +249,9 @@ def solve_direct(system: LinearSystem, b, key):
     arrays = (key, system.diag, system.scale, system.keep, system.op.simplices, system.op.stiffness)
 
     def solve(_, rhs):
-        return jax.pure_callback(_host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), *arrays, rhs,
-                                 vmap_method="expand_dims")
+        return jax.pure_callback(
+            _host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), *arrays, rhs, vmap_method="expand_dims"
+        )
 
     return jax.lax.custom_linear_solve(system.matvec, b, solve, symmetric=True)
 
@@ -256,8 +262,9 @@ def solve_cg(system: LinearSystem, b, *, rtol: float, max_steps: int):
     (`lax.custom_linear_solve`: the adjoint is one more CG solve)."""
     diag = system.diagonal()
     inverse_diag = jnp.where(diag > 0, 1.0 / jnp.where(diag > 0, diag, 1.0), 1.0)
-    return jax.lax.custom_linear_solve(system.matvec, b, lambda mv, rhs: _pcg(mv, rhs, inverse_diag, rtol, max_steps),
-                                       symmetric=True)
+    return jax.lax.custom_linear_solve(
+        system.matvec, b, lambda mv, rhs: _pcg(mv, rhs, inverse_diag, rtol, max_steps), symmetric=True
+    )
 
 
 def _pcg(matvec, b, inverse_diag, rtol: float, max_steps: int):
@@ -303,10 +310,10 @@ def _host_solve(key, diag, scale, keep, simplices, stiffness, rhs):
     operator = (key, diag, scale, keep, simplices, stiffness)
     lead = rhs.shape[:-1]
     n = rhs.shape[-1]
-    ops = [np.broadcast_to(a, lead + a.shape[len(lead):]).reshape((-1,) + a.shape[len(lead):]) for a in operator]
+    ops = [np.broadcast_to(a, lead + a.shape[len(lead) :]).reshape((-1,) + a.shape[len(lead) :]) for a in operator]
     flat_rhs = np.asarray(rhs, np.float64).reshape(-1, n)
     out = np.empty_like(flat_rhs)
-    if all(a.shape[:len(lead)] == (1,) * len(lead) for a in operator):  # one operator: a multi-column solve
+    if all(a.shape[: len(lead)] == (1,) * len(lead) for a in operator):  # one operator: a multi-column solve
         out[:] = _factor(*(a[0] for a in ops)).solve(flat_rhs.T).T
     else:
         for k in range(flat_rhs.shape[0]):
@@ -336,8 +343,9 @@ def new_factor(matrix, backend: str = DIRECT_BACKEND):
         except (RuntimeError, ValueError):
             pass
     try:
-        return scipy.sparse.linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                        options={"SymmetricMode": True})
+        return scipy.sparse.linalg.splu(
+            matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
     except RuntimeError:  # a zero pivot without pivoting: an indefinite matrix, LU with partial pivoting
         pass
     try:
@@ -354,8 +362,13 @@ class _Singular:
 class _Cholesky:
     def __init__(self, matrix):
         coo = matrix.tocoo()
-        self.solver = cholespy.CholeskySolverD(coo.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
-                                               coo.data.astype(np.float64), cholespy.MatrixType.COO)
+        self.solver = cholespy.CholeskySolverD(
+            coo.shape[0],
+            coo.row.astype(np.int32),
+            coo.col.astype(np.int32),
+            coo.data.astype(np.float64),
+            cholespy.MatrixType.COO,
+        )
 
     def solve(self, rhs):
         rhs = np.array(rhs, dtype=np.float64, order="C")  # a writable copy: cholespy rejects read-only input
@@ -377,8 +390,9 @@ def _assemble(simplices, stiffness, diag, scale, keep):
     return (p @ matrix @ p + scipy.sparse.diags((~keep).astype(np.float64))).tocsr()
 
 
-def heat_distances(tess: Tessellation, op: HeatOperators, sources: Int[Array, " M"], *, boundary: str = "mean",
-                   solver: str = "direct") -> Float[Array, "M N"]:
+def heat_distances(
+    tess: Tessellation, op: HeatOperators, sources: Int[Array, " M"], *, boundary: str = "mean", solver: str = "direct"
+) -> Float[Array, "M N"]:
     """Heat-method distances from each source to every walker (see `jaxgeom.geodesic_distances`)
     with the operators `op` of `heat_operators`."""
     n, dtype = op.n_points, op.stiffness.dtype

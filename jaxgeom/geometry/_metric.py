@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import functools
 import inspect
-import weakref
 import itertools
+import weakref
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -24,12 +24,21 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from ..base._checks import (
-    check_choice, check_nonnegative, check_walker_mask, metric_defect_masks, real_array, walker_values,
+    check_choice,
+    check_nonnegative,
+    check_walker_mask,
+    metric_defect_masks,
+    real_array,
+    walker_values,
     warn_at_caller,
 )
 from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh, spectral_function
 from ..tessellation._graph import (
-    Tessellation, neighbor_coord_displacements, neighbor_displacements, simplex_coords, take_or_zero,
+    Tessellation,
+    neighbor_coord_displacements,
+    neighbor_displacements,
+    simplex_coords,
+    take_or_zero,
     takes_tessellation,
 )
 from ._volumes import voronoi_volumes
@@ -46,8 +55,10 @@ def check_metric(tess: Tessellation, metric, mode: str):
     if callable(metric):
         return metric
     if isinstance(metric, str):
-        raise TypeError(f"`metric` must be None (Euclidean), a callable x (d,) -> g (d, d), or an (N, d, d) array; "
-                        f"got the string {metric!r}. For the Euclidean metric pass metric=None.")
+        raise TypeError(
+            f"`metric` must be None (Euclidean), a callable x (d,) -> g (d, d), or an (N, d, d) array; "
+            f"got the string {metric!r}. For the Euclidean metric pass metric=None."
+        )
     if not isinstance(metric, jax.core.Tracer):
         real_array(metric, "metric")
     g = jnp.asarray(metric)
@@ -76,14 +87,17 @@ def _call_metric(metric: Callable, x):
     try:
         g = jax.vmap(metric)(flat)
     except jax.errors.JAXTypeError as err:  # float(), numpy or a Python branch on the traced x
-        raise TypeError(f"the metric callable must be JAX-traceable, x (d,) -> g (d, d) with jax.numpy (no float(), "
-                        f"numpy calls or Python branches on x); tracing it failed: {type(err).__name__}: "
-                        f"{str(err).splitlines()[0]}") from None
+        raise TypeError(
+            f"the metric callable must be JAX-traceable, x (d,) -> g (d, d) with jax.numpy (no float(), "
+            f"numpy calls or Python branches on x); tracing it failed: {type(err).__name__}: "
+            f"{str(err).splitlines()[0]}"
+        ) from None
     if jnp.issubdtype(g.dtype, jnp.complexfloating):
         raise TypeError(f"the metric callable must return a real floating-point matrix; it returned dtype {g.dtype}.")
     if g.shape[1:] != (x.shape[-1],) * 2:
-        raise ValueError(f"the metric callable must map x (d,) to g (d, d) = {(x.shape[-1],) * 2}; it returned "
-                         f"shape {g.shape[1:]}.")
+        raise ValueError(
+            f"the metric callable must map x (d,) to g (d, d) = {(x.shape[-1],) * 2}; it returned shape {g.shape[1:]}."
+        )
     return g.reshape(x.shape + (x.shape[-1],))
 
 
@@ -166,9 +180,12 @@ def warns_on_defective_metric(kernel):
             return out
         count = int(_defect_count(tess, metric, mode))
         if count:
-            warn_at_caller(f"{kernel.__name__}: the metric callable is NaN, not symmetric or not positive definite "
-                           f"at {count} of {tess.n_points} walkers, so results there are NaN or meaningless; "
-                           "jaxgeom.metric_defects(tess, metric) flags them.", RuntimeWarning)
+            warn_at_caller(
+                f"{kernel.__name__}: the metric callable is NaN, not symmetric or not positive definite "
+                f"at {count} of {tess.n_points} walkers, so results there are NaN or meaningless; "
+                "jaxgeom.metric_defects(tess, metric) flags them.",
+                RuntimeWarning,
+            )
         if len(_CHECKED_CALLABLES) > 64:
             _CHECKED_CALLABLES.clear()
         try:  # weak references: the cache keeps neither the callable nor the positions alive
@@ -241,8 +258,9 @@ def simplex_sq_length_columns(tess: Tessellation, metric=None, *, mode: str = "f
         return tuple(sq[:, k] for k in range(len(pairs)))
     packed = _packed_table(_with_mode(metric, mode))
     g_verts = [[row[tess.simplices[:, v]] for row in packed] for v in range(tess.dim + 1)]
-    return tuple(0.5 * (_quad_packed(g_verts[a], dx[k]) + _quad_packed(g_verts[b], dx[k]))
-                 for k, (a, b) in enumerate(pairs))
+    return tuple(
+        0.5 * (_quad_packed(g_verts[a], dx[k]) + _quad_packed(g_verts[b], dx[k])) for k, (a, b) in enumerate(pairs)
+    )
 
 
 def simplex_sq_lengths_with_references(tess: Tessellation, metric, *, mode: str = "full", hinge_edges=()):
@@ -272,8 +290,9 @@ def simplex_sq_lengths_with_references(tess: Tessellation, metric, *, mode: str 
         return [sum(edge_g[j][i] for j in edges) / len(edges) for i in range(len(table))]
 
     sq_g = jnp.stack([_quad_packed(edge_g[k], dx[k]) for k in range(len(pairs))], axis=1)
-    return sq_g, [jnp.stack([_quad_packed(reference(edges), dx[k]) for k in range(len(pairs))], axis=1)
-                  for edges in hinge_edges]
+    return sq_g, [
+        jnp.stack([_quad_packed(reference(edges), dx[k]) for k in range(len(pairs))], axis=1) for edges in hinge_edges
+    ]
 
 
 def _packed_entries(g):
@@ -343,8 +362,9 @@ def riemannian_mean(values, weights, mask=None) -> Float[Array, ""]:
     """
     values, weights = walker_values(values, "values"), walker_values(weights, "weights", nonnegative=True)
     if values.shape != weights.shape:
-        raise ValueError(f"`values` and `weights` must have the same shape (N,); got {values.shape} and "
-                         f"{weights.shape}.")
+        raise ValueError(
+            f"`values` and `weights` must have the same shape (N,); got {values.shape} and {weights.shape}."
+        )
     check_walker_mask(mask, "mask", values.shape)
     ok = jnp.isfinite(values) & jnp.isfinite(weights)
     if mask is not None:
@@ -360,6 +380,7 @@ def eigh(m):
 
 class HessianParts(NamedTuple):
     """What a `hessian_metric` callable is made of (its attribute `hessian_parts`)."""
+
     fitness: Callable
     eps_sigma: object  # float, or a traced scalar
     floor: str
@@ -398,9 +419,11 @@ def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Call
     check_choice(floor, "floor", HESSIAN_FLOORS)
     check_nonnegative(eps_sigma, "eps_sigma")  # a spectral floor
     if isinstance(eps_sigma, (int, float)) and eps_sigma == 0:
-        warn_at_caller("hessian_metric: eps_sigma = 0 leaves g = floor(H) singular wherever the Hessian has an "
-                       "eigenvalue <= 0 (a zero metric on a linear landscape); lengths, curvatures and metric "
-                       "weights are NaN there. Give eps_sigma > 0 (the spectral floor eps_Sigma).")
+        warn_at_caller(
+            "hessian_metric: eps_sigma = 0 leaves g = floor(H) singular wherever the Hessian has an "
+            "eigenvalue <= 0 (a zero metric on a linear landscape); lengths, curvatures and metric "
+            "weights are NaN there. Give eps_sigma > 0 (the spectral floor eps_Sigma)."
+        )
     if isinstance(eps_sigma, (int, float)):  # the same callable for the same arguments: no recompilation
         return _cached_hessian_metric(fitness, float(eps_sigma), floor)
     return _hessian_metric(fitness, eps_sigma, floor)

@@ -77,13 +77,18 @@ def christoffel_symbols(metric: Callable, x: Float[Array, " d"]) -> Float[Array,
 def ricci_tensor(metric: Callable, x: Float[Array, " d"]) -> Float[Array, "d d"]:
     """R_sn = R^r_srn = d_r G^r_ns - d_n G^r_rs + G^r_rl G^l_ns - G^r_nl G^l_rs (G = Gamma),
     the convention in which the round sphere has positive curvature."""
+
     def both(y):
         gamma = christoffel_symbols(metric, y)
         return gamma, gamma
 
     dgamma, gamma = jax.jacfwd(both, has_aux=True)(x)  # dgamma[k, i, j, m] = d_m Gamma^k_ij
-    ric = (jnp.einsum("rnsr->sn", dgamma) - jnp.einsum("rrsn->sn", dgamma)
-           + jnp.einsum("rrl,lns->sn", gamma, gamma) - jnp.einsum("rnl,lrs->sn", gamma, gamma))
+    ric = (
+        jnp.einsum("rnsr->sn", dgamma)
+        - jnp.einsum("rrsn->sn", dgamma)
+        + jnp.einsum("rrl,lns->sn", gamma, gamma)
+        - jnp.einsum("rnl,lrs->sn", gamma, gamma)
+    )
     return 0.5 * (ric + ric.T)
 
 
@@ -130,6 +135,7 @@ def _in_frame(t, low):
 
 def _hessian_exact_walker(parts: HessianParts, x):
     """(S, not positive definite, floor active) from T = D^3 V in a g-orthonormal frame."""
+
     def hessian_twice(y):
         h = jax.hessian(parts.fitness)(y)
         return h, h
@@ -146,6 +152,7 @@ def _hessian_exact_walker(parts: HessianParts, x):
 
 def _third_covector(fitness: Callable, x, a, b):
     """T(a, b, .) = grad_x D^2 V(x)[a, b]: a third derivative contracted on two slots."""
+
     def second(y):
         return jax.jvp(lambda u: jax.jvp(fitness, (u,), (a,))[1], (y,), (b,))[1]
 
@@ -177,8 +184,17 @@ def _hessian_stochastic_walker(parts: HessianParts, x, key, probes: int):
     return jnp.where(bad, jnp.nan, scalar), jnp.where(bad, jnp.nan, error), not_pd, active
 
 
-def metric_curvature(metric: Callable, points, *, probes: int | None = None, key=None, method: str = "auto",
-                     ricci: bool = False, chunk: int | None = None, with_info: bool = False):
+def metric_curvature(
+    metric: Callable,
+    points,
+    *,
+    probes: int | None = None,
+    key=None,
+    method: str = "auto",
+    ricci: bool = False,
+    chunk: int | None = None,
+    with_info: bool = False,
+):
     """The Ricci scalar of a metric x -> g(x) at every walker, in any dimension.
 
     No triangulation: the curvature of the metric itself at the walkers, the quantity the
@@ -225,20 +241,26 @@ def metric_curvature(metric: Callable, points, *, probes: int | None = None, key
 def _check_arguments(metric, points, probes, key, method, ricci, chunk):
     check_choice(method, "method", CURVATURE_METHODS)
     if not callable(metric):
-        raise TypeError("`metric` must be a JAX callable x (d,) -> g (d, d) (curvature needs the metric's derivatives, "
-                        f"which an array of values does not have); got {type(metric).__name__}. For the fitness "
-                        "metric pass jaxgeom.hessian_metric(fitness, eps_sigma).")
+        raise TypeError(
+            "`metric` must be a JAX callable x (d,) -> g (d, d) (curvature needs the metric's derivatives, "
+            f"which an array of values does not have); got {type(metric).__name__}. For the fitness "
+            "metric pass jaxgeom.hessian_metric(fitness, eps_sigma)."
+        )
     points = _checked_points(points)
     _check_metric_output(metric, points)
     parts = hessian_parts(metric)
     if method == "hessian" and parts is None:
-        raise ValueError("method='hessian' needs a metric from jaxgeom.hessian_metric (g = Hess V + eps_Sigma I); "
-                         "for any other callable use method='christoffel' or 'auto'.")
+        raise ValueError(
+            "method='hessian' needs a metric from jaxgeom.hessian_metric (g = Hess V + eps_Sigma I); "
+            "for any other callable use method='christoffel' or 'auto'."
+        )
     if probes is not None:
         check_integer(probes, "probes", 1)
         if parts is None or method == "christoffel":
-            raise ValueError("`probes` (the stochastic form) needs the Hessian form: a metric from "
-                             "jaxgeom.hessian_metric with method 'auto' or 'hessian'; use probes=None otherwise.")
+            raise ValueError(
+                "`probes` (the stochastic form) needs the Hessian form: a metric from "
+                "jaxgeom.hessian_metric with method 'auto' or 'hessian'; use probes=None otherwise."
+            )
         if key is None:
             raise ValueError("`probes` draws random probes: give `key`, e.g. key=jax.random.key(0).")
     if chunk is not None:
@@ -269,8 +291,7 @@ def _check_metric_output(metric, points):
     d = points.shape[1]
     out = jax.eval_shape(lambda x: _call_metric(metric, x), jax.ShapeDtypeStruct((1, d), points.dtype))
     if not jnp.issubdtype(out.dtype, jnp.floating):
-        raise TypeError(f"the metric callable must return a real floating-point matrix; it returned dtype "
-                        f"{out.dtype}.")
+        raise TypeError(f"the metric callable must return a real floating-point matrix; it returned dtype {out.dtype}.")
 
 
 def _default_chunk(d: int, method: str, probes, parts) -> int:
@@ -306,8 +327,9 @@ def _curvature(metric, points, key, parts, method, probes, want_ricci, chunk, fa
         else:
             s, se, npd, active = jax.vmap(lambda y, kk: _hessian_stochastic_walker(parts, y, kk, probes))(x, k)
         if fallback:  # only batches holding a floor-active walker pay for the Christoffel form
-            s, se, npd = jax.lax.cond(jnp.any(active), lambda: _replace(christoffel(x), s, se, npd, active),
-                                      lambda: (s, se, npd))
+            s, se, npd = jax.lax.cond(
+                jnp.any(active), lambda: _replace(christoffel(x), s, se, npd, active), lambda: (s, se, npd)
+            )
         return s, se, npd, active, None
 
     s, se, npd, active, ric = _chunks(batch, (points, keys), n, chunk)

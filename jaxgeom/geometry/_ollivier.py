@@ -34,10 +34,22 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..base._checks import check_choice, check_integer, check_number, check_positive
 from ..base._simplex import safe_sqrt
-from ..tessellation._graph import (Tessellation, bucket_neighbors, bucket_simplices, neighbor_displacements,
-                                   take_or_zero, takes_tessellation)
+from ..tessellation._graph import (
+    Tessellation,
+    bucket_neighbors,
+    bucket_simplices,
+    neighbor_displacements,
+    take_or_zero,
+    takes_tessellation,
+)
 from ._metric import (
-    _call_metric, _quad, _with_mode, _wrap, check_metric, edge_sq_lengths, warns_on_defective_metric,
+    _call_metric,
+    _quad,
+    _with_mode,
+    _wrap,
+    check_metric,
+    edge_sq_lengths,
+    warns_on_defective_metric,
 )
 from ._transport import transport_cost
 
@@ -109,9 +121,19 @@ class OllivierRicci(eqx.Module):
 
 @takes_tessellation
 @warns_on_defective_metric
-def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "full", measure: str = "uniform",
-                   cost: str = "graph", kernel_scale=None, solver: str = "exact", capacity: int | None = None,
-                   batch_size: int | None = None) -> OllivierRicci:
+def ollivier_ricci(
+    tess: Tessellation,
+    *,
+    alpha=0.5,
+    metric=None,
+    mode: str = "full",
+    measure: str = "uniform",
+    cost: str = "graph",
+    kernel_scale=None,
+    solver: str = "exact",
+    capacity: int | None = None,
+    batch_size: int | None = None,
+) -> OllivierRicci:
     """Ollivier-Ricci curvature kappa = 1 - W1(m_x, m_y) / d(x, y) of every graph edge.
 
     **Arguments:**
@@ -145,8 +167,10 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     check_choice(solver, "solver", ORC_SOLVERS)
     check_positive(kernel_scale, "kernel_scale")
     if kernel_scale is not None and measure != "kernel":
-        raise ValueError(f"`kernel_scale` is the width of measure='kernel'; measure={measure!r} does not use it. "
-                         "Leave it None, or use measure='kernel'.")
+        raise ValueError(
+            f"`kernel_scale` is the width of measure='kernel'; measure={measure!r} does not use it. "
+            "Leave it None, or use measure='kernel'."
+        )
     if batch_size is not None:
         check_integer(batch_size, "batch_size", low=1)
     check_metric(tess, metric, mode)
@@ -155,8 +179,9 @@ def ollivier_ricci(tess: Tessellation, *, alpha=0.5, metric=None, mode: str = "f
     if not isinstance(ids, jax.core.Tracer):
         ids, dist = _first_columns(ids, dist, bucket_neighbors(int(used)))
     groups = edge_groups(graph.neighbors)
-    return _ollivier_ricci(graph, ids, dist, groups, alpha, metric, mode, measure, cost, kernel_scale,
-                           batch_size or default_edge_batch())
+    return _ollivier_ricci(
+        graph, ids, dist, groups, alpha, metric, mode, measure, cost, kernel_scale, batch_size or default_edge_batch()
+    )
 
 
 @eqx.filter_jit
@@ -186,8 +211,9 @@ def undirected_graph(tess: Tessellation, capacity: int | None = None) -> Tessell
                 capacity = bucket_neighbors(int(jnp.max(_undirected_degree(tess.neighbors))))
     check_integer(capacity, "capacity", low=1)
     rows, shifts, overflow = _symmetrize(tess.neighbors, tess.neighbor_shifts, capacity)
-    return Tessellation(tess.points, rows, tess.tier, tess.hull, None, shifts, None, tess.box,
-                        tess.overflow | overflow, tess.periodic)
+    return Tessellation(
+        tess.points, rows, tess.tier, tess.hull, None, shifts, None, tess.box, tess.overflow | overflow, tess.periodic
+    )
 
 
 def _sorted_pairs(neighbors, shifts):
@@ -253,15 +279,18 @@ def two_hop_tables(graph: Tessellation, weights):
 
 
 @eqx.filter_jit
-def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale,
-                    batch_size: int):
+def _ollivier_ricci(
+    graph: Tessellation, ids2, dist2, groups, alpha, metric, mode, measure, cost, kernel_scale, batch_size: int
+):
     metric = check_metric(graph, metric, mode)
     lengths = safe_sqrt(edge_sq_lengths(graph, metric, mode=mode))
     weights = _edge_weights(graph, metric, mode, cost)
     masses, moment = _walker_measures(graph, lengths, weights, alpha, measure, kernel_scale)
     ctx = _edge_context(graph, ids2, dist2, weights, masses, metric, mode, cost)
-    solved = [jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=batch_size)
-              for ends, slots, width in groups]
+    solved = [
+        jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=batch_size)
+        for ends, slots, width in groups
+    ]
     ends, slots = (jnp.concatenate([g[i] for g in groups]) for i in (0, 1))
     kappa, converged = (jnp.concatenate([r[i] for r in solved]) for i in (0, 1))
     edge_kappa = _edge_values_to_slots(graph.neighbors, ends, slots, kappa, jnp.nan)
@@ -270,11 +299,11 @@ def _ollivier_ricci(graph: Tessellation, ids2, dist2, groups, alpha, metric, mod
 
 
 class _EdgeContext(eqx.Module):
-    closed_ids: Array    # (N + 1, K + 1) walker itself, then its neighbours
+    closed_ids: Array  # (N + 1, K + 1) walker itself, then its neighbours
     closed_weights: Array
-    two_hop_ids: Array   # (N + 1, T)
+    two_hop_ids: Array  # (N + 1, T)
     two_hop_dist: Array
-    masses: Array        # (N + 1, K + 1) m_x on the closed row
+    masses: Array  # (N + 1, K + 1) m_x on the closed row
     displacements: Array | None  # (N + 1, K + 1, d) x_j - x_i on the closed row (cost="direct")
     graph: Tessellation
     metric: object
@@ -285,9 +314,18 @@ class _EdgeContext(eqx.Module):
 def _edge_context(graph: Tessellation, ids2, dist2, weights, masses, metric, mode: str, cost: str) -> _EdgeContext:
     """The per-walker tables every edge reads, each padded with a row for the sentinel N."""
     n = graph.n_points
-    return _EdgeContext(_pad_rows(_closed_rows(graph.neighbors), n), _pad_rows(_closed_rows(weights, 0.0), 0.0),
-                        _pad_rows(ids2, n), _pad_rows(dist2, jnp.inf), _pad_rows(masses, 0.0),
-                        _displacement_table(graph) if cost == "direct" else None, graph, metric, mode, cost)
+    return _EdgeContext(
+        _pad_rows(_closed_rows(graph.neighbors), n),
+        _pad_rows(_closed_rows(weights, 0.0), 0.0),
+        _pad_rows(ids2, n),
+        _pad_rows(dist2, jnp.inf),
+        _pad_rows(masses, 0.0),
+        _displacement_table(graph) if cost == "direct" else None,
+        graph,
+        metric,
+        mode,
+        cost,
+    )
 
 
 def _closed_rows(values, self_value=None):
@@ -308,10 +346,12 @@ def _walker_measures(graph: Tessellation, lengths, weights, alpha, measure: str,
     if measure == "uniform":
         logits = jnp.zeros_like(lengths)
     elif measure == "grc":
-        logits = -weights**2
+        logits = -(weights**2)
     else:
-        scale = jnp.sum(lengths, axis=1, keepdims=True) / jnp.maximum(degree, 1) if kernel_scale is None else kernel_scale
-        logits = -lengths**2 / (2.0 * jnp.where(scale > 0, scale, 1.0) ** 2)
+        scale = (
+            jnp.sum(lengths, axis=1, keepdims=True) / jnp.maximum(degree, 1) if kernel_scale is None else kernel_scale
+        )
+        logits = -(lengths**2) / (2.0 * jnp.where(scale > 0, scale, 1.0) ** 2)
     logits = jnp.where(mask, logits, -jnp.inf)
     top = jnp.max(logits, axis=1, keepdims=True)
     p = jnp.where(mask, jnp.exp(logits - jnp.where(degree > 0, top, 0.0)), 0.0)
@@ -352,15 +392,22 @@ def _host_edge_groups(nbrs: np.ndarray, dtype) -> tuple:
     for width in np.unique(widths):
         pick = np.flatnonzero(widths == width)
         pad = bucket_simplices(len(pick)) - len(pick)
-        groups.append((jnp.asarray(np.r_[ends[pick], np.full(pad, n)], dtype),
-                       jnp.asarray(np.r_[slots[pick], np.zeros(pad, int)], dtype), int(width)))
+        groups.append(
+            (
+                jnp.asarray(np.r_[ends[pick], np.full(pad, n)], dtype),
+                jnp.asarray(np.r_[slots[pick], np.zeros(pad, int)], dtype),
+                int(width),
+            )
+        )
     return tuple(groups) or ((jnp.full((1,), n, dtype), jnp.zeros((1,), dtype), k + 1),)
 
 
 def _edge_values_to_slots(neighbors, ends, slots, values, fill):
     """Per-edge values -> (N, K) aligned with `neighbors`, both directions; `fill` on padding."""
     n, k = neighbors.shape
-    edge_id = jnp.full((n, k), -1, jnp.int32).at[ends, slots].set(jnp.arange(ends.shape[0], dtype=jnp.int32), mode="drop")
+    edge_id = (
+        jnp.full((n, k), -1, jnp.int32).at[ends, slots].set(jnp.arange(ends.shape[0], dtype=jnp.int32), mode="drop")
+    )
     j = jnp.minimum(neighbors, n - 1)
     query = jnp.broadcast_to(jnp.arange(n, dtype=neighbors.dtype)[:, None], (n, k))
     back = jax.vmap(jax.vmap(jnp.searchsorted))(neighbors[j], query)  # slot of i in row j (rows ascend)
@@ -397,8 +444,9 @@ def _ground_cost(ctx: _EdgeContext, x, y, slot, support_x, support_y):
         return _direct_cost(ctx, x, y, slot, support_x, support_y)
     m = support_y.shape[0]
     if ctx.cost == "hops":  # d <= 3 through the edge, so the two-hop table decides exactly
-        found, dist = _two_hop_lookup(ctx, jnp.broadcast_to(support_x[:, None], (m, m)),
-                                      jnp.broadcast_to(support_y[None, :], (m, m)))
+        found, dist = _two_hop_lookup(
+            ctx, jnp.broadcast_to(support_x[:, None], (m, m)), jnp.broadcast_to(support_y[None, :], (m, m))
+        )
         return jnp.where(found, dist, float(HOP_RADIUS))
     via = ctx.closed_ids[support_y]  # (M, K + 1): every b next to (or equal to) some v, whole rows
     _, dist = _two_hop_lookup(ctx, jnp.broadcast_to(support_x[:, None, None], (m,) + via.shape), via[None])
@@ -429,9 +477,9 @@ def _two_hop_lookup(ctx: _EdgeContext, sources, targets):
 def _direct_cost(ctx: _EdgeContext, x, y, slot, support_x, support_y):
     """Metric length of the segment u -> v, positions relative to x (periodic images applied)."""
     m = support_x.shape[0]
-    to_u = ctx.displacements[x, :m]                               # (M, d)
+    to_u = ctx.displacements[x, :m]  # (M, d)
     to_v = ctx.displacements[x, slot + 1] + ctx.displacements[y, :m]
-    dx = to_v[None, :, :] - to_u[:, None, :]                      # (M, M, d)
+    dx = to_v[None, :, :] - to_u[:, None, :]  # (M, M, d)
     metric, graph = ctx.metric, ctx.graph
     if metric is None:
         sq = jnp.sum(dx * dx, axis=-1)
@@ -457,5 +505,14 @@ def _summaries(graph: Tessellation, edge_kappa, edge_ok, moment, alpha, cost: st
     scale = 2.0 * dim**2 / ((1.0 - alpha) * pair_moment) if cost != "hops" else jnp.nan
     per_edge = jnp.where(mask, kappa0 * scale, 0.0)
     scalar = jnp.where(isolated | (alpha >= 1.0), jnp.nan, jnp.sum(per_edge, axis=1) / jnp.maximum(degree, 1))
-    return OllivierRicci(graph.neighbors, edge_kappa, walker, scalar, moment, isolated, graph.interior,
-                         jnp.any(mask & ~edge_ok, axis=1), jnp.asarray(graph.overflow))
+    return OllivierRicci(
+        graph.neighbors,
+        edge_kappa,
+        walker,
+        scalar,
+        moment,
+        isolated,
+        graph.interior,
+        jnp.any(mask & ~edge_ok, axis=1),
+        jnp.asarray(graph.overflow),
+    )

@@ -81,12 +81,14 @@ class Scutoids(eqx.Module):
         count = jnp.sum(mask)
         dtype = self.bottom_volume.dtype
         share = lambda k: jnp.where(  # noqa: E731
-            count > 0, jnp.sum(mask & (self.kind == k)).astype(dtype) / jnp.maximum(count, 1).astype(dtype), jnp.nan)
+            count > 0, jnp.sum(mask & (self.kind == k)).astype(dtype) / jnp.maximum(count, 1).astype(dtype), jnp.nan
+        )
         return ScutoidFractions(share(PRISM), share(SIMPLE), share(COMPLEX))
 
 
-def scutoids(before: Tessellation, after: Tessellation, parents=None, *, dt=1.0, volumes_before=None,
-             volumes_after=None) -> Scutoids:
+def scutoids(
+    before: Tessellation, after: Tessellation, parents=None, *, dt=1.0, volumes_before=None, volumes_after=None
+) -> Scutoids:
     """The scutoids of one step: each walker's cell at t (its clone parent's) joined to its
     cell at t + dt, its neighbour changes classified, its spacetime volume.
 
@@ -104,19 +106,24 @@ def scutoids(before: Tessellation, after: Tessellation, parents=None, *, dt=1.0,
     """
     for name, tess in (("before", before), ("after", after)):
         if not isinstance(tess, Tessellation) or tess.simplices is None:
-            raise TypeError(f"`{name}` must be a Delaunay jaxgeom.Tessellation (jaxgeom.delaunay); scutoids join "
-                            "Voronoi cells.")
+            raise TypeError(
+                f"`{name}` must be a Delaunay jaxgeom.Tessellation (jaxgeom.delaunay); scutoids join Voronoi cells."
+            )
     if before.points.shape != after.points.shape:
-        raise ValueError(f"`before` and `after` must hold the same walkers; got {before.points.shape[0]} and "
-                         f"{after.points.shape[0]} walkers of d = {before.points.shape[1]}, {after.points.shape[1]}.")
+        raise ValueError(
+            f"`before` and `after` must hold the same walkers; got {before.points.shape[0]} and "
+            f"{after.points.shape[0]} walkers of d = {before.points.shape[1]}, {after.points.shape[1]}."
+        )
     n = before.n_points
     if parents is None:
         parents = jnp.arange(n, dtype=jnp.int32)
     elif not isinstance(parents, jax.core.Tracer):
         host = np.asarray(parents)
         if host.shape != (n,) or not np.issubdtype(host.dtype, np.integer):
-            raise ValueError(f"`parents` must be an (N,) = ({n},) integer array (each walker's clone parent); got "
-                             f"{host.dtype} {host.shape}.")
+            raise ValueError(
+                f"`parents` must be an (N,) = ({n},) integer array (each walker's clone parent); got "
+                f"{host.dtype} {host.shape}."
+            )
         if host.size and (host.min() < 0 or host.max() >= n):
             raise ValueError(f"`parents` must hold walker ids in [0, {n}); got values in [{host.min()}, {host.max()}].")
     if not isinstance(dt, jax.core.Tracer):
@@ -134,14 +141,24 @@ def _scutoids(before, after, parents, dt, volumes_before, volumes_after) -> Scut
     kind = jnp.where((lost == 0) & (gained == 0), PRISM, jnp.where((lost <= 1) & (gained <= 1), SIMPLE, COMPLEX))
     bottom = (voronoi_volumes(before) if volumes_before is None else jnp.asarray(volumes_before))[parents]
     top = voronoi_volumes(after) if volumes_after is None else jnp.asarray(volumes_after)
-    return Scutoids(shared, lost, gained, kind.astype(jnp.int8), parents, bottom, top,
-                    frustum_volume(bottom, top, dt, before.dim), before.hull[parents] | after.hull,
-                    (before.tier[parents] == 2) & (after.tier == 2))
+    return Scutoids(
+        shared,
+        lost,
+        gained,
+        kind.astype(jnp.int8),
+        parents,
+        bottom,
+        top,
+        frustum_volume(bottom, top, dt, before.dim),
+        before.hull[parents] | after.hull,
+        (before.tier[parents] == 2) & (after.tier == 2),
+    )
 
 
 def neighbour_changes(bottom, top, n: int):
     """(shared, lost, gained) int32 per row of two padded neighbour tables (padding `n`);
     each id counted once (a periodic walker may list two images of one neighbour)."""
+
     def distinct(rows):
         k = rows.shape[1]
         earlier = (rows[:, :, None] == rows[:, None, :]) & (jnp.arange(k)[None, :] < jnp.arange(k)[:, None])[None]
@@ -150,8 +167,11 @@ def neighbour_changes(bottom, top, n: int):
     real_bottom, real_top = distinct(bottom), distinct(top)
     in_bottom = jnp.any((top[:, :, None] == bottom[:, None, :]) & real_bottom[:, None, :], axis=2)
     shared = jnp.sum(real_top & in_bottom, axis=1)
-    return (shared.astype(jnp.int32), (jnp.sum(real_bottom, axis=1) - shared).astype(jnp.int32),
-            jnp.sum(real_top & ~in_bottom, axis=1).astype(jnp.int32))
+    return (
+        shared.astype(jnp.int32),
+        (jnp.sum(real_bottom, axis=1) - shared).astype(jnp.int32),
+        jnp.sum(real_top & ~in_bottom, axis=1).astype(jnp.int32),
+    )
 
 
 def frustum_volume(bottom, top, dt, d: int):

@@ -12,10 +12,12 @@ import scipy.sparse.linalg
 from jaxtyping import Array, Float, Int
 
 from ..base._checks import check_choice, check_integer, check_positive, refuse_unused, warn_at_caller
-from ..tessellation._triangulators import morton_codes
 from ..tessellation._graph import Tessellation, padded_to_csr, take_or_zero, takes_tessellation
+from ..tessellation._triangulators import morton_codes
 from ._weights import (
-    check_weights, kernel_arguments, weights_on_graph,
+    check_weights,
+    kernel_arguments,
+    weights_on_graph,
 )
 
 LAPLACIAN_WEIGHTS = ("kernel", "uniform")
@@ -81,8 +83,9 @@ class GraphLaplacian(eqx.Module):
 
 @takes_tessellation
 @eqx.filter_jit
-def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
-                    alpha: float | None = None) -> GraphLaplacian:
+def graph_laplacian(
+    tess: Tessellation, *, length_scale=None, weights: str = "kernel", alpha: float | None = None
+) -> GraphLaplacian:
     """The normalized graph Laplacian L = I - D^-1/2 W D^-1/2 on the neighbour graph.
 
     **Arguments:**
@@ -110,9 +113,18 @@ def graph_laplacian(tess: Tessellation, *, length_scale=None, weights: str = "ke
 
 
 @takes_tessellation
-def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: str = "kernel",
-                 alpha: float | None = None, method: str = "scipy", tol=None, maxiter: int | None = None,
-                 seed: int | None = None) -> Float[Array, " k"]:
+def spectral_gap(
+    tess: Tessellation,
+    *,
+    k: int = 6,
+    length_scale=None,
+    weights: str = "kernel",
+    alpha: float | None = None,
+    method: str = "scipy",
+    tol=None,
+    maxiter: int | None = None,
+    seed: int | None = None,
+) -> Float[Array, " k"]:
     """The k smallest eigenvalues of the normalized Laplacian, ascending.
 
     lambda_0 = 0 (the constant mode D^1/2 1) and lambda_1 is the spectral gap.
@@ -143,8 +155,12 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     """
     check_choice(method, "method", SPECTRAL_METHODS)
     if method == "scipy":
-        refuse_unused({"tol": tol, "maxiter": maxiter, "seed": seed}, of="method='lobpcg'", chosen="method='scipy'",
-                      why=" (shift-invert eigsh)")
+        refuse_unused(
+            {"tol": tol, "maxiter": maxiter, "seed": seed},
+            of="method='lobpcg'",
+            chosen="method='scipy'",
+            why=" (shift-invert eigsh)",
+        )
     maxiter, seed = (2000 if maxiter is None else maxiter), (0 if seed is None else seed)
     check_positive(tol, "tol", " (LOBPCG's residual tolerance; None: 1e-8 in float64, 1e-3 in float32)")
     check_integer(maxiter, "maxiter", 1)
@@ -152,8 +168,10 @@ def spectral_gap(tess: Tessellation, *, k: int = 6, length_scale=None, weights: 
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k < tess.n_points:
         raise ValueError(f"`k` must be an int with 1 <= k < N = {tess.n_points}; got {k!r}.")
     if method == "lobpcg" and 5 * (k - 1) >= tess.n_points:  # LOBPCG's search block: 5 (k - 1) < N
-        raise ValueError(f"method='lobpcg' needs 5 (k - 1) < N = {tess.n_points}; got k={k}. "
-                         f"Use k <= {(tess.n_points - 1) // 5 + 1} or method='scipy'.")
+        raise ValueError(
+            f"method='lobpcg' needs 5 (k - 1) < N = {tess.n_points}; got k={k}. "
+            f"Use k <= {(tess.n_points - 1) // 5 + 1} or method='scipy'."
+        )
     lap = graph_laplacian(tess, length_scale=length_scale, weights=weights, alpha=alpha)
     if method == "scipy":
         warn_if_underflowed(lap, tess)
@@ -170,14 +188,17 @@ def warn_if_underflowed(lap: GraphLaplacian, tess: Tessellation) -> None:
     construction (the symmetric kernel graph's true limit as l -> 0), which is worth saying."""
     cut = int(np.sum((np.asarray(lap.weights) == 0) & np.asarray(tess.neighbor_mask)))
     if cut:
-        warn_at_caller(f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
-                       "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
-                       "construction. Use a larger length_scale, or None for the adaptive rule.")
+        warn_at_caller(
+            f"{cut} edge(s) of the kernel graph have weight 0 (underflow: length_scale is far below "
+            "the walker spacing), so the graph falls apart and its smallest eigenvalues are 0 by "
+            "construction. Use a larger length_scale, or None for the adaptive rule."
+        )
 
 
 @takes_tessellation
-def bulk_spectral_gap(tess: Tessellation, *, length_scale=None, weights: str = "kernel",
-                      alpha: float | None = None) -> tuple[float, int, int]:
+def bulk_spectral_gap(
+    tess: Tessellation, *, length_scale=None, weights: str = "kernel", alpha: float | None = None
+) -> tuple[float, int, int]:
     """(gap, n_components, n_outside): the spectral gap of the largest connected component
     of the weighted graph, the number of components, and the walkers outside the largest.
 
@@ -221,11 +242,22 @@ def _scipy_smallest(matrix, k: int) -> np.ndarray:
     if n <= 200 or k >= n - 1:
         return np.linalg.eigvalsh(matrix.toarray())[:k]
     sigma = -0.01 / n
-    lu = scipy.sparse.linalg.splu((matrix - sigma * scipy.sparse.identity(n)).tocsc(), permc_spec="NATURAL",
-                                  diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    lu = scipy.sparse.linalg.splu(
+        (matrix - sigma * scipy.sparse.identity(n)).tocsc(),
+        permc_spec="NATURAL",
+        diag_pivot_thresh=0.0,
+        options={"SymmetricMode": True},
+    )
     inverse = scipy.sparse.linalg.LinearOperator((n, n), matvec=lu.solve, matmat=lu.solve, dtype=np.float64)
-    vals = scipy.sparse.linalg.eigsh(matrix, k=k, sigma=sigma, which="LM", OPinv=inverse, return_eigenvectors=False,
-                                     v0=np.ones(n) / np.sqrt(n) + 1e-3 * np.arange(n) / n)
+    vals = scipy.sparse.linalg.eigsh(
+        matrix,
+        k=k,
+        sigma=sigma,
+        which="LM",
+        OPinv=inverse,
+        return_eigenvectors=False,
+        v0=np.ones(n) / np.sqrt(n) + 1e-3 * np.arange(n) / n,
+    )
     return np.sort(np.clip(vals, 0.0, None))
 
 
@@ -266,7 +298,9 @@ def _separator_levels(code, n_bits: int, depth: int, i, j) -> np.ndarray:
 def _lobpcg_smallest(lap: GraphLaplacian, k: int, tol, maxiter: int, seed: int):
     from jax.experimental.sparse.linalg import lobpcg_standard
 
-    sqrt_deg = jnp.where(lap.inv_sqrt_degree > 0, 1.0 / jnp.where(lap.inv_sqrt_degree > 0, lap.inv_sqrt_degree, 1.0), 0.0)
+    sqrt_deg = jnp.where(
+        lap.inv_sqrt_degree > 0, 1.0 / jnp.where(lap.inv_sqrt_degree > 0, lap.inv_sqrt_degree, 1.0), 0.0
+    )
     u = sqrt_deg / jnp.linalg.norm(sqrt_deg)  # the exact null vector of L
 
     def shifted(x):  # 2 I - L with u deflated: eigenvalues 2 - lambda_1, 2 - lambda_2, ...

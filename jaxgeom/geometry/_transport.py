@@ -27,8 +27,9 @@ def mass_tolerance(dtype) -> float:
     return 2.0 * float(jnp.finfo(dtype).eps)
 
 
-def transport_cost(cost: Float[Array, "M M"], a: Float[Array, " M"], b: Float[Array, " M"],
-                   same: Bool[Array, "M M"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+def transport_cost(
+    cost: Float[Array, "M M"], a: Float[Array, " M"], b: Float[Array, " M"], same: Bool[Array, "M M"]
+) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """Exact W1 between `a` (rows) and `b` (columns) under `cost`, with envelope gradients.
 
     **Arguments:**
@@ -102,8 +103,14 @@ def _shortest_paths(cost, plan, sources):
         row_pred = jnp.where(better_row, jnp.argmin(via_col, axis=1), row_pred)
         return row_dist, col_dist, row_pred, col_pred, jnp.any(better_row), count + 1
 
-    start = (jnp.where(sources, 0.0, jnp.inf).astype(cost.dtype), jnp.full((m,), jnp.inf, cost.dtype),
-             jnp.full((m,), -1), jnp.zeros((m,), int), jnp.asarray(True), 0)
+    start = (
+        jnp.where(sources, 0.0, jnp.inf).astype(cost.dtype),
+        jnp.full((m,), jnp.inf, cost.dtype),
+        jnp.full((m,), -1),
+        jnp.zeros((m,), int),
+        jnp.asarray(True),
+        0,
+    )
     return jax.lax.while_loop(lambda s: s[4] & (s[5] <= 2 * m), sweep, start)[:4]
 
 
@@ -130,9 +137,14 @@ def _trace_path(plan, supply, row_pred, col_pred, target, demand):
     # not reached: after 2 M steps `col` lies on the cycle; go round it once from there
     state = (col, jnp.zeros_like(plan), jnp.asarray(jnp.inf, plan.dtype), jnp.asarray(False), source, 0)
     _, cycle, delta, _, _, _ = jax.lax.while_loop(
-        lambda s: ~reached & (s[5] < 2 * m) & ((s[5] == 0) | (s[0] != col)), back, state)
-    return (jnp.where(reached, step, cycle), jnp.where(reached, theta, jnp.where(jnp.isfinite(delta), delta, 0.0)),
-            source, reached)
+        lambda s: ~reached & (s[5] < 2 * m) & ((s[5] == 0) | (s[0] != col)), back, state
+    )
+    return (
+        jnp.where(reached, step, cycle),
+        jnp.where(reached, theta, jnp.where(jnp.isfinite(delta), delta, 0.0)),
+        source,
+        reached,
+    )
 
 
 def _cell(ids, row, col, dtype):

@@ -64,8 +64,9 @@ def _beside_flat_triangle(tess: Tessellation, pieces):
     if tess.dim != 2:
         return jnp.zeros(tess.n_points, bool)
     flat = tess.simplex_mask & jnp.all(pieces == 0, axis=1)
-    hits = jax.ops.segment_max(jnp.repeat(flat, 3).astype(jnp.int32), tess.simplices.ravel(),
-                               num_segments=tess.n_points)
+    hits = jax.ops.segment_max(
+        jnp.repeat(flat, 3).astype(jnp.int32), tess.simplices.ravel(), num_segments=tess.n_points
+    )
     return hits > 0
 
 

@@ -97,8 +97,10 @@ def check_weights(name: str, argument: str, allowed: tuple[str, ...], metric=Non
     check_choice(name, argument, allowed)
     rule = EDGE_WEIGHTS[name]
     if rule.needs_metric and metric is None:
-        raise ValueError(f"{argument} {name!r} needs `metric` (an (N, d, d) array or a callable x -> g); "
-                         "pass one, or use 'kernel'/'inverse_distance' for Euclidean weights.")
+        raise ValueError(
+            f"{argument} {name!r} needs `metric` (an (N, d, d) array or a callable x -> g); "
+            "pass one, or use 'kernel'/'inverse_distance' for Euclidean weights."
+        )
     return rule
 
 
@@ -115,15 +117,21 @@ def kernel_arguments(weights: str, length_scale, alpha, metric=None):
     and `alpha` act only on weights="kernel" (alpha only without a length_scale), `metric` only on
     the metric rules; an argument a rule would ignore is refused. Returns alpha (None: the default)."""
     if length_scale is not None and weights != "kernel":
-        raise ValueError(f"`length_scale` sets the width of weights='kernel'; weights={weights!r} does not use it. "
-                         "Leave it None, or use weights='kernel'.")
+        raise ValueError(
+            f"`length_scale` sets the width of weights='kernel'; weights={weights!r} does not use it. "
+            "Leave it None, or use weights='kernel'."
+        )
     if alpha is not None and (weights != "kernel" or length_scale is not None):
-        raise ValueError("`alpha` sets the adaptive width (alpha x the nearest-neighbour distance) of "
-                         f"weights='kernel' without a length_scale; here weights={weights!r}, length_scale="
-                         f"{length_scale!r}. Leave alpha None.")
+        raise ValueError(
+            "`alpha` sets the adaptive width (alpha x the nearest-neighbour distance) of "
+            f"weights='kernel' without a length_scale; here weights={weights!r}, length_scale="
+            f"{length_scale!r}. Leave alpha None."
+        )
     if metric is not None and not EDGE_WEIGHTS[weights].needs_metric:
-        raise ValueError(f"`metric` is used by the metric weights ('metric_diagonal', 'metric_full'); weights="
-                         f"{weights!r} measures Euclidean lengths. Leave metric None, or use a metric rule.")
+        raise ValueError(
+            f"`metric` is used by the metric weights ('metric_diagonal', 'metric_full'); weights="
+            f"{weights!r} measures Euclidean lengths. Leave metric None, or use a metric rule."
+        )
     check_length_scale(length_scale)
     if alpha is None:
         return DEFAULT_ALPHA
@@ -131,8 +139,9 @@ def kernel_arguments(weights: str, length_scale, alpha, metric=None):
     return alpha
 
 
-def weights_on_graph(tess: Tessellation, name: str, *, metric=None, length_scale=None, alpha=DEFAULT_ALPHA,
-                     shift: str = "none") -> Float[Array, "N K"]:
+def weights_on_graph(
+    tess: Tessellation, name: str, *, metric=None, length_scale=None, alpha=DEFAULT_ALPHA, shift: str = "none"
+) -> Float[Array, "N K"]:
     """w_ij of rule `name` per neighbour slot of `tess` (0 on padding); names are not checked here."""
     rule = EDGE_WEIGHTS[name]
     sq = edge_sq_lengths(tess, metric if rule.needs_metric else None, mode=rule.metric_mode)

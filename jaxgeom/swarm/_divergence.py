@@ -10,8 +10,17 @@ import numpy as np
 
 from ..geometry._metric import eigh
 from ._dynamics import (
-    ALL_DEAD, NONFINITE, OVERFLOWED_GRAPH, REBUILD_FAILED, RUNAWAY, RUNAWAY_RADII, SwarmParams,
-    SwarmState, health, metric_field, runaway_radius,
+    ALL_DEAD,
+    NONFINITE,
+    OVERFLOWED_GRAPH,
+    REBUILD_FAILED,
+    RUNAWAY,
+    RUNAWAY_RADII,
+    SwarmParams,
+    SwarmState,
+    health,
+    metric_field,
+    runaway_radius,
 )
 
 
@@ -45,17 +54,22 @@ def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: i
     if code & NONFINITE:
         what.append("walkers have non-finite positions or velocities")
     if code & RUNAWAY:
-        what.append(f"walkers lie farther than {float(runaway_radius(before)):.3g} ({RUNAWAY_RADII:g} initial "
-                    "swarm radii) from the swarm's centre")
+        what.append(
+            f"walkers lie farther than {float(runaway_radius(before)):.3g} ({RUNAWAY_RADII:g} initial "
+            "swarm radii) from the swarm's centre"
+        )
     if code & ALL_DEAD:
         what.append("no walker has a finite fitness")
     if code & OVERFLOWED_GRAPH:
-        what.append("the graph outgrew its capacity (build the state with init_swarm(..., capacity=a larger "
-                    "jaxgeom.Capacity))")
+        what.append(
+            "the graph outgrew its capacity (build the state with init_swarm(..., capacity=a larger jaxgeom.Capacity))"
+        )
     if code & REBUILD_FAILED:
         what.append("Qhull could not triangulate the walkers (degenerate or non-finite positions)")
-    return (f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
-            f"{'; '.join(what)}. {likely_cause(fitness, params, before)}")
+    return (
+        f"simulate: the swarm diverged by step {step} (t = {step * float(params.dt):.4g}): "
+        f"{'; '.join(what)}. {likely_cause(fitness, params, before)}"
+    )
 
 
 def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
@@ -69,19 +83,25 @@ def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
         if not np.isfinite(g).all() or lam.min() <= 0:
             zero = int(np.sum(np.all(g == 0, axis=(1, 2))))
             uses = "the anisotropic noise D = g^-1 is" if params.anisotropic else f"the {params.weights!r} weights are"
-            return (f"Likely cause: the Hessian metric g = floor(H) + eps_Sigma I (eps_sigma = "
-                    f"{float(params.eps_sigma):.3g}) is singular or not positive definite at "
-                    f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s)"
-                    f"{f', the zero metric at {zero}' if zero else ''} (smallest eigenvalue {lam.min():.3g}), so "
-                    f"{uses} undefined; raise eps_sigma or use floor='softabs'.")
+            return (
+                f"Likely cause: the Hessian metric g = floor(H) + eps_Sigma I (eps_sigma = "
+                f"{float(params.eps_sigma):.3g}) is singular or not positive definite at "
+                f"{int(np.sum(lam <= 0) + np.sum(~np.isfinite(g).all(axis=(1, 2))))} walker(s)"
+                f"{f', the zero metric at {zero}' if zero else ''} (smallest eigenvalue {lam.min():.3g}), so "
+                f"{uses} undefined; raise eps_sigma or use floor='softabs'."
+            )
     curvature, slope = map(np.asarray, _largest_curvature_and_slope(fitness, x))
     curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
     slope = float(np.max(slope[np.isfinite(slope)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
     if omega_dt > 2.0:
-        return (f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape (|grad V| reaches "
-                f"{slope:.1e} and the largest Hessian eigenvalue {curvature:.1e} at the walkers of step "
-                f"{int(state.step)}): dt * sqrt(largest eigenvalue) = {omega_dt:.3g}, and the kicks are stable only "
-                f"below 2; reduce dt below {2.0 / np.sqrt(curvature):.3g}.")
-    return ("Likely cause: the forces grew faster than the step resolves (the landscape is steep or unbounded "
-            f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape.")
+        return (
+            f"Likely cause: dt = {float(params.dt):.3g} is too large for this landscape (|grad V| reaches "
+            f"{slope:.1e} and the largest Hessian eigenvalue {curvature:.1e} at the walkers of step "
+            f"{int(state.step)}): dt * sqrt(largest eigenvalue) = {omega_dt:.3g}, and the kicks are stable only "
+            f"below 2; reduce dt below {2.0 / np.sqrt(curvature):.3g}."
+        )
+    return (
+        "Likely cause: the forces grew faster than the step resolves (the landscape is steep or unbounded "
+        f"below where the walkers went; dt = {float(params.dt):.3g}); reduce dt, or bound the landscape."
+    )

@@ -21,8 +21,15 @@ from ._history import _bulk_gap, _history
 from ._observables import prepare_scutoid_trace
 from ._rebuild import grown, update_host
 from ._steps import (
-    _begin_step, _finish_and_begin, _is_traced, _measure_first, _observe_final, _progress,
-    _run_callback, _run_chunk, _run_split,
+    _begin_step,
+    _finish_and_begin,
+    _is_traced,
+    _measure_first,
+    _observe_final,
+    _progress,
+    _run_callback,
+    _run_chunk,
+    _run_split,
 )
 
 
@@ -50,8 +57,9 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             raise_if_interrupted()
             t0 = time.perf_counter()
             entering = state
-            moved, obs, cells, moved_health = _run_chunk(fitness, params, entering, opening,
-                                                         jnp.asarray(start, jnp.int32), n_total, rebuild_every, observe)
+            moved, obs, cells, moved_health = _run_chunk(
+                fitness, params, entering, opening, jnp.asarray(start, jnp.int32), n_total, rebuild_every, observe
+            )
             # Dispatched now, computed by XLA while the host runs Qhull below: none needs the new graph.
             state, opening = _finish_and_begin(fitness, params, moved)
             end = min(start + rebuild_every, n_steps)
@@ -67,8 +75,9 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
             if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
                 state, opening = _finish_and_begin(fitness, params, moved)
-            state = eqx.tree_at(lambda s: (s.tess, s.n_triangulator_fallbacks), state,
-                                (moved.tess, moved.n_triangulator_fallbacks))
+            state = eqx.tree_at(
+                lambda s: (s.tess, s.n_triangulator_fallbacks), state, (moved.tess, moved.n_triangulator_fallbacks)
+            )
             if grew:  # a wider graph: the scutoid trace's rows widen with it
                 state = prepare_scutoid_trace(state, observe)
             reallocations += grew
@@ -82,8 +91,16 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
     except KeyboardInterrupt:
         close_bar(bar, owned)
         kept, steps, n_chunks = done
-        kept, history = _host_history(fitness, params, kept, pending[:n_chunks], observe,
-                                      [g for g in gaps if g[0] <= steps], reallocations, seconds)
+        kept, history = _host_history(
+            fitness,
+            params,
+            kept,
+            pending[:n_chunks],
+            observe,
+            [g for g in gaps if g[0] <= steps],
+            reallocations,
+            seconds,
+        )
         raise SimulationInterrupted(kept, history, steps, n_steps) from None
     close_bar(bar, owned)
     return _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, (n_steps, entering))
@@ -95,8 +112,10 @@ _jit_progress = jax.jit(_progress, static_argnums=2)  # one program (eagerly: th
 def _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, check=None):
     """(state with its final observables, history) from the chunks' pending observables;
     `check` = (step, last sound state): the final state's health is checked too."""
-    chunks = [{name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]])
-               for name in observe} for obs, first, size in pending]
+    chunks = [
+        {name: np.concatenate([np.asarray(first[name])[None], np.asarray(obs[name])[1:size]]) for name in observe}
+        for obs, first, size in pending
+    ]
     state, final = _observe_final(fitness, params, state, observe)
     if check is not None:
         check_health(fitness, params, [_health(state)], *check)
@@ -107,17 +126,23 @@ def _host_history(fitness, params, state, pending, observe, gaps, reallocations,
 def _split_walkers(state: SwarmState, params, mesh, rebuild: str, checkpoint) -> SwarmState:
     """One swarm's state placed with its walker axis split over `mesh` (checked)."""
     if isinstance(mesh, Mesh) and BATCH_AXIS in mesh.axis_names and WALKER_AXIS not in mesh.axis_names:
-        raise ValueError("a mesh with a 'batch' axis splits a batch of swarms (jaxgeom.stack_swarms); this state "
-                         "is one swarm (positions (N, d)): split its walkers with mesh=jaxgeom.walker_mesh().")
+        raise ValueError(
+            "a mesh with a 'batch' axis splits a batch of swarms (jaxgeom.stack_swarms); this state "
+            "is one swarm (positions (N, d)): split its walkers with mesh=jaxgeom.walker_mesh()."
+        )
     check_mesh(mesh, state.positions.shape[0], "the number of walkers N", WALKER_AXIS)
     if rebuild != "device":
-        raise ValueError("splitting one swarm's walkers over devices needs the device rebuild: use "
-                         f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
-                         "rebuilds the whole graph with Qhull in one place).")
+        raise ValueError(
+            "splitting one swarm's walkers over devices needs the device rebuild: use "
+            f"rebuild='device' with mesh=jaxgeom.walker_mesh() (got rebuild={rebuild!r}, which "
+            "rebuilds the whole graph with Qhull in one place)."
+        )
     if checkpoint or _is_traced(state, params):
-        raise TypeError("simulate(..., mesh=walker_mesh()) drives the split swarm from Python (graphs the device "
-                        "rebuild cannot certify are rebuilt by Qhull on the host), so it cannot run under jax.jit, "
-                        "jax.grad or checkpoint=True; differentiate ensembles (batch_mesh) or one device instead.")
+        raise TypeError(
+            "simulate(..., mesh=walker_mesh()) drives the split swarm from Python (graphs the device "
+            "rebuild cannot certify are rebuilt by Qhull on the host), so it cannot run under jax.jit, "
+            "jax.grad or checkpoint=True; differentiate ensembles (batch_mesh) or one device instead."
+        )
     return shard_walkers(state, mesh, state.positions.shape[0])
 
 
@@ -128,8 +153,9 @@ def _simulate_split(fitness, state, params, n_steps, rebuild_every, observe, k, 
     done, chunks, fallbacks, reallocations = 0, [], 0, 0
     while done < n_steps:
         entering = state
-        state, stopped, obs = _run_split(fitness, params, state, total, jnp.asarray(done, jnp.int32), n_steps,
-                                         observe, rebuild_every, k, mesh)
+        state, stopped, obs = _run_split(
+            fitness, params, state, total, jnp.asarray(done, jnp.int32), n_steps, observe, rebuild_every, k, mesh
+        )
         ran = int(np.sum(np.asarray(obs["_live"])))
         chunks.append({name: np.asarray(values)[:ran] for name, values in obs.items()})
         check_health(fitness, params, [*chunks[-1]["_health"], int(_health(state))], done, entering)

@@ -33,7 +33,11 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from ..base._checks import check_choice, check_nonnegative, check_number, check_positive, real_array
 from ..base._simplex import safe_sqrt, small_cholesky
 from ..geometry._forces import (
-    VISCOUS_WEIGHTS, apply_viscous, normalize_rows, weights_to_normalize, with_volume_weights,
+    VISCOUS_WEIGHTS,
+    apply_viscous,
+    normalize_rows,
+    weights_to_normalize,
+    with_volume_weights,
 )
 from ..geometry._metric import HESSIAN_FLOORS, eigh, hessian_metric
 from ..geometry._volumes import voronoi_volumes
@@ -110,8 +114,12 @@ class SwarmParams(eqx.Module):
         for name in ("reward_power", "distance_power"):  # exponents of the virtual reward
             check_nonnegative(getattr(self, name), name)
         if self.anisotropic:
-            check_positive(self.eps_sigma, "eps_sigma", " with anisotropic=True (the noise D = g^-1 needs a "
-                           "positive definite metric g = floor(H) + eps_Sigma I)")
+            check_positive(
+                self.eps_sigma,
+                "eps_sigma",
+                " with anisotropic=True (the noise D = g^-1 needs a "
+                "positive definite metric g = floor(H) + eps_Sigma I)",
+            )
 
     @property
     def needs_metric(self) -> bool:
@@ -132,13 +140,23 @@ class ScutoidTrace(eqx.Module):
     neighbors: Int[Array, "N K"]
     interior: Bool[Array, " N"]
     step: Int[Array, ""]
-    counts: Int[Array, "5"]
+    counts: Int[Array, 5]
 
 
 def empty_scutoid_trace(n: int) -> ScutoidTrace:
     """(host) A trace with no step recorded yet."""
-    return ScutoidTrace(*map(jnp.asarray, (np.arange(n, dtype=np.int32), np.zeros((n, 0), np.int32), np.zeros(n, bool),
-                                           np.int32(-1), np.zeros(5, np.int32))))
+    return ScutoidTrace(
+        *map(
+            jnp.asarray,
+            (
+                np.arange(n, dtype=np.int32),
+                np.zeros((n, 0), np.int32),
+                np.zeros(n, bool),
+                np.int32(-1),
+                np.zeros(5, np.int32),
+            ),
+        )
+    )
 
 
 class SwarmState(eqx.Module):
@@ -219,8 +237,12 @@ def health(state: SwarmState):
     finite = jnp.all(jnp.isfinite(x)) & jnp.all(jnp.isfinite(v))
     centre = jnp.mean(x, axis=0)
     far = jnp.max(jnp.sum((x - centre) ** 2, axis=1)) > runaway_radius(state) ** 2
-    flags = (jnp.where(finite, 0, NONFINITE) | jnp.where(far, RUNAWAY, 0)
-             | jnp.where(jnp.any(state.alive), 0, ALL_DEAD) | jnp.where(state.tess.overflow, OVERFLOWED_GRAPH, 0))
+    flags = (
+        jnp.where(finite, 0, NONFINITE)
+        | jnp.where(far, RUNAWAY, 0)
+        | jnp.where(jnp.any(state.alive), 0, ALL_DEAD)
+        | jnp.where(state.tess.overflow, OVERFLOWED_GRAPH, 0)
+    )
     return (flags | state.status).astype(jnp.int32)
 
 
@@ -266,8 +288,9 @@ def viscous_length(params: SwarmParams, state: SwarmState, tess: Tessellation):
 
 def viscous_weights(params: SwarmParams, state: SwarmState, tess: Tessellation, g):
     """Row-normalized weights (and row sums) used by both V half-steps."""
-    w = weights_to_normalize(tess, weights=params.weights, length_scale=viscous_length(params, state, tess), metric=g,
-                             alpha=params.alpha)
+    w = weights_to_normalize(
+        tess, weights=params.weights, length_scale=viscous_length(params, state, tess), metric=g, alpha=params.alpha
+    )
     if params.volume_weighting:
         sqrt_det = 1.0 if g is None else jnp.sqrt(jnp.maximum(jnp.linalg.det(g), 0.0))
         w = with_volume_weights(tess, w, state.volumes * sqrt_det)  # Riemannian volumes V_j sqrt(det g_j)
@@ -291,8 +314,9 @@ def relativize(values, mask):
     mean = jnp.sum(safe) / count
     std = safe_sqrt(jnp.sum(jnp.where(mask, (safe - mean) ** 2, 0.0)) / count)
     z = (safe - mean) / jnp.where(std > 0, std, 1.0)
-    return jnp.where(mask, jnp.where(z > 0, 1.0 + jnp.log1p(jnp.where(z > 0, z, 0.0)), jnp.exp(jnp.minimum(z, 0.0))),
-                     0.0)
+    return jnp.where(
+        mask, jnp.where(z > 0, 1.0 + jnp.log1p(jnp.where(z > 0, z, 0.0)), jnp.exp(jnp.minimum(z, 0.0))), 0.0
+    )
 
 
 def random_partner(key, n: int):
@@ -320,8 +344,7 @@ def apply_clones(params: SwarmParams, companion, clones, x, v, spacing, normals)
     """Cloned walkers take their companion's velocity and a jittered copy of its position
     (`normals`: standard normals shaped like `x`)."""
     jitter = params.clone_jitter * spacing * normals
-    return (jnp.where(clones[:, None], x[companion] + jitter, x),
-            jnp.where(clones[:, None], v[companion], v))
+    return (jnp.where(clones[:, None], x[companion] + jitter, x), jnp.where(clones[:, None], v[companion], v))
 
 
 class StepStart(eqx.Module):
@@ -368,8 +391,7 @@ def swarm_step(fitness, params: SwarmParams, state: SwarmState, progress, do_clo
     return finish_step(fitness, params, move_on_graph(fitness, params, state, start, progress, do_clone))
 
 
-def move_on_graph(fitness, params: SwarmParams, state: SwarmState, start: StepStart, progress,
-                  do_clone) -> SwarmState:
+def move_on_graph(fitness, params: SwarmParams, state: SwarmState, start: StepStart, progress, do_clone) -> SwarmState:
     """The part of a step that needs the graph: from `start` = `begin_step(params, state)`,
     V O V (viscous kicks around the Ornstein-Uhlenbeck step) and the second drift A, then the
     clone jumps when `do_clone`. The closing kick is left to `finish_step`."""
@@ -393,8 +415,16 @@ def move_on_graph(fitness, params: SwarmParams, state: SwarmState, start: StepSt
     return eqx.tree_at(
         lambda s: (s.positions, s.velocities, s.cloned, s.key, s.tess, s.step, s.eps_factor, s.scutoid_trace.parents),
         state,
-        (x, v, clones, start.key, eqx.tree_at(lambda t: t.points, tess, x), state.step + 1,
-         _raised_eps_factor(params, state, g), parents),
+        (
+            x,
+            v,
+            clones,
+            start.key,
+            eqx.tree_at(lambda t: t.points, tess, x),
+            state.step + 1,
+            _raised_eps_factor(params, state, g),
+            parents,
+        ),
     )
 
 
@@ -402,8 +432,9 @@ def finish_step(fitness, params: SwarmParams, state: SwarmState) -> SwarmState:
     """The closing half kick at the step's final positions (V, -grad V, alive flags; no graph needed)."""
     values, force = fitness_and_force(fitness, state.positions)
     v = state.velocities + 0.5 * params.dt * force
-    return eqx.tree_at(lambda s: (s.velocities, s.fitness, s.force, s.alive), state,
-                       (v, values, force, jnp.isfinite(values)))
+    return eqx.tree_at(
+        lambda s: (s.velocities, s.fitness, s.force, s.alive), state, (v, values, force, jnp.isfinite(values))
+    )
 
 
 def _raised_eps_factor(params: SwarmParams, state: SwarmState, g):

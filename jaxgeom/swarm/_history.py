@@ -24,10 +24,14 @@ def _history(series: dict, gaps: list, reallocations, seconds: dict, state, dive
         spectral_gap=jnp.asarray([g[1] for g in gaps], dtype).reshape(-1),
         spectral_components=jnp.asarray([g[2] for g in gaps], jnp.int32).reshape(-1),
         spectral_gap_rounding=jnp.asarray([g[3] for g in gaps], bool).reshape(-1),
-        n_reallocations=jnp.asarray(reallocations, jnp.int32), n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
-        seconds_rebuild=seconds["rebuild"], seconds_steps=seconds["steps"],
-        n_separated=jnp.asarray(state.n_separated, jnp.int32), diverged_step=jnp.asarray(diverged_step, jnp.int32),
-        n_triangulator_fallbacks=jnp.asarray(state.n_triangulator_fallbacks, jnp.int32))
+        n_reallocations=jnp.asarray(reallocations, jnp.int32),
+        n_fallbacks=jnp.asarray(n_fallbacks, jnp.int32),
+        seconds_rebuild=seconds["rebuild"],
+        seconds_steps=seconds["steps"],
+        n_separated=jnp.asarray(state.n_separated, jnp.int32),
+        diverged_step=jnp.asarray(diverged_step, jnp.int32),
+        n_triangulator_fallbacks=jnp.asarray(state.n_triangulator_fallbacks, jnp.int32),
+    )
     return history
 
 
@@ -39,6 +43,7 @@ def _bulk_gap(tess: Tessellation) -> tuple[float, int, bool]:
         gap, n_comp, outside = bulk_spectral_gap(tess)
         return gap, n_comp, bool(gap < gap_rounding_level(tess.n_points - outside))
     except (ArithmeticError, RuntimeError, ValueError, scipy.sparse.linalg.ArpackError) as err:
-        warn_at_caller(f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.",
-                       RuntimeWarning)
+        warn_at_caller(
+            f"simulate: the spectral gap failed ({type(err).__name__}: {err}); recorded as NaN.", RuntimeWarning
+        )
         return float("nan"), -1, False

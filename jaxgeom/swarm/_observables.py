@@ -16,16 +16,23 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..base._simplex import safe_sqrt
 from ..geometry._cells import shape_distortion, volume_distortion
 from ..geometry._curvature import ricci_resolution, ricci_scalar
-from ..base._simplex import safe_sqrt
 from ..geometry._metric import hessian_metric, riemannian_mean, riemannian_volumes
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM, metric_curvature
-from ..tessellation._graph import neighbor_displacements
-from ..geometry._weights import weights_on_graph
 from ..geometry._scutoids import neighbour_changes
+from ..geometry._weights import weights_on_graph
+from ..tessellation._graph import neighbor_displacements
 from ._dynamics import (
-    ScutoidTrace, SwarmParams, SwarmState, cell_volumes, current_nu, kernel_volumes, metric_field, viscous_length,
+    ScutoidTrace,
+    SwarmParams,
+    SwarmState,
+    cell_volumes,
+    current_nu,
+    kernel_volumes,
+    metric_field,
+    viscous_length,
 )
 
 
@@ -66,8 +73,7 @@ def _tier2_riemannian_mean(kernel):
         g = _observed_metric(s)
         volumes = kernel_volumes(s.new.volumes)
         values = kernel(s.new.tess, metric=g, volumes=volumes)
-        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=volumes),
-                               s.new.interior)
+        return riemannian_mean(values, riemannian_volumes(s.new.tess, metric=g, volumes=volumes), s.new.interior)
 
     return observable
 
@@ -85,8 +91,9 @@ def _mean_expansion(s: _View):
     on the contracting default run, now -0.3 on average). Exact under x -> s x: d ln(s^d)/dt."""
     new = s.new
     before, after = new.previous_volumes, new.volumes
-    valid = (new.previous_interior & new.interior
-             & jnp.isfinite(before) & jnp.isfinite(after) & (before > 0) & (after > 0))
+    valid = (
+        new.previous_interior & new.interior & jnp.isfinite(before) & jnp.isfinite(after) & (before > 0) & (after > 0)
+    )
     total_before = jnp.sum(jnp.where(valid, before, 0.0))
     total_after = jnp.sum(jnp.where(valid, after, 0.0))
     ok = (total_before > 0) & (new.volumes_step == new.step)
@@ -143,7 +150,9 @@ def _scutoid_share(s: _View, k: int):
 
 def _degree_weighted_variance(s: _View):
     g = _observed_metric(s) if s.params.weights.startswith("metric") else None
-    w = weights_on_graph(s.new.tess, s.params.weights, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g)
+    w = weights_on_graph(
+        s.new.tess, s.params.weights, length_scale=viscous_length(s.params, s.new, s.new.tess), metric=g
+    )
     return _variance(s.new.velocities, jnp.sum(w, axis=1))
 
 
@@ -177,8 +186,7 @@ OBSERVABLE_TABLE: dict[str, Observable] = {
     "complex_scutoid_fraction": Observable(lambda s: _scutoid_share(s, 3), True, True),
     "mean_neighbor_change": Observable(lambda s: _scutoid_share(s, 4), True, True),
 }
-SCUTOID_OBSERVABLES = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction",
-                       "mean_neighbor_change")
+SCUTOID_OBSERVABLES = ("prism_fraction", "simple_scutoid_fraction", "complex_scutoid_fraction", "mean_neighbor_change")
 OBSERVABLES = tuple(name for name, row in OBSERVABLE_TABLE.items() if not row.opt_in)  # the default set
 ALL_OBSERVABLES = tuple(OBSERVABLE_TABLE)
 
@@ -210,14 +218,23 @@ def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ..
     adjacent = state.volumes_step == state.step - 1
     previous = jnp.where(measured, state.previous_volumes, jnp.where(adjacent, state.volumes, jnp.inf))
     previous_interior = jnp.where(measured, state.previous_interior, adjacent & state.interior)
-    return eqx.tree_at(cell_fields, state, (volumes, interior, previous, previous_interior,
-                                            state.step.astype(jnp.int32), state.scutoid_trace))
+    return eqx.tree_at(
+        cell_fields,
+        state,
+        (volumes, interior, previous, previous_interior, state.step.astype(jnp.int32), state.scutoid_trace),
+    )
 
 
 def cell_fields(state: SwarmState) -> tuple:
     """The fields of a state that `refresh_cells` sets."""
-    return (state.volumes, state.interior, state.previous_volumes, state.previous_interior, state.volumes_step,
-            state.scutoid_trace)
+    return (
+        state.volumes,
+        state.interior,
+        state.previous_volumes,
+        state.previous_interior,
+        state.volumes_step,
+        state.scutoid_trace,
+    )
 
 
 def refresh_scutoids(state: SwarmState) -> SwarmState:
@@ -232,11 +249,17 @@ def refresh_scutoids(state: SwarmState) -> SwarmState:
     shared, lost, gained = neighbour_changes(trace.neighbors[parents], tess.neighbors, n)
     walkers = trace.interior[parents] & tess.interior & (trace.step == state.step - 1)
     kinds = [(lost == 0) & (gained == 0), (lost + gained > 0) & (lost <= 1) & (gained <= 1), (lost > 1) | (gained > 1)]
-    counts = jnp.stack([jnp.sum(walkers)] + [jnp.sum(walkers & kind) for kind in kinds]
-                       + [jnp.sum(jnp.where(walkers, lost + gained, 0))]).astype(jnp.int32)
+    counts = jnp.stack(
+        [jnp.sum(walkers)]
+        + [jnp.sum(walkers & kind) for kind in kinds]
+        + [jnp.sum(jnp.where(walkers, lost + gained, 0))]
+    ).astype(jnp.int32)
     width = trace.neighbors.shape[1]
-    rows = tess.neighbors[:, :width] if width <= tess.neighbors.shape[1] else jnp.pad(
-        tess.neighbors, ((0, 0), (0, width - tess.neighbors.shape[1])), constant_values=n)
+    rows = (
+        tess.neighbors[:, :width]
+        if width <= tess.neighbors.shape[1]
+        else jnp.pad(tess.neighbors, ((0, 0), (0, width - tess.neighbors.shape[1])), constant_values=n)
+    )
     fresh = ScutoidTrace(parents, rows, tess.interior, state.step.astype(jnp.int32), counts)
     kept = jax.tree_util.tree_map(lambda a, b: jnp.where(trace.step == state.step, a, b), trace, fresh)
     return eqx.tree_at(lambda s: s.scutoid_trace, state, kept)
@@ -258,5 +281,9 @@ def measure(fitness, params: SwarmParams, new: SwarmState, progress, observe: tu
     dtype = new.positions.dtype
     nan = jnp.asarray(jnp.nan, dtype)
     geometric = new.tess.simplices is not None
-    return {name: nan if OBSERVABLE_TABLE[name].geometric and not geometric
-            else jnp.asarray(OBSERVABLE_TABLE[name].fn(view), dtype) for name in observe}
+    return {
+        name: nan
+        if OBSERVABLE_TABLE[name].geometric and not geometric
+        else jnp.asarray(OBSERVABLE_TABLE[name].fn(view), dtype)
+        for name in observe
+    }

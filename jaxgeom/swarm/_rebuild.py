@@ -30,14 +30,23 @@ import numpy as np
 from ..base._checks import mean_spacing
 from ..tessellation._cellclip import rebuild_unchecked
 from ..tessellation._delaunay import (
-    CapacityError, build_delaunay, planar_graph_on_device, planar_tessellation, planar_triangles,
+    CapacityError,
+    build_delaunay,
+    planar_graph_on_device,
+    planar_tessellation,
+    planar_triangles,
 )
-from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
-from ..tessellation._knn import knn_graph
 from ..tessellation._device_check import OK as DEVICE_OK
 from ..tessellation._device_check import planar_summary
+from ..tessellation._graph import Capacity, Tessellation, bucket_neighbors, bucket_simplices
+from ..tessellation._knn import knn_graph
 from ..tessellation._triangulators import (
-    DEVICE_BACKENDS, FALLBACK, REFUSED, TOO_MANY, CoincidentPointsError, traced_device_triangles,
+    DEVICE_BACKENDS,
+    FALLBACK,
+    REFUSED,
+    TOO_MANY,
+    CoincidentPointsError,
+    traced_device_triangles,
 )
 from ._dynamics import REBUILD_FAILED, SwarmState
 
@@ -49,17 +58,21 @@ SIMPLEX_HEADROOM = 1.1  # 3D simplex counts drift by a few percent
 def capacity_with_headroom(tess: Tessellation, previous: Capacity | None = None) -> Capacity:
     """Capacities with room for a moving swarm, for the graph `tess` (at least `previous`)."""
     n = tess.n_points  # on the host: the masks as jnp operations compile a program per shape
-    need = Capacity(int(np.count_nonzero(np.asarray(tess.simplices)[:, 0] < n)),
-                    int(np.count_nonzero(np.asarray(tess.neighbors) < n, axis=1).max()))
+    need = Capacity(
+        int(np.count_nonzero(np.asarray(tess.simplices)[:, 0] < n)),
+        int(np.count_nonzero(np.asarray(tess.neighbors) < n, axis=1).max()),
+    )
     return _with_headroom(need, tess, previous)
 
 
 def _with_headroom(need: Capacity, tess: Tessellation, previous: Capacity | None) -> Capacity:
     """THE growth rule: max degree + NEIGHBOR_HEADROOM and SIMPLEX_HEADROOM x the simplex count,
     rounded up to their buckets (in 2D the simplex capacity is already the exact bound 2N)."""
-    simplices = tess.capacity.simplices if tess.dim == 2 else bucket_simplices(math.ceil(SIMPLEX_HEADROOM * need.simplices))
+    simplices = (
+        tess.capacity.simplices if tess.dim == 2 else bucket_simplices(math.ceil(SIMPLEX_HEADROOM * need.simplices))
+    )
     cap = Capacity(simplices, bucket_neighbors(need.neighbors + NEIGHBOR_HEADROOM))
-    return cap if previous is None else Capacity(*(max(a, b) for a, b in zip(cap, previous)))
+    return cap if previous is None else Capacity(*(max(a, b) for a, b in zip(cap, previous, strict=True)))
 
 
 def grown(tess: Tessellation) -> Tessellation:
@@ -80,10 +93,18 @@ def pad_to_capacity(tess: Tessellation, cap: Capacity) -> Tessellation:
         widths[axis] = (0, size - a.shape[axis])
         return jnp.asarray(np.pad(np.asarray(a), widths, constant_values=fill))
 
-    fields = (pad(tess.neighbors, 1, cap.neighbors, n), pad(tess.neighbor_shifts, 1, cap.neighbors, 0),
-              pad(tess.simplices, 0, cap.simplices, n), pad(tess.simplex_shifts, 0, cap.simplices, 0))
-    return eqx.tree_at(lambda t: (t.neighbors, t.neighbor_shifts, t.simplices, t.simplex_shifts), tess, fields,
-                       is_leaf=lambda x: x is None)
+    fields = (
+        pad(tess.neighbors, 1, cap.neighbors, n),
+        pad(tess.neighbor_shifts, 1, cap.neighbors, 0),
+        pad(tess.simplices, 0, cap.simplices, n),
+        pad(tess.simplex_shifts, 0, cap.simplices, 0),
+    )
+    return eqx.tree_at(
+        lambda t: (t.neighbors, t.neighbor_shifts, t.simplices, t.simplex_shifts),
+        tess,
+        fields,
+        is_leaf=lambda x: x is None,
+    )
 
 
 # Walkers that coincide for Qhull are moved apart by this many mean spacings (at least 1000
@@ -132,12 +153,14 @@ class Allocated(NamedTuple):
     fallbacks: int
 
 
-def delaunay_separating(x: np.ndarray, capacity=None, triangulator: str = "qhull"
-                        ) -> tuple[Tessellation, np.ndarray, int, int]:
+def delaunay_separating(
+    x: np.ndarray, capacity=None, triangulator: str = "qhull"
+) -> tuple[Tessellation, np.ndarray, int, int]:
     """(graph, positions, n_moved, n_fallbacks): `delaunay(x)` of `x` with coinciding walkers
     moved apart, and the triangulator's fallbacks to Qhull in the build that succeeded."""
     (tess, fallbacks), x, moved = _separated(
-        lambda y: build_delaunay(y, capacity=capacity, triangulator=triangulator), x)
+        lambda y: build_delaunay(y, capacity=capacity, triangulator=triangulator), x
+    )
     return tess, x, moved, len(fallbacks)
 
 
@@ -153,10 +176,12 @@ def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None, triangulato
         except CapacityError:
             pass
     fresh, x, moved, fallbacks = delaunay_separating(x, None, triangulator)
-    previous = None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation)
-                                              else Capacity(*capacity))
-    return Allocated(pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x,
-                     moved, fallbacks)
+    previous = (
+        None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation) else Capacity(*capacity))
+    )
+    return Allocated(
+        pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x, moved, fallbacks
+    )
 
 
 def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
@@ -173,8 +198,9 @@ def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:
                 return eqx.tree_at(lambda s: s.tess, state, tess), grew, 0
             triangulator, failed = FALLBACK[triangulator], int(reason is not None)
         x = np.asarray(state.positions)
-        tess, grew, x_new, moved, fallbacks = allocate_graph(x, graph, k, None if graph == "knn" else state.tess,
-                                                             triangulator)
+        tess, grew, x_new, moved, fallbacks = allocate_graph(
+            x, graph, k, None if graph == "knn" else state.tess, triangulator
+        )
     except ValueError as err:
         raise ValueError(f"simulate: the graph could not be rebuilt after step {int(state.step)}: {err}") from None
     fallbacks += failed
@@ -191,8 +217,9 @@ def _on_device(tess: Tessellation, triangulator: str) -> bool:
     return tess.dim == 2 and not tess.periodic and triangulator in DEVICE_BACKENDS
 
 
-def _allocate_on_device(positions: jax.Array, tess: Tessellation, triangulator: str
-                        ) -> tuple[Tessellation | None, bool, str | None]:
+def _allocate_on_device(
+    positions: jax.Array, tess: Tessellation, triangulator: str
+) -> tuple[Tessellation | None, bool, str | None]:
     """`allocate_graph` by `planar_graph_on_device` at `tess`'s capacity, grown by the growth rule
     when the graph does not fit: (graph, grew, None), or (None, False, why the device build failed;
     None where the host path must raise the reason)."""
@@ -234,9 +261,11 @@ def _apply_rebuild(state: SwarmState, new: Tessellation, positions, code, moved,
     tess = jax.tree_util.tree_map(lambda a, b: jnp.where(code == REBUILT, b, a), state.tess, new)
     tess = eqx.tree_at(lambda t: (t.points, t.overflow), tess, (x, state.tess.overflow | (code == OVERFLOWED)))
     status = state.status | jnp.where(code == FAILED, REBUILD_FAILED, 0)
-    return eqx.tree_at(lambda s: (s.positions, s.tess, s.status, s.n_separated, s.n_triangulator_fallbacks), state,
-                       (x, tess, status.astype(jnp.int32), state.n_separated + moved,
-                        state.n_triangulator_fallbacks + fallbacks))
+    return eqx.tree_at(
+        lambda s: (s.positions, s.tess, s.status, s.n_separated, s.n_triangulator_fallbacks),
+        state,
+        (x, tess, status.astype(jnp.int32), state.n_separated + moved, state.n_triangulator_fallbacks + fallbacks),
+    )
 
 
 def update_in_trace(state: SwarmState, k: int) -> SwarmState:
@@ -253,27 +282,36 @@ def update_in_trace(state: SwarmState, k: int) -> SwarmState:
     old = (tess.neighbors, tess.tier, tess.hull) + (() if tess.simplices is None else (tess.simplices,))
 
     def build(x):
-        new, fallbacks = ((knn_graph(x, k), ()) if graph == "knn"
-                          else build_delaunay(x, capacity=cap, triangulator=state.triangulator))
+        new, fallbacks = (
+            (knn_graph(x, k), ())
+            if graph == "knn"
+            else build_delaunay(x, capacity=cap, triangulator=state.triangulator)
+        )
         return (new.neighbors, new.tier, new.hull) + (() if new.simplices is None else (new.simplices,)), fallbacks
 
     def host(x, *arrays):
         new, x, code, moved, fallbacks = _attempt(build, np.asarray(x))
         return tuple(np.asarray(a) for a in (arrays if new is None else new)) + (
-            x, np.int32(code), np.int32(moved), np.int32(fallbacks))
+            x,
+            np.int32(code),
+            np.int32(moved),
+            np.int32(fallbacks),
+        )
 
     shapes = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in old + (state.positions,))
     shapes += (jax.ShapeDtypeStruct((), jnp.int32),) * 3
-    *arrays, x, code, moved, fallbacks = jax.pure_callback(host, shapes, jax.lax.stop_gradient(state.positions),
-                                                           *old, vmap_method="sequential")
+    *arrays, x, code, moved, fallbacks = jax.pure_callback(
+        host, shapes, jax.lax.stop_gradient(state.positions), *old, vmap_method="sequential"
+    )
     new = eqx.tree_at(lambda t: (t.neighbors, t.tier, t.hull), tess, tuple(arrays[:3]))
     if len(arrays) == 4:
         new = eqx.tree_at(lambda t: t.simplices, new, arrays[3])
     return _apply_rebuild(state, new, x, code, moved, fallbacks)
 
 
-def update_on_device(state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bool = True
-                     ) -> tuple[SwarmState, jax.Array]:
+def update_on_device(
+    state: SwarmState, k: int, *, mesh=None, qhull_in_trace: bool = True
+) -> tuple[SwarmState, jax.Array]:
     """(state, fell_back): the graph rebuilt on the device (`jaxgeom.rebuild`, 2D; the cells
     split over `mesh`'s walker axis when given), or, where that rebuild is not certified
     (`fell_back`), by Qhull through `update_in_trace`, or (`qhull_in_trace=False`) not at all:
@@ -326,19 +364,28 @@ def _callback_planar_rebuild(state: SwarmState, triangulator: str, needed=None) 
 
     def host(x, needed):
         if not needed:
-            return (np.full((cap.simplices, 3), -1, np.int32),) * 2 + (np.asarray(x), np.int32(REBUILT), np.int32(0),
-                                                                      np.int32(0))
+            return (np.full((cap.simplices, 3), -1, np.int32),) * 2 + (
+                np.asarray(x),
+                np.int32(REBUILT),
+                np.int32(0),
+                np.int32(0),
+            )
         triangles, x, code, moved, fallbacks = _attempt(triangles_and_fallbacks, np.asarray(x))
         if triangles is None:
             triangles = (np.full((cap.simplices, 3), -1, np.int32),) * 2  # discarded in the trace
         return triangles + (x, np.int32(code), np.int32(moved), np.int32(fallbacks))
 
     triangles = jax.ShapeDtypeStruct((cap.simplices, 3), jnp.int32)
-    shapes = (triangles, triangles, jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
-              *(jax.ShapeDtypeStruct((), jnp.int32),) * 3)
+    shapes = (
+        triangles,
+        triangles,
+        jax.ShapeDtypeStruct(state.positions.shape, state.positions.dtype),
+        *(jax.ShapeDtypeStruct((), jnp.int32),) * 3,
+    )
     needed = jnp.asarray(True) if needed is None else needed
     simplices, adjacency, x, code, moved, fallbacks = jax.pure_callback(
-        host, shapes, jax.lax.stop_gradient(state.positions), needed, vmap_method="sequential")
+        host, shapes, jax.lax.stop_gradient(state.positions), needed, vmap_method="sequential"
+    )
     new = planar_tessellation(x.astype(state.positions.dtype), simplices, adjacency, tess.box, k_cap=cap.neighbors)
     code = jnp.where((code == REBUILT) & new.overflow, OVERFLOWED, code)
     return _apply_rebuild(state, new, x, code, moved, fallbacks)

@@ -46,7 +46,6 @@ from ._observables import ALL_OBSERVABLES, OBSERVABLES, prepare_scutoid_trace
 from ._steps import _is_traced
 from ._swarm_init import check_callable_fitness, check_traceable_fitness
 
-
 REBUILD_MODES = ("host", "callback", "device")
 
 
@@ -66,23 +65,42 @@ def _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe
     if not _is_traced(state, params):
         check_traceable_fitness(fitness, state.positions.shape[-1], state.positions.dtype)
     if rebuild == "host" and _is_traced(state, params):
-        raise TypeError("simulate(rebuild='host') rebuilds the graph with a triangulator between jitted chunks, "
-                        "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
-                        "traceable, differentiable simulation.")
+        raise TypeError(
+            "simulate(rebuild='host') rebuilds the graph with a triangulator between jitted chunks, "
+            "so it cannot run under jax.jit, jax.grad or jax.vmap. Use rebuild='callback' for a "
+            "traceable, differentiable simulation."
+        )
     if rebuild == "device" and not rebuilds_on_device(state.tess):
-        raise ValueError("simulate(rebuild='device') rebuilds 2D Delaunay swarms on the device so far; this swarm's "
-                         f"graph is {describe_graph(state.tess)}. Use rebuild='callback' (traceable) or 'host'.")
+        raise ValueError(
+            "simulate(rebuild='device') rebuilds 2D Delaunay swarms on the device so far; this swarm's "
+            f"graph is {describe_graph(state.tess)}. Use rebuild='callback' (traceable) or 'host'."
+        )
     if params.volume_weighting and state.tess.simplices is None:
-        raise ValueError("`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
-                         "use init_swarm(..., graph='delaunay') or volume_weighting=False.")
+        raise ValueError(
+            "`volume_weighting=True` needs Voronoi volumes, which a k-NN swarm does not have; "
+            "use init_swarm(..., graph='delaunay') or volume_weighting=False."
+        )
     if spectral_gap_every and (spectral_gap_every % rebuild_every or rebuild != "host"):
-        raise ValueError("`spectral_gap_every` must be a multiple of `rebuild_every` and needs rebuild='host' "
-                         f"(the gap is computed on the host after a rebuild); got {spectral_gap_every}.")
+        raise ValueError(
+            "`spectral_gap_every` must be a multiple of `rebuild_every` and needs rebuild='host' "
+            f"(the gap is computed on the host after a rebuild); got {spectral_gap_every}."
+        )
 
 
-def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, rebuild_every: int = 1,
-             observe: tuple[str, ...] = OBSERVABLES, rebuild: str = "host", spectral_gap_every: int = 0,
-             progress=False, checkpoint: bool = False, mesh=None):
+def simulate(
+    fitness,
+    state: SwarmState,
+    params: SwarmParams,
+    *,
+    n_steps: int,
+    rebuild_every: int = 1,
+    observe: tuple[str, ...] = OBSERVABLES,
+    rebuild: str = "host",
+    spectral_gap_every: int = 0,
+    progress=False,
+    checkpoint: bool = False,
+    mesh=None,
+):
     """Run `n_steps` swarm steps (`jax.lax.scan`), rebuilding the tessellation as walkers move.
 
     **Arguments:**
@@ -133,7 +151,8 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     gap is below float64 resolution, `gap_rounding_level`: read it as "< that level") (one
     entry per gap computed; empty with rebuild="callback");
     `n_reallocations` (capacity growths); `n_fallbacks` (rebuild="device": steps rebuilt
-    by the host triangulator because the device rebuild was not certified; 0 otherwise); wall-clock `seconds_rebuild` / `seconds_steps`
+    by the host triangulator because the device rebuild was not certified; 0 otherwise); wall-clock
+    `seconds_rebuild` / `seconds_steps`
     (NaN with rebuild="callback"); `n_separated` (walkers moved apart for the triangulator);
     `n_triangulator_fallbacks` (host triangulations in which `state.triangulator` failed and
     Qhull built the graph; `n_separated` and this count the state's whole life);
@@ -147,19 +166,32 @@ def simulate(fitness, state: SwarmState, params: SwarmParams, *, n_steps: int, r
     """
     observe = (observe,) if isinstance(observe, str) else tuple(observe)  # one name is one observable
     if is_batch(state):
-        return _simulate_batch(fitness, state, params, n_steps=n_steps, rebuild_every=rebuild_every,
-                               observe=observe, rebuild=rebuild, checkpoint=checkpoint, mesh=mesh,
-                               spectral_gap_every=spectral_gap_every)
+        return _simulate_batch(
+            fitness,
+            state,
+            params,
+            n_steps=n_steps,
+            rebuild_every=rebuild_every,
+            observe=observe,
+            rebuild=rebuild,
+            checkpoint=checkpoint,
+            mesh=mesh,
+            spectral_gap_every=spectral_gap_every,
+        )
     check_progress(progress)
     if progress is not False and progress is not None and rebuild != "host":
-        raise ValueError(f"`progress` shows the host driver's steps; rebuild={rebuild!r} runs them in one traced "
-                         "program, which a bar cannot follow. Leave progress False.")
+        raise ValueError(
+            f"`progress` shows the host driver's steps; rebuild={rebuild!r} runs them in one traced "
+            "program, which a bar cannot follow. Leave progress False."
+        )
     _check_simulate_args(fitness, state, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     if not isinstance(checkpoint, bool):
         raise TypeError(f"`checkpoint` must be True or False; got {checkpoint!r}.")
     if checkpoint and rebuild == "host":
-        raise ValueError("`checkpoint=True` serves gradients through a traced run: use it with rebuild='callback' "
-                         "or 'device' (rebuild='host' cannot be differentiated).")
+        raise ValueError(
+            "`checkpoint=True` serves gradients through a traced run: use it with rebuild='callback' "
+            "or 'device' (rebuild='host' cannot be differentiated)."
+        )
     k = state.tess.neighbors.shape[1]  # a k-NN swarm keeps its k (unused by Delaunay rebuilds)
     state = prepare_scutoid_trace(state, observe)
     if mesh is not None:
@@ -185,8 +217,10 @@ def stack_swarms(states) -> SwarmState:
     structures = {jax.tree_util.tree_structure(s) for s in states}
     shapes = {tuple(leaf.shape for leaf in jax.tree_util.tree_leaves(s)) for s in states}
     if len(structures) > 1 or len(shapes) > 1:
-        raise ValueError("the swarms differ in walkers, dimension or graph capacity; build every one with the same "
-                         "N and init_swarm(..., capacity=jaxgeom.Capacity(simplices=S, neighbors=K)).")
+        raise ValueError(
+            "the swarms differ in walkers, dimension or graph capacity; build every one with the same "
+            "N and init_swarm(..., capacity=jaxgeom.Capacity(simplices=S, neighbors=K))."
+        )
     return _stack_leaves(states)
 
 
@@ -196,18 +230,26 @@ def _stack_leaves(states: list):
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
 
 
-def _simulate_batch(fitness, state, params, *, n_steps, rebuild_every, observe, rebuild, checkpoint, mesh,
-                    spectral_gap_every):
+def _simulate_batch(
+    fitness, state, params, *, n_steps, rebuild_every, observe, rebuild, checkpoint, mesh, spectral_gap_every
+):
     """`simulate` of every swarm of a batch: vmap, split over `mesh` when given (no progress bar:
     one traced program)."""
     if rebuild == "host":
-        raise ValueError("a batch of swarms runs inside one traced program: use rebuild='callback' or 'device' "
-                         "(rebuild='host' drives one swarm from Python).")
+        raise ValueError(
+            "a batch of swarms runs inside one traced program: use rebuild='callback' or 'device' "
+            "(rebuild='host' drives one swarm from Python)."
+        )
     lane = jax.tree_util.tree_map(lambda leaf: leaf[0], state)
     _check_simulate_args(fitness, lane, params, n_steps, rebuild_every, observe, rebuild, spectral_gap_every)
     check_mesh(mesh, state.positions.shape[0], "the number of swarms B")
-    options = (("n_steps", n_steps), ("rebuild_every", rebuild_every), ("observe", observe), ("rebuild", rebuild),
-               ("checkpoint", checkpoint))
+    options = (
+        ("n_steps", n_steps),
+        ("rebuild_every", rebuild_every),
+        ("observe", observe),
+        ("rebuild", rebuild),
+        ("checkpoint", checkpoint),
+    )
     return _run_lanes(fitness, state, params, mesh, options)
 
 

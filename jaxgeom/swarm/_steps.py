@@ -13,14 +13,21 @@ import jax
 import jax.numpy as jnp
 
 from ._dynamics import (
-    StepStart, SwarmParams, SwarmState, begin_step, finish_step, health, move_on_graph,
+    StepStart,
+    SwarmParams,
+    SwarmState,
+    begin_step,
+    finish_step,
+    health,
+    move_on_graph,
 )
 from ._observables import cell_fields, measure, observe_state, refresh_cells
 from ._rebuild import update_in_trace, update_on_device
 
 
-def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int,
-                observe: tuple):
+def _host_chunk(
+    fitness, params: SwarmParams, state: SwarmState, first: StepStart, start, n_total, length: int, observe: tuple
+):
     """`length` (= rebuild_every) steps on one graph from global step `start`, between two host
     rebuilds; steps >= n_total are skipped. `first` is `begin_step` of the first step,
     computed ahead. Two pieces of work need no new graph and are left to the host loop, for
@@ -39,7 +46,9 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
         if length == 1:  # rebuild every step: compile only the branches taken
             return move_on_graph(fitness, params, st, first, progress, True), dict(nan, _health=health(st))
         last = (i == length - 1) | (s == n_total - 1)  # clone only before a rebuild
-        st, obs = jax.lax.cond(i == 0, lambda q: (q, nan), lambda q: observe_state(fitness, params, q, progress, observe), st)
+        st, obs = jax.lax.cond(
+            i == 0, lambda q: (q, nan), lambda q: observe_state(fitness, params, q, progress, observe), st
+        )
 
         def advance(q):
             opening = jax.lax.cond(i == 0, lambda r: first, lambda r: begin_step(params, r), q)
@@ -52,8 +61,18 @@ def _host_chunk(fitness, params: SwarmParams, state: SwarmState, first: StepStar
     return final, obs, cell_fields(entering), health(final)
 
 
-def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_steps: int, observe: tuple,
-                   rebuild_every: int, k: int, mode: str = "callback", checkpoint: bool = False):
+def _callback_scan(
+    fitness,
+    params: SwarmParams,
+    state: SwarmState,
+    n_total,
+    n_steps: int,
+    observe: tuple,
+    rebuild_every: int,
+    k: int,
+    mode: str = "callback",
+    checkpoint: bool = False,
+):
     """All `n_steps` steps in one scan, observing the state entering each, the graph rebuilt
     in the trace every `rebuild_every` steps (`update_in_trace`, or `update_on_device` for
     mode "device", which records its fallbacks as `_fallback`). Returns `(state, observables)`.
@@ -70,8 +89,7 @@ def _callback_scan(fitness, params: SwarmParams, state: SwarmState, n_total, n_s
     return jax.lax.scan(body, state, jnp.arange(n_steps, dtype=jnp.int32))
 
 
-def _traced_step(fitness, params: SwarmParams, st: SwarmState, i, n_total, observe: tuple, rebuild_every: int,
-                 update):
+def _traced_step(fitness, params: SwarmParams, st: SwarmState, i, n_total, observe: tuple, rebuild_every: int, update):
     """Step `i` of a traced run: the observables of the state entering it, the step, and the
     graph rebuilt by `update(state) -> (state, fell_back)` when the schedule says so. Returns
     `(state, observables)` with `_health` (of the entering state) and `_fallback`."""
@@ -112,8 +130,9 @@ def _progress(step, n_total, dtype):
 # (eqx.filter_jit's blocks until the chunk is done), which the overlap of graph-free work
 # with Qhull relies on; fitness and the loop shape are static.
 _run_chunk = jax.jit(_host_chunk, static_argnames=("fitness", "length", "observe"))
-_run_callback = jax.jit(_callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode",
-                                                         "checkpoint"))
+_run_callback = jax.jit(
+    _callback_scan, static_argnames=("fitness", "n_steps", "observe", "rebuild_every", "k", "mode", "checkpoint")
+)
 _begin_step = jax.jit(begin_step)
 
 
@@ -143,8 +162,18 @@ def _is_traced(*trees) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
 
 
-def _split_scan(fitness, params: SwarmParams, state: SwarmState, n_total, first, n_steps: int, observe: tuple,
-                rebuild_every: int, k: int, mesh):
+def _split_scan(
+    fitness,
+    params: SwarmParams,
+    state: SwarmState,
+    n_total,
+    first,
+    n_steps: int,
+    observe: tuple,
+    rebuild_every: int,
+    k: int,
+    mesh,
+):
     """Steps first, first + 1, ... (< n_total) of one swarm with its walkers split over `mesh`,
     each rebuild on the device with the cells split. A rebuild that is not certified stops the
     run after its step, for the host to rebuild with Qhull: a callback inside a program split

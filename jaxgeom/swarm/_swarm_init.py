@@ -28,18 +28,25 @@ def check_fitness(fitness, x: np.ndarray):
     try:
         out = jax.eval_shape(jax.vmap(fitness), xj)
     except Exception as err:  # noqa: BLE001 - re-raised with the fix
-        raise TypeError(f"`fitness` must map one walker x of shape (d,) = ({x.shape[1]},) to a scalar with "
-                        f"jax.numpy operations; calling it failed: {err}") from err
+        raise TypeError(
+            f"`fitness` must map one walker x of shape (d,) = ({x.shape[1]},) to a scalar with "
+            f"jax.numpy operations; calling it failed: {err}"
+        ) from err
     shape = getattr(out, "shape", None)
     if shape != (len(x),):
-        raise TypeError("`fitness` must return a scalar per walker (shape ()); it returned "
-                        + (f"shape {shape[1:]}" if shape is not None else type(out).__name__) + " for one walker.")
+        raise TypeError(
+            "`fitness` must return a scalar per walker (shape ()); it returned "
+            + (f"shape {shape[1:]}" if shape is not None else type(out).__name__)
+            + " for one walker."
+        )
     check_fitness_dtype(out.dtype)
     values, force = _fitness_and_force(fitness, xj)
     bad = np.flatnonzero(~np.isfinite(np.asarray(values)))
     if bad.size:
-        raise ValueError(f"`fitness` is NaN or inf at {bad.size} initial walker(s), first rows "
-                         f"{bad[:5].tolist()}; move them into the landscape's domain.")
+        raise ValueError(
+            f"`fitness` is NaN or inf at {bad.size} initial walker(s), first rows "
+            f"{bad[:5].tolist()}; move them into the landscape's domain."
+        )
     return values, force
 
 
@@ -52,9 +59,11 @@ _mean_spacing = eqx.filter_jit(mean_nearest_neighbor_distance)
 def check_fitness_dtype(dtype) -> None:
     """The force is -grad V: V must be real and floating."""
     if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"`fitness` must return a real floating-point scalar (the force is -grad V); it returned "
-                        f"{jnp.dtype(dtype).name}. Use float arithmetic (e.g. 1.0 * ...), and the real part of a "
-                        "complex value.")
+        raise TypeError(
+            f"`fitness` must return a real floating-point scalar (the force is -grad V); it returned "
+            f"{jnp.dtype(dtype).name}. Use float arithmetic (e.g. 1.0 * ...), and the real part of a "
+            "complex value."
+        )
 
 
 def check_traceable_fitness(fitness, d: int, dtype) -> None:
@@ -63,9 +72,11 @@ def check_traceable_fitness(fitness, d: int, dtype) -> None:
     try:
         out = jax.eval_shape(fitness, jax.ShapeDtypeStruct((d,), dtype))
     except Exception as err:  # noqa: BLE001 - re-raised with the fix
-        raise TypeError(f"`fitness` must be a JAX-traceable function x (d,) = ({d},) -> scalar (jax.numpy, no numpy "
-                        f"calls, float() or Python branches on x); tracing it failed: "
-                        f"{type(err).__name__}: {str(err).splitlines()[0]}") from err
+        raise TypeError(
+            f"`fitness` must be a JAX-traceable function x (d,) = ({d},) -> scalar (jax.numpy, no numpy "
+            f"calls, float() or Python branches on x); tracing it failed: "
+            f"{type(err).__name__}: {str(err).splitlines()[0]}"
+        ) from err
     if getattr(out, "shape", None) != ():
         raise TypeError(f"`fitness` must return a scalar (shape ()); it returned {out}.")
     check_fitness_dtype(out.dtype)
@@ -76,13 +87,24 @@ def _as_key(key):
     if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
         return jax.random.PRNGKey(key)
     arr = key if isinstance(key, jax.Array) else None
-    if arr is not None and (jnp.issubdtype(arr.dtype, jax.dtypes.prng_key) or (arr.dtype == jnp.uint32 and arr.shape == (2,))):
+    if arr is not None and (
+        jnp.issubdtype(arr.dtype, jax.dtypes.prng_key) or (arr.dtype == jnp.uint32 and arr.shape == (2,))
+    ):
         return key
     raise TypeError(f"`key` must be an int seed or a jax.random key (jax.random.PRNGKey(seed)); got {key!r}.")
 
 
-def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "delaunay", k: int = 12,
-               capacity=None, triangulator: str = "auto") -> SwarmState:
+def init_swarm(
+    fitness,
+    positions,
+    velocities=None,
+    *,
+    key=0,
+    graph: str = "delaunay",
+    k: int = 12,
+    capacity=None,
+    triangulator: str = "auto",
+) -> SwarmState:
     """The initial [`jaxgeom.SwarmState`][] of a swarm (host: builds its first graph).
 
     **Arguments:**
@@ -103,11 +125,14 @@ def init_swarm(fitness, positions, velocities=None, *, key=0, graph: str = "dela
     check_min_points(len(x), x.shape[1] + 2, "positions", "a swarm")
     v = np.zeros_like(x) if velocities is None else real_array(velocities, "velocities")
     if v.shape != x.shape or not np.issubdtype(v.dtype, np.floating):
-        raise ValueError(f"`velocities` must be a float array of shape (N, d) = {x.shape} like `positions`; "
-                         f"got {v.dtype} {v.shape}.")
+        raise ValueError(
+            f"`velocities` must be a float array of shape (N, d) = {x.shape} like `positions`; got {v.dtype} {v.shape}."
+        )
     if not np.isfinite(v).all():
-        raise ValueError(f"`velocities` has NaN or inf entries in {int((~np.isfinite(v).all(axis=1)).sum())} "
-                         "row(s). Repair them or start from velocities=None (zeros).")
+        raise ValueError(
+            f"`velocities` has NaN or inf entries in {int((~np.isfinite(v).all(axis=1)).sum())} "
+            "row(s). Repair them or start from velocities=None (zeros)."
+        )
     key = _as_key(key)
     backend = resolve_triangulator(triangulator, x.shape[1])
     values, force = check_fitness(fitness, x)
@@ -130,8 +155,26 @@ def fresh_state(xj, v, values, force, key, tess, fallbacks: int = 0, backend: st
     zero = jnp.asarray(0, jnp.int32)
     none = jnp.asarray(np.zeros(n, bool))  # host-made constants: no program compiled per size
     unmeasured = jnp.asarray(np.full(n, np.inf), dtype)  # no finite volume known (`SwarmState`)
-    return SwarmState(xj, v, values, force, jnp.asarray(np.isfinite(np.asarray(values))), none,
-                      unmeasured, none, unmeasured, none, jnp.asarray(-1, jnp.int32),
-                      key, tess, zero,
-                      jnp.asarray(_mean_spacing(tess), dtype), jnp.asarray(1.0, dtype), zero, zero,
-                      jnp.asarray(fallbacks, jnp.int32), empty_scutoid_trace(n), triangulator=backend)
+    return SwarmState(
+        xj,
+        v,
+        values,
+        force,
+        jnp.asarray(np.isfinite(np.asarray(values))),
+        none,
+        unmeasured,
+        none,
+        unmeasured,
+        none,
+        jnp.asarray(-1, jnp.int32),
+        key,
+        tess,
+        zero,
+        jnp.asarray(_mean_spacing(tess), dtype),
+        jnp.asarray(1.0, dtype),
+        zero,
+        zero,
+        jnp.asarray(fallbacks, jnp.int32),
+        empty_scutoid_trace(n),
+        triangulator=backend,
+    )

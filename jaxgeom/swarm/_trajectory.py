@@ -28,13 +28,14 @@ from ..tessellation._delaunay import CapacityError, build_delaunay
 from ..tessellation._knn import knn_graph
 from ._dynamics import SwarmParams, SwarmState
 from ._history import _bulk_gap
-from ._observables import ALL_OBSERVABLES, OBSERVABLE_TABLE, SCUTOID_OBSERVABLES, observe_state, \
-    prepare_scutoid_trace
+from ._observables import ALL_OBSERVABLES, OBSERVABLE_TABLE, observe_state, prepare_scutoid_trace
 from ._rebuild import capacity_with_headroom, pad_to_capacity
 from ._swarm_init import fresh_state
 
-NEVER = {"nu": "a parameter of the simulation that wrote the trajectory, not of its frames",
-         "eps_sigma": "a parameter of the simulation that wrote the trajectory, not of its frames"}
+NEVER = {
+    "nu": "a parameter of the simulation that wrote the trajectory, not of its frames",
+    "eps_sigma": "a parameter of the simulation that wrote the trajectory, not of its frames",
+}
 
 
 class TrajectoryInterrupted(KeyboardInterrupt):
@@ -51,7 +52,14 @@ class _Source:
     metadata."""
 
     def __init__(self, source):
-        self.name, self.box, self.periodic, self.steps, self.times, self._close = "frames", None, False, None, None, None
+        self.name, self.box, self.periodic, self.steps, self.times, self._close = (
+            "frames",
+            None,
+            False,
+            None,
+            None,
+            None,
+        )
         self.extra: dict = {}
         if isinstance(source, (str, Path)):
             self._from_file(Path(source))
@@ -60,8 +68,10 @@ class _Source:
         elif isinstance(source, Iterable):
             self.n_frames, self._iter, self.dim = None, iter(source), None
         else:
-            raise TypeError("`source` must be an array (T, N, d), a path to a .npy, .npz or H5MD file, or an "
-                            f"iterable of (N, d) arrays; got {type(source).__name__}.")
+            raise TypeError(
+                "`source` must be an array (T, N, d), a path to a .npy, .npz or H5MD file, or an "
+                f"iterable of (N, d) arrays; got {type(source).__name__}."
+            )
 
     def _from_array(self, array, name):
         if array.ndim != 3:
@@ -77,8 +87,10 @@ class _Source:
         elif suffix == ".npz":
             data = np.load(path)
             if "positions" not in data:
-                raise ValueError(f"{path}: an .npz trajectory needs an array named 'positions' (T, N, d); it holds "
-                                 f"{', '.join(data.files) or 'nothing'}.")
+                raise ValueError(
+                    f"{path}: an .npz trajectory needs an array named 'positions' (T, N, d); it holds "
+                    f"{', '.join(data.files) or 'nothing'}."
+                )
             self._from_array(data["positions"], f"{path}:positions")
             for key in ("fitness", "velocities", "parents"):
                 if key in data:
@@ -90,15 +102,18 @@ class _Source:
             self.times = np.asarray(data["times"], float) if "times" in data else None
             unknown = set(data.files) - {"positions", "fitness", "velocities", "parents", "box", "periodic", "times"}
             if unknown:
-                raise ValueError(f"{path}: unknown arrays {sorted(unknown)}; a trajectory .npz holds positions and "
-                                 "optionally fitness, velocities, parents, box, periodic, times.")
+                raise ValueError(
+                    f"{path}: unknown arrays {sorted(unknown)}; a trajectory .npz holds positions and "
+                    "optionally fitness, velocities, parents, box, periodic, times."
+                )
         elif suffix in H5MD_SUFFIXES:
             h5 = H5MDTrajectory(path)
             self.name, self.n_frames, self._h5, self._close, self.dim = str(path), h5.n_frames, h5, h5.close, h5.d
             self.box, self.periodic, self.steps, self.times = h5.box, h5.periodic, h5.steps, h5.times
         else:
-            raise ValueError(f"{path}: unknown extension {suffix!r}; give a .npy, .npz or H5MD ({', '.join(H5MD_SUFFIXES)}) "
-                             "file.")
+            raise ValueError(
+                f"{path}: unknown extension {suffix!r}; give a .npy, .npz or H5MD ({', '.join(H5MD_SUFFIXES)}) file."
+            )
 
     def frame(self, t: int) -> dict:
         if hasattr(self, "_h5"):
@@ -119,12 +134,15 @@ def _check_frame(frame: dict, name: str, t: int, shape) -> np.ndarray:
     if x.ndim != 2 or not np.issubdtype(x.dtype, np.number):
         raise ValueError(f"{where}: positions must be a numeric (N, d) array; got {x.dtype} {x.shape}.")
     if shape is not None and x.shape != shape:
-        raise ValueError(f"{where}: positions have shape {x.shape}, the first frame {shape}; every frame needs the "
-                         "same walkers (N) and dimension.")
+        raise ValueError(
+            f"{where}: positions have shape {x.shape}, the first frame {shape}; every frame needs the "
+            "same walkers (N) and dimension."
+        )
     bad = ~np.isfinite(x).all(axis=1)
     if bad.any():
-        raise ValueError(f"{where}: {int(bad.sum())} walker(s) have NaN or inf coordinates (first: walker "
-                         f"{int(np.argmax(bad))}).")
+        raise ValueError(
+            f"{where}: {int(bad.sum())} walker(s) have NaN or inf coordinates (first: walker {int(np.argmax(bad))})."
+        )
     n = x.shape[0]
     for key, want in (("fitness", (n,)), ("velocities", x.shape), ("parents", (n,))):
         if key in frame and np.shape(frame[key]) != want:
@@ -164,7 +182,8 @@ def _determined(has: set, landscape, params: SwarmParams, graph: str) -> dict:
         missing["mean_metric_curvature"] = "needs a landscape (the curvature of its Hessian metric)"
         missing["mean_ricci"] = missing["ricci_resolution"] = (
             "without a landscape the metric is Euclidean, which is flat (R = 0 exactly); a landscape gives its "
-            "Hessian metric")
+            "Hessian metric"
+        )
     if graph == "knn":
         for name, row in OBSERVABLE_TABLE.items():
             if row.geometric:
@@ -182,8 +201,11 @@ def _graph(x, graph, k, box, periodic, triangulator, capacity):
         return knn_graph(x, k, box=box, periodic=periodic), None, False
     if capacity is not None:
         try:
-            return build_delaunay(x, box=box, periodic=periodic, capacity=capacity, triangulator=triangulator)[0], \
-                capacity, False
+            return (
+                build_delaunay(x, box=box, periodic=periodic, capacity=capacity, triangulator=triangulator)[0],
+                capacity,
+                False,
+            )
         except CapacityError:
             pass
     fresh = build_delaunay(x, box=box, periodic=periodic, triangulator=triangulator)[0]
@@ -209,9 +231,11 @@ def _observe_frame(fitness, params, state, frame_data, step, dt, observe):
         values = jax.vmap(fitness)(positions).astype(positions.dtype)
     alive = jnp.isfinite(values)
     cloned = parents != jnp.arange(n, dtype=jnp.int32)
-    state = eqx.tree_at(lambda s: (s.positions, s.velocities, s.fitness, s.alive, s.cloned, s.step,
-                                   s.scutoid_trace.parents),
-                        state, (positions, velocities, values, alive, cloned, step, parents))
+    state = eqx.tree_at(
+        lambda s: (s.positions, s.velocities, s.fitness, s.alive, s.cloned, s.step, s.scutoid_trace.parents),
+        state,
+        (positions, velocities, values, alive, cloned, step, parents),
+    )
     params = eqx.tree_at(lambda p: p.dt, params, dt)
     return observe_state(fitness, params, state, jnp.asarray(1.0, positions.dtype), observe)
 
@@ -224,11 +248,29 @@ def _compose(parents_between: list, n: int) -> np.ndarray:
     return total
 
 
-def analyze_trajectory(source, *, fitness=None, landscape: Callable | None = None, velocities=None, parents=None,
-                       times=None, dt: float | None = None, box=None, periodic: bool | None = None,
-                       params: SwarmParams | None = None, observe=None, every: int = 1, start: int = 0,
-                       stop: int | None = None, graph: str = "delaunay", k: int = 12, triangulator: str = "auto",
-                       spectral_gap_every: int = 0, dtype=None, progress=False) -> dict:
+def analyze_trajectory(
+    source,
+    *,
+    fitness=None,
+    landscape: Callable | None = None,
+    velocities=None,
+    parents=None,
+    times=None,
+    dt: float | None = None,
+    box=None,
+    periodic: bool | None = None,
+    params: SwarmParams | None = None,
+    observe=None,
+    every: int = 1,
+    start: int = 0,
+    stop: int | None = None,
+    graph: str = "delaunay",
+    k: int = 12,
+    triangulator: str = "auto",
+    spectral_gap_every: int = 0,
+    dtype=None,
+    progress=False,
+) -> dict:
     """The observables of `jaxgeom.simulate`'s history, measured on a recorded trajectory.
 
     **Arguments:**
@@ -284,18 +326,60 @@ def analyze_trajectory(source, *, fitness=None, landscape: Callable | None = Non
         raise TypeError("`params` must be a jaxgeom.SwarmParams.")
     src = _Source(source)
     try:
-        return _analyze(src, fitness, landscape, velocities, parents, times, dt, box, periodic, params, observe,
-                        every, start, stop, graph, k, triangulator, spectral_gap_every, dtype, progress)
+        return _analyze(
+            src,
+            fitness,
+            landscape,
+            velocities,
+            parents,
+            times,
+            dt,
+            box,
+            periodic,
+            params,
+            observe,
+            every,
+            start,
+            stop,
+            graph,
+            k,
+            triangulator,
+            spectral_gap_every,
+            dtype,
+            progress,
+        )
     finally:
         src.close()
 
 
-def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, periodic, params, observe, every, start,
-             stop, graph, k, triangulator, gap_every, dtype, progress):
+def _analyze(
+    src,
+    fitness,
+    landscape,
+    velocities,
+    parents,
+    times,
+    dt,
+    box,
+    periodic,
+    params,
+    observe,
+    every,
+    start,
+    stop,
+    graph,
+    k,
+    triangulator,
+    gap_every,
+    dtype,
+    progress,
+):
     n_frames = src.n_frames
-    supplied = {"fitness": _per_frame(fitness, "fitness", n_frames),
-                "velocities": _per_frame(velocities, "velocities", n_frames),
-                "parents": _per_frame(parents, "parents", n_frames)}
+    supplied = {
+        "fitness": _per_frame(fitness, "fitness", n_frames),
+        "velocities": _per_frame(velocities, "velocities", n_frames),
+        "parents": _per_frame(parents, "parents", n_frames),
+    }
     file_has = set(src.extra) | set(getattr(getattr(src, "_h5", None), "has", ()))
     file_has = {{"velocity": "velocities"}.get(e, e) for e in file_has}
     for key, value in supplied.items():
@@ -341,8 +425,10 @@ def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, perio
                 lo, hi = (np.broadcast_to(np.asarray(b, float), (x.shape[1],)) for b in box)
                 outside = np.any((x < lo) | (x > hi), axis=1)
                 if outside.any():
-                    raise ValueError(f"{src.name}, frame {t}: {int(outside.sum())} walker(s) lie outside the box "
-                                     f"(first: walker {int(np.argmax(outside))} at {x[np.argmax(outside)]}).")
+                    raise ValueError(
+                        f"{src.name}, frame {t}: {int(outside.sum())} walker(s) lie outside the box "
+                        f"(first: walker {int(np.argmax(outside))} at {x[np.argmax(outside)]})."
+                    )
             try:
                 tess, capacity, grew = _graph(x, graph, k, box, periodic, triangulator, capacity)
             except ValueError as err:
@@ -362,9 +448,15 @@ def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, perio
             between = []
             now = frame_times(t)
             step_dt = jnp.asarray(now - previous_time if previous_time is not None else 1.0, dtype)
-            state, obs = _observe_frame(landscape, params, state,
-                                        (xj, v, values, jnp.asarray(p, jnp.int32)), jnp.asarray(done, jnp.int32),
-                                        step_dt, observe)
+            state, obs = _observe_frame(
+                landscape,
+                params,
+                state,
+                (xj, v, values, jnp.asarray(p, jnp.int32)),
+                jnp.asarray(done, jnp.int32),
+                step_dt,
+                observe,
+            )
             previous_time = now
             for name in observe:
                 series[name].append(obs[name])  # device scalars: the next frame's build overlaps them
@@ -389,6 +481,7 @@ def _analyze(src, fitness, landscape, velocities, parents, times, dt, box, perio
 
 def _frames(src: _Source, supplied: dict, start: int, stop):
     """(t, frame dict) from `start` to `stop`, the supplied per-frame arrays merged in."""
+
     def merged(t, frame):
         for key, array in supplied.items():
             if array is not None:
@@ -435,13 +528,17 @@ def _fitness(frame: dict, landscape, xj, n: int, dtype):
 def _trajectory_history(series, indices, times, src, gaps, reallocations, seconds, missing, dtype) -> dict:
     history = {name: np.asarray([float(v) for v in values], dtype) for name, values in series.items()}
     steps = np.asarray(src.steps)[indices] if src.steps is not None and len(indices) else np.asarray(indices)
-    history.update(frame=np.asarray(indices, np.int64), step=np.asarray(steps, np.int64),
-                   time=np.asarray(times, float),
-                   spectral_gap_step=np.asarray([g[0] for g in gaps], np.int32).reshape(-1),
-                   spectral_gap=np.asarray([g[1] for g in gaps], dtype).reshape(-1),
-                   spectral_components=np.asarray([g[2] for g in gaps], np.int32).reshape(-1),
-                   spectral_gap_rounding=np.asarray([g[3] for g in gaps], bool).reshape(-1),
-                   n_reallocations=np.asarray(reallocations, np.int32),
-                   seconds_rebuild=np.asarray(seconds["rebuild"]), seconds_steps=np.asarray(seconds["steps"]),
-                   unavailable={name: why for name, why in missing.items()})
+    history.update(
+        frame=np.asarray(indices, np.int64),
+        step=np.asarray(steps, np.int64),
+        time=np.asarray(times, float),
+        spectral_gap_step=np.asarray([g[0] for g in gaps], np.int32).reshape(-1),
+        spectral_gap=np.asarray([g[1] for g in gaps], dtype).reshape(-1),
+        spectral_components=np.asarray([g[2] for g in gaps], np.int32).reshape(-1),
+        spectral_gap_rounding=np.asarray([g[3] for g in gaps], bool).reshape(-1),
+        n_reallocations=np.asarray(reallocations, np.int32),
+        seconds_rebuild=np.asarray(seconds["rebuild"]),
+        seconds_steps=np.asarray(seconds["steps"]),
+        unavailable={name: why for name, why in missing.items()},
+    )
     return history

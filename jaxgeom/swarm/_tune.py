@@ -32,7 +32,7 @@ class TuningFailed(FloatingPointError):
     """The loss or its gradient stopped being finite at an accepted iteration; `result`
     holds the iterations recorded up to there."""
 
-    def __init__(self, message: str, result: "TuneResult"):
+    def __init__(self, message: str, result: TuneResult):
         super().__init__(message)
         self.result = result
 
@@ -40,7 +40,7 @@ class TuningFailed(FloatingPointError):
 class TuningInterrupted(KeyboardInterrupt):
     """Ctrl-C during `tune`: `result` holds the iterations accepted before it (None if none was)."""
 
-    def __init__(self, result: "TuneResult | None"):
+    def __init__(self, result: TuneResult | None):
         done = 0 if result is None else len(result.iterations) - 1
         super().__init__(f"tune: interrupted after {done} iteration(s)")
         self.result = result
@@ -93,8 +93,10 @@ def _solver_of(solver, rtol: float, atol: float):
         return "lbfgsb", None
     if isinstance(solver, optx.AbstractMinimiser):
         return type(solver).__name__, solver
-    raise ValueError(f"unknown solver {solver!r}; valid values are {', '.join(map(repr, SOLVERS))} "
-                     "or an optimistix.AbstractMinimiser instance.")
+    raise ValueError(
+        f"unknown solver {solver!r}; valid values are {', '.join(map(repr, SOLVERS))} "
+        "or an optimistix.AbstractMinimiser instance."
+    )
 
 
 def _start(loss: SimulationLoss, start):
@@ -102,14 +104,25 @@ def _start(loss: SimulationLoss, start):
         return loss.to_theta(start)
     theta = jnp.asarray(start, loss.state.positions.dtype)
     if theta.shape != (len(loss.tuned),) or not bool(jnp.all(jnp.isfinite(theta))):
-        raise ValueError(f"`start` as an array is theta (unconstrained, one entry per tuned name {list(loss.tuned)}), "
-                         f"finite; got shape {theta.shape}. Give physical values as a dict instead.")
+        raise ValueError(
+            f"`start` as an array is theta (unconstrained, one entry per tuned name {list(loss.tuned)}), "
+            f"finite; got shape {theta.shape}. Give physical values as a dict instead."
+        )
     return theta
 
 
-def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, rtol: float = 1e-4,
-         atol: float | None = None, bounds: dict | None = None, progress=False, target_seeds: int | None = None
-         ) -> TuneResult:
+def tune(
+    loss: SimulationLoss,
+    start=None,
+    *,
+    solver=None,
+    max_steps: int = 50,
+    rtol: float = 1e-4,
+    atol: float | None = None,
+    bounds: dict | None = None,
+    progress=False,
+    target_seeds: int | None = None,
+) -> TuneResult:
     """Minimise a [`jaxgeom.SimulationLoss`][] over its tuned parameters.
 
     **Arguments:**
@@ -141,14 +154,17 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     check_positive(rtol, "rtol", " (the solver's relative tolerance)")
     name, _ = _solver_of(solver, rtol, 0.0)
     if atol is not None and name == "lbfgsb":
-        raise ValueError("`atol` is optimistix's absolute tolerance; solver='lbfgsb' (scipy) takes `rtol` only. "
-                         "Leave atol None.")
+        raise ValueError(
+            "`atol` is optimistix's absolute tolerance; solver='lbfgsb' (scipy) takes `rtol` only. Leave atol None."
+        )
     atol = 1e-6 if atol is None else atol
     check_nonnegative(atol, "atol")
     name, minimiser = _solver_of(solver, rtol, atol)
     if bounds is not None and name != "lbfgsb":
-        raise ValueError("hard `bounds` need solver='lbfgsb'; with optimistix solvers give them to "
-                         "simulation_loss(bounds=...) (a sigmoid map of theta).")
+        raise ValueError(
+            "hard `bounds` need solver='lbfgsb'; with optimistix solvers give them to "
+            "simulation_loss(bounds=...) (a sigmoid map of theta)."
+        )
     theta0 = _start(loss, start)
     began = time.perf_counter()
     bar, owned = open_bar(progress, max_steps + 1, f"tune ({name})", unit="it")
@@ -171,12 +187,29 @@ def tune(loss: SimulationLoss, start=None, *, solver=None, max_steps: int = 50, 
     best = recorder.iterations[-1]
     frozen = zero_gradient(recorder.iterations, loss.tuned)
     if frozen:
-        warn_at_caller(f"tune: the gradient in {list(frozen)} was exactly 0 at every iterate, so the solver never "
-                       "moved them: the loss does not depend on them here (result.zero_gradient). Leave them out "
-                       "of `tuned`, or make the loss read them.", RuntimeWarning)
-    return TuneResult(np.asarray(theta), loss.values(theta), loss.to_params(jnp.asarray(theta)), best["loss"],
-                      recorder.iterations, name, n_steps, converged, message, time.perf_counter() - began,
-                      float(scale), errors, covariance, note, frozen)
+        warn_at_caller(
+            f"tune: the gradient in {list(frozen)} was exactly 0 at every iterate, so the solver never "
+            "moved them: the loss does not depend on them here (result.zero_gradient). Leave them out "
+            "of `tuned`, or make the loss read them.",
+            RuntimeWarning,
+        )
+    return TuneResult(
+        np.asarray(theta),
+        loss.values(theta),
+        loss.to_params(jnp.asarray(theta)),
+        best["loss"],
+        recorder.iterations,
+        name,
+        n_steps,
+        converged,
+        message,
+        time.perf_counter() - began,
+        float(scale),
+        errors,
+        covariance,
+        note,
+        frozen,
+    )
 
 
 def zero_gradient(iterations: list, tuned: tuple) -> tuple:
@@ -220,12 +253,13 @@ def parameter_errors(loss: SimulationLoss, theta, target_seeds: int | None = Non
     bread = np.linalg.inv(information)
     covariance = bread @ jac.T @ weight @ sigma @ weight @ jac @ bread
     errors = np.abs(rates) * np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-    return dict(zip(loss.tuned, errors.tolist())), covariance, ""
+    return dict(zip(loss.tuned, errors.tolist(), strict=True)), covariance, ""
 
 
 @eqx.filter_jit
 def _error_ingredients(loss, theta):
     """(per-seed moments (n_seeds, m), J = d mean / d theta (m, p), d value / d theta (p,))."""
+
     def mean_and_moments(t):
         moments = loss.seed_moments(t)
         return jnp.mean(moments, axis=0), moments
@@ -242,9 +276,13 @@ class _Recorder:
         self.loss, self.bar, self.iterations, self.name, self.thetas = loss, bar, [], name, []
 
     def add(self, theta, value, grad) -> None:
-        record = {"iteration": len(self.iterations), "loss": float(value),
-                  "grad_norm": float(np.linalg.norm(np.asarray(grad))), "values": self.loss.values(theta),
-                  "gradient": dict(zip(self.loss.tuned, np.asarray(grad, float).tolist()))}
+        record = {
+            "iteration": len(self.iterations),
+            "loss": float(value),
+            "grad_norm": float(np.linalg.norm(np.asarray(grad))),
+            "values": self.loss.values(theta),
+            "gradient": dict(zip(self.loss.tuned, np.asarray(grad, float).tolist(), strict=True)),
+        }
         self.iterations.append(record)
         if self.bar is not None:
             shown = " ".join(f"{k}={v:.4g}" for k, v in record["values"].items())
@@ -260,18 +298,30 @@ class _Recorder:
             raise TuningFailed(
                 f"tune: the {what} is not finite at iteration {record['iteration']} ({record['values']}): {why} "
                 "Start closer to sound values (a smaller dt, a larger eps_sigma), bound the parameters, or use "
-                "float64.", partial)
+                "float64.",
+                partial,
+            )
 
-
-    def partial(self, message: str, seconds: float) -> "TuneResult | None":
+    def partial(self, message: str, seconds: float) -> TuneResult | None:
         """A `TuneResult` at the last recorded iterate (not converged), None before the first."""
         if not self.iterations:
             return None
         theta, record = self.thetas[-1], self.iterations[-1]
-        return TuneResult(theta, record["values"], self.loss.to_params(jnp.asarray(theta)), record["loss"],
-                          self.iterations, self.name, len(self.iterations), False, message, seconds, float("nan"),
-                          error_note=f"the run stopped ({message}) before it converged",
-                          zero_gradient=zero_gradient(self.iterations, self.loss.tuned))
+        return TuneResult(
+            theta,
+            record["values"],
+            self.loss.to_params(jnp.asarray(theta)),
+            record["loss"],
+            self.iterations,
+            self.name,
+            len(self.iterations),
+            False,
+            message,
+            seconds,
+            float("nan"),
+            error_note=f"the run stopped ({message}) before it converged",
+            zero_gradient=zero_gradient(self.iterations, self.loss.tuned),
+        )
 
 
 @eqx.filter_jit
@@ -321,8 +371,11 @@ def _run_optimistix(loss, solver, theta0, scale, max_steps: int, recorder: _Reco
         value, grad = _value_and_grad(loss, theta)
         recorder.add(theta, value, grad)
     converged = done and bool(result == optx.RESULTS.successful)
-    message = "converged" if converged else (optx.RESULTS[result] if result != optx.RESULTS.successful
-                                            else f"max_steps={max_steps} reached")
+    message = (
+        "converged"
+        if converged
+        else (optx.RESULTS[result] if result != optx.RESULTS.successful else f"max_steps={max_steps} reached")
+    )
     return theta, n_steps, converged, message
 
 
@@ -342,8 +395,9 @@ def _run_lbfgsb(loss, theta0, scale, max_steps: int, tol: float, bounds, recorde
         recorder.add(theta, value, grad)
 
     lower, upper = _theta_bounds(loss, bounds)
-    solver = jaxopt.ScipyBoundedMinimize(fun=fun, value_and_grad=True, method="l-bfgs-b", maxiter=max_steps,
-                                         tol=tol, jit=False, callback=callback)
+    solver = jaxopt.ScipyBoundedMinimize(
+        fun=fun, value_and_grad=True, method="l-bfgs-b", maxiter=max_steps, tol=tol, jit=False, callback=callback
+    )
     theta, info = solver.run(theta0, bounds=(lower, upper))
     converged = bool(info.success)
     return theta, int(info.iter_num), converged, "converged" if converged else f"scipy status {int(info.status)}"
@@ -356,7 +410,7 @@ def _theta_bounds(loss: SimulationLoss, bounds: dict | None):
     if unknown:
         raise ValueError(f"`bounds` names {unknown}, which are not tuned; tuned: {list(loss.tuned)}.")
     lower, upper = [], []
-    for name, (map_lower, map_upper) in zip(loss.tuned, loss.bounds):
+    for name, (map_lower, map_upper) in zip(loss.tuned, loss.bounds, strict=True):
         lo, hi = bound_pair(bounds, name)
         if lo is not None and hi is not None and not lo < hi:
             raise ValueError(f"bounds for {name!r} must have lower < upper; got ({lo}, {hi}).")

@@ -94,8 +94,10 @@ class SimulationLoss(eqx.Module):
     def check_theta(self, theta) -> None:
         """theta must be a real (p,) vector, one entry per tuned parameter (shapes are static)."""
         if np.shape(theta) != (len(self.tuned),):
-            raise ValueError(f"theta must have shape ({len(self.tuned)},), one entry per tuned parameter "
-                             f"{list(self.tuned)} (loss.to_theta({{...}}) builds it); got shape {np.shape(theta)}.")
+            raise ValueError(
+                f"theta must have shape ({len(self.tuned)},), one entry per tuned parameter "
+                f"{list(self.tuned)} (loss.to_theta({{...}}) builds it); got shape {np.shape(theta)}."
+            )
 
     def to_params(self, theta: Float[Array, " p"]) -> SwarmParams:
         """The `SwarmParams` simulated at theta (the tuned fields replaced)."""
@@ -113,7 +115,7 @@ class SimulationLoss(eqx.Module):
         if unknown:
             raise ValueError(f"unknown tuned parameter(s) {unknown}; this loss tunes {list(self.tuned)}.")
         theta = []
-        for name, (lower, upper) in zip(self.tuned, self.bounds):
+        for name, (lower, upper) in zip(self.tuned, self.bounds, strict=True):
             value = float(values.get(name, getattr(self.params, name)))
             _check_inside(name, value, lower, upper)
             theta.append(_inverse_map(value, lower, upper))
@@ -127,11 +129,19 @@ class SimulationLoss(eqx.Module):
     def histories(self, theta):
         """(final states, histories) of every seed, stacked on a leading (n_seeds,) axis; the
         histories without the wall-clock times, which a traced run does not measure (NaN)."""
+
         def run(key, params):
             state = eqx.tree_at(lambda s: s.key, self.state, key)
-            final, history = simulate(self.fitness, state, params, n_steps=self.n_steps, rebuild=self.rebuild,
-                                      rebuild_every=self.rebuild_every, observe=self.observe,
-                                      checkpoint=self.checkpoint)
+            final, history = simulate(
+                self.fitness,
+                state,
+                params,
+                n_steps=self.n_steps,
+                rebuild=self.rebuild,
+                rebuild_every=self.rebuild_every,
+                observe=self.observe,
+                checkpoint=self.checkpoint,
+            )
             return final, {name: value for name, value in history.items() if not name.startswith("seconds_")}
 
         return over_batch(run, self.mesh)(self.keys, self.to_params(theta))
@@ -163,11 +173,13 @@ class SimulationLoss(eqx.Module):
         if not (steps >= 0).any():
             return None
         cause = likely_cause(self.fitness, self.to_params(jnp.asarray(theta)), self.state)
-        return (f"the simulation diverged by step {int(steps[steps >= 0].min())} in {int((steps >= 0).sum())} of "
-                f"{steps.size} seed(s). {cause}")
+        return (
+            f"the simulation diverged by step {int(steps[steps >= 0].min())} in {int((steps >= 0).sum())} of "
+            f"{steps.size} seed(s). {cause}"
+        )
 
     def seed_moments(self, theta) -> Float[Array, "n_seeds n_targets"]:
-        """"match": each seed's average of every matched observable over the last `window`
+        """ "match": each seed's average of every matched observable over the last `window`
         of its run (the loss compares their seed mean with `targets`)."""
         return self._moments(theta)[0]
 
@@ -189,8 +201,10 @@ class SimulationLoss(eqx.Module):
             return history["best_fitness"][-1]
         if self.objective == "mean_fitness":
             return self._late_mean(history["mean_fitness"])
-        terms = [((self._late_mean(history[name]) - value) / scale) ** 2
-                 for (name, value), scale in zip(self.targets, self.target_scales())]
+        terms = [
+            ((self._late_mean(history[name]) - value) / scale) ** 2
+            for (name, value), scale in zip(self.targets, self.target_scales(), strict=True)
+        ]
         return sum(terms)
 
     def _late_mean(self, series):
@@ -206,10 +220,25 @@ def _check_inside(name: str, value: float, lower, upper) -> None:
         raise ValueError(f"`{name}` = {value} cannot be tuned from: it must be {where} (the parameter map's range).")
 
 
-def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_steps: int, params: SwarmParams,
-                    tuned=("nu",), n_seeds: int = 1, key=None, targets: dict | None = None,
-                    bounds: dict | None = None, window: float | None = None, observe=None, rebuild: str = "callback",
-                    rebuild_every: int = 1, checkpoint: bool = True, mesh=None) -> SimulationLoss:
+def simulation_loss(
+    fitness,
+    state: SwarmState,
+    objective="mean_fitness",
+    *,
+    n_steps: int,
+    params: SwarmParams,
+    tuned=("nu",),
+    n_seeds: int = 1,
+    key=None,
+    targets: dict | None = None,
+    bounds: dict | None = None,
+    window: float | None = None,
+    observe=None,
+    rebuild: str = "callback",
+    rebuild_every: int = 1,
+    checkpoint: bool = True,
+    mesh=None,
+) -> SimulationLoss:
     """A differentiable loss of the swarm's parameters: theta -> objective of whole simulations.
 
     **Arguments:**
@@ -248,11 +277,15 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     differentiable and `loss.to_theta({"nu": 0.1})` the theta of given values.
     """
     if window is not None and objective not in ("mean_fitness", "match"):
-        raise ValueError(f"`window` sets the time average of objective 'mean_fitness' or 'match'; objective "
-                         f"{objective!r} has none. Leave window None.")
+        raise ValueError(
+            f"`window` sets the time average of objective 'mean_fitness' or 'match'; objective "
+            f"{objective!r} has none. Leave window None."
+        )
     if observe is not None and not callable(objective):
-        raise ValueError(f"`observe` lists what a callable objective reads; objective {objective!r} records its own "
-                         "observables. Leave observe None.")
+        raise ValueError(
+            f"`observe` lists what a callable objective reads; objective {objective!r} records its own "
+            "observables. Leave observe None."
+        )
     window = 0.5 if window is None else window
     _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets, window, rebuild)
     tuned = tuple(tuned)
@@ -266,9 +299,24 @@ def simulation_loss(fitness, state: SwarmState, objective="mean_fitness", *, n_s
     base = state.key if key is None else _key_like(key, state.key)
     keys = jax.random.split(base, n_seeds)
     check_mesh(mesh, n_seeds, "`n_seeds`")
-    loss = SimulationLoss(fitness, state, params, keys, tuned, bounds, objective, targets, observe, int(n_steps),
-                          float(window), rebuild, int(rebuild_every), bool(checkpoint), mesh)
-    for name, (lower, upper) in zip(tuned, bounds):
+    loss = SimulationLoss(
+        fitness,
+        state,
+        params,
+        keys,
+        tuned,
+        bounds,
+        objective,
+        targets,
+        observe,
+        int(n_steps),
+        float(window),
+        rebuild,
+        int(rebuild_every),
+        bool(checkpoint),
+        mesh,
+    )
+    for name, (lower, upper) in zip(tuned, bounds, strict=True):
         _check_inside(name, float(getattr(params, name)), lower, upper)
     if callable(objective):
         _check_callable_objective(loss)
@@ -289,13 +337,17 @@ def _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets,
         raise ValueError(f"`tuned` must be a non-empty tuple of distinct names from {TUNABLE}; got {tuned!r}.")
     for name in tuned:
         if name == "clone_rate":
-            raise ValueError("`clone_rate` cannot be tuned by gradient: it changes only the discrete clone "
-                             "decisions, which the pathwise gradient holds fixed, so its gradient is exactly 0. "
-                             "Choose it by a sweep of simulate runs.")
+            raise ValueError(
+                "`clone_rate` cannot be tuned by gradient: it changes only the discrete clone "
+                "decisions, which the pathwise gradient holds fixed, so its gradient is exactly 0. "
+                "Choose it by a sweep of simulate runs."
+            )
         check_choice(name, "tuned parameter", TUNABLE)
     if (objective == "match") != bool(targets):
-        raise ValueError("objective='match' needs `targets` ({observable: value}), and `targets` needs "
-                         f"objective='match'; got objective={objective!r}, targets={targets!r}.")
+        raise ValueError(
+            "objective='match' needs `targets` ({observable: value}), and `targets` needs "
+            f"objective='match'; got objective={objective!r}, targets={targets!r}."
+        )
     for name, value in (targets or {}).items():
         check_choice(name, "target observable", ALL_OBSERVABLES)
         if not np.isfinite(value):
@@ -313,29 +365,40 @@ def ignored_parameter(name: str, params: SwarmParams, observe: tuple, tuned: tup
     """Why a loss of runs under `params` that reads the observables `observe` cannot depend on
     the parameter `name` ("" when it can). `tuned`: the parameters tuned with it."""
     if name == "eps_sigma" and not (_dynamics_use_metric(params) or set(observe) & set(METRIC_OBSERVABLES)):
-        return (f"eps_Sigma enters only the Hessian metric g = floor(H) + eps_Sigma I, and these runs never use g "
-                f"(weights={params.weights!r}, isotropic noise) nor does the loss read it (observables "
-                f"{list(observe)}). Tune it with weights='metric_full' or 'metric_diagonal' or anisotropic=True, "
-                "or leave it out of `tuned`.")
+        return (
+            f"eps_Sigma enters only the Hessian metric g = floor(H) + eps_Sigma I, and these runs never use g "
+            f"(weights={params.weights!r}, isotropic noise) nor does the loss read it (observables "
+            f"{list(observe)}). Tune it with weights='metric_full' or 'metric_diagonal' or anisotropic=True, "
+            "or leave it out of `tuned`."
+        )
     if name == "alpha" and (params.weights != "kernel" or params.length_scale is not None):
-        return (f"alpha sets the adaptive width of weights='kernel' without a length_scale; these runs use "
-                f"weights={params.weights!r}, length_scale={_shown(params.length_scale)}. Leave it out of `tuned`.")
+        return (
+            f"alpha sets the adaptive width of weights='kernel' without a length_scale; these runs use "
+            f"weights={params.weights!r}, length_scale={_shown(params.length_scale)}. Leave it out of `tuned`."
+        )
     if name == "nu_initial" and not params.anneal_nu:
         return "nu_initial starts the annealing schedule of anneal_nu=True; these runs keep nu constant."
     if name == "clone_jitter" and not params.cloning:
         return "clone_jitter places cloned walkers; these runs have cloning=False."
-    if (name == "temperature" and "gamma" not in tuned and not isinstance(params.gamma, jax.core.Tracer)
-            and float(params.gamma) == 0.0):
-        return ("at gamma = 0 the Ornstein-Uhlenbeck step has no noise (its variance is T (1 - exp(-2 gamma dt))), "
-                "so the temperature does not enter. Set gamma > 0 or tune gamma with it.")
+    if (
+        name == "temperature"
+        and "gamma" not in tuned
+        and not isinstance(params.gamma, jax.core.Tracer)
+        and float(params.gamma) == 0.0
+    ):
+        return (
+            "at gamma = 0 the Ornstein-Uhlenbeck step has no noise (its variance is T (1 - exp(-2 gamma dt))), "
+            "so the temperature does not enter. Set gamma > 0 or tune gamma with it."
+        )
     return ""
 
 
 def _dynamics_use_metric(params: SwarmParams) -> bool:
     """Whether a step reads the Hessian metric: noise g^-1, metric weights, or volume weights by
     sqrt(det g) (g is computed whenever the parameters need it)."""
-    return params.anisotropic or params.weights.startswith("metric") or (params.needs_metric
-                                                                         and params.volume_weighting)
+    return (
+        params.anisotropic or params.weights.startswith("metric") or (params.needs_metric and params.volume_weighting)
+    )
 
 
 def _shown(value) -> str:
@@ -391,8 +454,10 @@ def _observables_for(objective, targets: tuple, observe) -> tuple:
 def _key_like(key, like):
     if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
         key = jax.random.PRNGKey(key)
-    elif not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
-                                              or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+    elif not (
+        isinstance(key, jax.Array)
+        and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key) or (key.dtype == jnp.uint32 and key.shape == (2,)))
+    ):
         raise TypeError(f"`key` must be an int seed or a jax.random key (jax.random.PRNGKey(seed)); got {key!r}.")
     if jnp.issubdtype(like.dtype, jax.dtypes.prng_key) and not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         return jax.random.wrap_key_data(key)
@@ -408,12 +473,18 @@ def _check_callable_objective(loss: SimulationLoss) -> None:
     try:
         shape = jax.eval_shape(jax.vmap(loss.objective), histories)
     except jax.errors.JAXTypeError as err:  # float(), numpy or a Python branch on a traced value
-        raise TypeError(f"the objective must be JAX-traceable: history -> scalar with jax.numpy (e.g. "
-                        f"h['mean_fitness'][-1], not float(np.asarray(...))), since the loss is jitted and "
-                        f"differentiated; tracing it failed: {type(err).__name__}: {str(err).splitlines()[0]}"
-                        ) from None
-    if not (isinstance(shape, jax.ShapeDtypeStruct) and shape.shape == (loss.n_seeds,)
-            and jnp.issubdtype(shape.dtype, jnp.floating)):
+        raise TypeError(
+            f"the objective must be JAX-traceable: history -> scalar with jax.numpy (e.g. "
+            f"h['mean_fitness'][-1], not float(np.asarray(...))), since the loss is jitted and "
+            f"differentiated; tracing it failed: {type(err).__name__}: {str(err).splitlines()[0]}"
+        ) from None
+    if not (
+        isinstance(shape, jax.ShapeDtypeStruct)
+        and shape.shape == (loss.n_seeds,)
+        and jnp.issubdtype(shape.dtype, jnp.floating)
+    ):
         got = jax.tree_util.tree_map(lambda s: (s.shape, str(s.dtype)), shape)
-        raise ValueError(f"the objective must return one float scalar per history; it returns {got} "
-                         f"for {loss.n_seeds} seed(s) (reduce it with jnp.mean or index the final step).")
+        raise ValueError(
+            f"the objective must return one float scalar per history; it returns {got} "
+            f"for {loss.n_seeds} seed(s) (reduce it with jnp.mean or index the final step)."
+        )

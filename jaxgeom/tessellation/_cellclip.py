@@ -54,8 +54,14 @@ def bisector_lines(offsets: Float[Array, "k 2"]) -> Float[Array, "k 3"]:
 def start_square(half: Float[Array, ""], max_edges: int):
     """The square [-half, half]^2 as a cell: (lines (P, 3), vertices (P, 3), labels (P,), count)."""
     one, zero = jnp.ones_like(half), jnp.zeros_like(half)
-    sides = jnp.stack([jnp.stack([zero, -one, -half]), jnp.stack([one, zero, -half]),
-                       jnp.stack([zero, one, -half]), jnp.stack([-one, zero, -half])])
+    sides = jnp.stack(
+        [
+            jnp.stack([zero, -one, -half]),
+            jnp.stack([one, zero, -half]),
+            jnp.stack([zero, one, -half]),
+            jnp.stack([-one, zero, -half]),
+        ]
+    )
     lines = jnp.zeros((max_edges, 3), half.dtype).at[:4].set(sides)
     vertices = jnp.zeros((max_edges, 3), half.dtype).at[:4].set(jnp.cross(jnp.roll(sides, 1, axis=0), sides))
     return lines, vertices, jnp.full((max_edges,), FAR, jnp.int32), jnp.asarray(4, jnp.int32)
@@ -85,7 +91,9 @@ def clip(cell, line, label):
     new_lines = jnp.where((index == last)[:, None], line, lines[source])
     new_vertices = vertices[source]
     new_vertices = jnp.where((index == 0)[:, None], jnp.cross(line, lines[entry]), new_vertices)
-    new_vertices = jnp.where((index == last)[:, None], jnp.cross(new_lines[jnp.maximum(last - 1, 0)], line), new_vertices)
+    new_vertices = jnp.where(
+        (index == last)[:, None], jnp.cross(new_lines[jnp.maximum(last - 1, 0)], line), new_vertices
+    )
     new_labels = jnp.where(index == last, label, labels[source])
     cut = (n_out > 0) & (n_out < count)
     cell_after = (new_lines, new_vertices, new_labels, jnp.minimum(new_count, p))
@@ -160,9 +168,11 @@ def _incircle(a, b, c, q):
     relative to the scale |.|^4 of the offsets (so a tolerance is dimensionless)."""
     rows = [p - q for p in (a, b, c)]
     lift = [jnp.sum(r * r, axis=-1) for r in rows]
-    det = (rows[0][..., 0] * (rows[1][..., 1] * lift[2] - lift[1] * rows[2][..., 1])
-           - rows[0][..., 1] * (rows[1][..., 0] * lift[2] - lift[1] * rows[2][..., 0])
-           + lift[0] * (rows[1][..., 0] * rows[2][..., 1] - rows[1][..., 1] * rows[2][..., 0]))
+    det = (
+        rows[0][..., 0] * (rows[1][..., 1] * lift[2] - lift[1] * rows[2][..., 1])
+        - rows[0][..., 1] * (rows[1][..., 0] * lift[2] - lift[1] * rows[2][..., 0])
+        + lift[0] * (rows[1][..., 0] * rows[2][..., 1] - rows[1][..., 1] * rows[2][..., 0])
+    )
     scale = jnp.maximum(jnp.maximum(lift[0], lift[1]), lift[2])
     return det / jnp.where(scale > 0, scale * scale, 1.0)
 
@@ -249,10 +259,20 @@ def check_cycles(points, cy: Cycles) -> Checks:
     not_delaunay = triangle & (c >= 0) & (c < n) & (_incircle(xi, xa, xb, xc) > incircle_tolerance(points.dtype))
     isolated = ~jnp.any(triangle, axis=1)
     hull, bad_chain, bad_turn, previous, following = boundary_checks(points, cy)
-    suspect = (_flag(n, inconsistent | inverted | not_delaunay, i, a, b) | _flag(n, not_delaunay, c)
-               | isolated | _flag(n, bad_chain, jnp.arange(n, dtype=jnp.int32), previous, following) | (bad_turn & hull))
-    certificate = Certificate(jnp.any(inconsistent), jnp.any(inverted), jnp.any(not_delaunay),
-                              jnp.any(bad_chain) | bad_turn, jnp.any(isolated))
+    suspect = (
+        _flag(n, inconsistent | inverted | not_delaunay, i, a, b)
+        | _flag(n, not_delaunay, c)
+        | isolated
+        | _flag(n, bad_chain, jnp.arange(n, dtype=jnp.int32), previous, following)
+        | (bad_turn & hull)
+    )
+    certificate = Certificate(
+        jnp.any(inconsistent),
+        jnp.any(inverted),
+        jnp.any(not_delaunay),
+        jnp.any(bad_chain) | bad_turn,
+        jnp.any(isolated),
+    )
     return Checks(triangle, slot_in_a, slot_in_b, hull, suspect, certificate)
 
 
@@ -268,13 +288,17 @@ def boundary_checks(points, cy: Cycles):
     runs_ok = (entering == jnp.sum(leaves, axis=1, dtype=jnp.int32)) & (entering <= 1)
     previous = jnp.max(jnp.where(enters, cy.before, -1), axis=1)
     following = jnp.max(jnp.where(leaves, cy.labels, -1), axis=1)
-    chained = previous.at[jnp.where(hull, following, n)].get(mode="fill", fill_value=-1) == jnp.arange(n, dtype=jnp.int32)
+    chained = previous.at[jnp.where(hull, following, n)].get(mode="fill", fill_value=-1) == jnp.arange(
+        n, dtype=jnp.int32
+    )
     xp, xi, xn = _corner_points(points, previous, jnp.arange(n, dtype=jnp.int32), following)
     turn = _orient(xp, xi, xn)
     dot = jnp.sum((xi - xp) * (xn - xi), axis=-1)
     total_turn = jnp.sum(jnp.where(hull, jnp.arctan2(turn, dot), 0.0))
     # Collinear walkers on the hull (a wall) turn by 0 to rounding: allowed.
-    straight = 64 * jnp.finfo(points.dtype).eps * jnp.sqrt(jnp.sum((xi - xp) ** 2, axis=-1) * jnp.sum((xn - xi) ** 2, axis=-1))
+    straight = (
+        64 * jnp.finfo(points.dtype).eps * jnp.sqrt(jnp.sum((xi - xp) ** 2, axis=-1) * jnp.sum((xn - xi) ** 2, axis=-1))
+    )
     bad_chain = ~runs_ok | (hull & ~(chained & (turn >= -straight)))
     return hull, bad_chain, jnp.abs(total_turn - 2 * jnp.pi) > 1.0, previous, following
 
@@ -291,8 +315,11 @@ def emit_triangles(cy: Cycles, checks: Checks, s_cap: int):
     emit = checks.triangle & (i < a) & (i < b)
     ids = jnp.where(emit, jnp.cumsum(emit.ravel(), dtype=jnp.int32).reshape(n, p) - 1, -1)
     rows = jnp.where(emit & (ids < s_cap), ids, s_cap)
-    simplices = jnp.full((s_cap, 3), n, jnp.int32).at[rows].set(
-        jnp.stack([jnp.broadcast_to(i, a.shape), a, b], axis=-1), mode="drop")
+    simplices = (
+        jnp.full((s_cap, 3), n, jnp.int32)
+        .at[rows]
+        .set(jnp.stack([jnp.broadcast_to(i, a.shape), a, b], axis=-1), mode="drop")
+    )
     # Every cell vertex learns its triangle's id from the emitting cell.
     table = jnp.full((n + 1, p), -1, jnp.int32)
     table = table.at[jnp.where(emit, i, n), jnp.arange(p, dtype=jnp.int32)].set(ids, mode="drop")
@@ -359,14 +386,18 @@ def cutter_candidates(points, labels, count, rows, *, active: int | None = None,
         w = jnp.where(ok, v[..., 2], 1.0)[:, None, :]
         centre = v[..., :2] / w[:, 0, :, None]  # (B, P, 2) vertex positions
         gap = jnp.sum((d[:, :, None, :] - centre[:, None, :, :]) ** 2, axis=-1)  # (B, N, P)
-        gap = jnp.where((jnp.arange(n, dtype=jnp.int32)[None, :, None] == ids[:, None, None]) | jnp.isnan(gap), jnp.inf, gap)
+        gap = jnp.where(
+            (jnp.arange(n, dtype=jnp.int32)[None, :, None] == ids[:, None, None]) | jnp.isnan(gap), jnp.inf, gap
+        )
         nearest = jnp.argmin(gap, axis=1).astype(jnp.int32)  # (B, P)
         violated = ok & (jnp.min(gap, axis=1) < jnp.sum(centre * centre, axis=-1) * (1 - 1e-12))
         return jnp.where(violated, nearest, n)
 
-    chunks = (jnp.pad(rows[:r], (0, pad), constant_values=n).reshape(-1, block),
-              jnp.pad(vertices[:r], ((0, pad), (0, 0), (0, 0))).reshape(-1, block, p, 3),
-              jnp.pad(live[:r], ((0, pad), (0, 0))).reshape(-1, block, p))
+    chunks = (
+        jnp.pad(rows[:r], (0, pad), constant_values=n).reshape(-1, block),
+        jnp.pad(vertices[:r], ((0, pad), (0, 0), (0, 0))).reshape(-1, block, p, 3),
+        jnp.pad(live[:r], ((0, pad), (0, 0))).reshape(-1, block, p),
+    )
     found = jax.lax.map(owners, chunks).reshape(-1, p)[:r]
     found = jnp.concatenate([found, jnp.full((rows.shape[0] - r, p), n, jnp.int32)], axis=0)
     return jnp.concatenate([current, found], axis=1)
@@ -387,8 +418,9 @@ class Triangulation(NamedTuple):
 FIRST_PASS_CANDIDATES = 22  # walkers expected within the first pass's radius
 
 
-def first_candidates(points: Float[Array, "N 2"], rows=None, *, expected: int = FIRST_PASS_CANDIDATES,
-                     width: int = 32, per_row: int = 16):
+def first_candidates(
+    points: Float[Array, "N 2"], rows=None, *, expected: int = FIRST_PASS_CANDIDATES, width: int = 32, per_row: int = 16
+):
     """The candidates of walkers `rows` (default all) for the first pass, in block order
     (padding N): the walkers of its grid block (`_cellgrid`) within the radius that holds about
     `expected` of them at the block's density (at most the radius the block
@@ -437,14 +469,25 @@ def _redone_cells(points, labels, count, rows, local, *, max_edges: int, exact_c
     """(labels, count, overflowed) of the cells of walkers `rows` clipped again, by
     `repair_candidates` (`local`) or `cutter_candidates` (the first `exact_capacity` rows)."""
     candidates = jax.lax.cond(
-        local, lambda: repair_candidates(points, labels, rows, 2 * max_edges),
-        lambda: cutter_candidates(points, labels, count, rows, active=exact_capacity))
+        local,
+        lambda: repair_candidates(points, labels, rows, 2 * max_edges),
+        lambda: cutter_candidates(points, labels, count, rows, active=exact_capacity),
+    )
     return voronoi_cycles(points, candidates, rows, max_edges=max_edges)[:3]
 
 
-def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24, repair_capacity: int | None = None,
-                local_rounds: int = 3, exact_capacity: int = 128, exact_rounds: int = 6,
-                first_pass: int = FIRST_PASS_CANDIDATES, mesh=None) -> Triangulation:
+def triangulate(
+    points: Float[Array, "N 2"],
+    *,
+    s_cap: int,
+    max_edges: int = 24,
+    repair_capacity: int | None = None,
+    local_rounds: int = 3,
+    exact_capacity: int = 128,
+    exact_rounds: int = 6,
+    first_pass: int = FIRST_PASS_CANDIDATES,
+    mesh=None,
+) -> Triangulation:
     """The Delaunay triangulation of `points`, jittable: each cell clipped by its
     `first_candidates`, then repair rounds in which the cells of walkers in a failed
     condition of the certificate (and not settled by the security radius) are redone:
@@ -460,7 +503,8 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
     devices = 1 if mesh is None else mesh.shape[WALKER_AXIS]
     all_rows = jnp.arange(n, dtype=jnp.int32)
     labels, count, overflowed, settled = split_rows(
-        lambda rows, p: _first_pass(p, rows, expected=first_pass, max_edges=max_edges), mesh, all_rows, n, points)
+        lambda rows, p: _first_pass(p, rows, expected=first_pass, max_edges=max_edges), mesh, all_rows, n, points
+    )
     exact_per_device = -(-exact_capacity // devices)
 
     def redo(rows, points, labels, count, local):
@@ -479,8 +523,14 @@ def triangulate(points: Float[Array, "N 2"], *, s_cap: int, max_edges: int = 24,
         labels = labels.at[rows].set(new_labels, mode="drop")
         count = count.at[rows].set(new_count, mode="drop")
         overflowed = overflowed.at[rows].set(new_over, mode="drop")
-        return (labels, count, overflowed, checks_of(labels, count, overflowed), rounds + 1,
-                repaired + jnp.sum(rows < n, dtype=jnp.int32))
+        return (
+            labels,
+            count,
+            overflowed,
+            checks_of(labels, count, overflowed),
+            rounds + 1,
+            repaired + jnp.sum(rows < n, dtype=jnp.int32),
+        )
 
     zero = jnp.asarray(0, jnp.int32)
     carry = (labels, count, overflowed, checks_of(labels, count, overflowed), zero, zero)
@@ -525,15 +575,21 @@ def rebuild(tess: Tessellation, points, *, mesh=None) -> Tessellation:
     valid Delaunay graph and must not be used.
     """
     if not isinstance(tess, Tessellation) or tess.simplices is None:
-        raise TypeError("jaxgeom.rebuild takes a Delaunay jaxgeom.Tessellation as `tess` (from jaxgeom.delaunay); "
-                        f"got {type(tess).__name__ if not isinstance(tess, Tessellation) else 'a k-NN graph'}.")
+        raise TypeError(
+            "jaxgeom.rebuild takes a Delaunay jaxgeom.Tessellation as `tess` (from jaxgeom.delaunay); "
+            f"got {type(tess).__name__ if not isinstance(tess, Tessellation) else 'a k-NN graph'}."
+        )
     if not rebuilds_on_device(tess):
-        raise ValueError(f"jaxgeom.rebuild builds 2D, non-periodic graphs on the device so far; this graph is "
-                         f"{describe_graph(tess)}. Rebuild it with jaxgeom.delaunay.")
+        raise ValueError(
+            f"jaxgeom.rebuild builds 2D, non-periodic graphs on the device so far; this graph is "
+            f"{describe_graph(tess)}. Rebuild it with jaxgeom.delaunay."
+        )
     points = jnp.asarray(points)
     if points.shape != tess.points.shape or points.dtype != tess.points.dtype:
-        raise ValueError(f"`points` must have the shape and dtype of tess.points, {tess.points.shape} "
-                         f"{tess.points.dtype}; got {points.shape} {points.dtype}.")
+        raise ValueError(
+            f"`points` must have the shape and dtype of tess.points, {tess.points.shape} "
+            f"{tess.points.dtype}; got {points.shape} {points.dtype}."
+        )
     check_mesh(mesh, None, "", WALKER_AXIS)
     return rebuild_unchecked(tess, points, mesh)
 

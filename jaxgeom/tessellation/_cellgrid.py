@@ -60,8 +60,9 @@ def build_grid(points: Float[Array, "N 2"], cells: int) -> Grid:
 
 def _cell_count(grid: Grid, column, row):
     inside = (column >= 0) & (column < grid.cells) & (row >= 0) & (row < grid.cells)
-    return jnp.where(inside, grid.count[jnp.clip(row, 0, grid.cells - 1) * grid.cells
-                                        + jnp.clip(column, 0, grid.cells - 1)], 0)
+    return jnp.where(
+        inside, grid.count[jnp.clip(row, 0, grid.cells - 1) * grid.cells + jnp.clip(column, 0, grid.cells - 1)], 0
+    )
 
 
 def walker_reach(grid: Grid, rows) -> Int[Array, " M"]:
@@ -111,8 +112,10 @@ def block_walkers(points, grid: Grid, rows, reach, *, per_row: int = 16):
     position = first[..., None] + t
     taken = live_row[..., None] & (position < end[..., None])
     ids = jnp.where(taken, grid.order[jnp.clip(position, 0, n - 1)], n)
-    radius = jnp.minimum(_block_radius(points, grid, safe, reach),
-                         _window_radius(points, grid, safe, first, end, begin, per_row, live_row))
+    radius = jnp.minimum(
+        _block_radius(points, grid, safe, reach),
+        _window_radius(points, grid, safe, first, end, begin, per_row, live_row),
+    )
     ids = ids.reshape(rows.shape[0], -1)
     centre = points.at[rows].get(mode="fill", fill_value=jnp.nan)
     d2 = jnp.sum((points.at[ids].get(mode="fill", fill_value=jnp.inf) - centre[:, None, :]) ** 2, axis=-1)

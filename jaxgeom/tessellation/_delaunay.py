@@ -27,20 +27,38 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..base._checks import (
-    check_full_rank, check_min_points, check_representable_spacing, check_resolved_positions, host_box, host_points,
-    mean_spacing, refuse_unrepresentable_spacing, refuse_unresolved_positions, spacing_of_box, warn_at_caller,
+    check_full_rank,
+    check_min_points,
+    check_representable_spacing,
+    check_resolved_positions,
+    host_box,
+    host_points,
+    mean_spacing,
+    refuse_unrepresentable_spacing,
+    refuse_unresolved_positions,
+    spacing_of_box,
+    warn_at_caller,
 )
 from ..base._simplex import det_entries, simplex_circumcenter
 from ._contacts import (
-    circumcenters_and_flat, planar_degenerate_corners, positive_measure_contacts,
+    circumcenters_and_flat,
+    planar_degenerate_corners,
+    positive_measure_contacts,
 )
-from ._graph import (
-    Capacity, Tessellation, bucket_neighbors, bucket_simplices, bucket_walkers, neighbor_any, simplex_coords,
-    split_spatial_dims, take_or_zero,
-)
-from ._planar import fan_neighbors
 from ._device_check import REASONS as DEVICE_REASONS
 from ._device_check import planar_summary
+from ._graph import (
+    Capacity,
+    Tessellation,
+    bucket_neighbors,
+    bucket_simplices,
+    bucket_walkers,
+    neighbor_any,
+    simplex_coords,
+    split_spatial_dims,
+    take_or_zero,
+)
+from ._planar import fan_neighbors
 from ._triangulators import DEVICE_BACKENDS, FALLBACK, device_triangles, resolve_triangulator, triangulate
 
 MAX_DELAUNAY_DIM = 4
@@ -69,8 +87,15 @@ class RawGraph(NamedTuple):
     fallbacks: tuple[str, ...] = ()  # why the asked-for triangulator was replaced, and by which, per call
 
 
-def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto",
-             spatial_dims: int | None = None) -> Tessellation:
+def delaunay(
+    points,
+    *,
+    box=None,
+    periodic: bool = False,
+    capacity=None,
+    triangulator: str = "auto",
+    spatial_dims: int | None = None,
+) -> Tessellation:
     """Delaunay graph of a swarm as a padded [`jaxgeom.Tessellation`][].
 
     Not jittable: a triangulator builds the graph, on the host or (2D, CuPy) on the GPU.
@@ -120,18 +145,19 @@ def delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangu
     if spatial_dims is not None:
         points = host_points(points, "points", func="jaxgeom.delaunay")
     points, carried, box = split_spatial_dims(points, box, spatial_dims, "jaxgeom.delaunay")
-    tess, fallbacks = build_delaunay(points, box=box, periodic=periodic, capacity=capacity,
-                                     triangulator=triangulator)
+    tess, fallbacks = build_delaunay(points, box=box, periodic=periodic, capacity=capacity, triangulator=triangulator)
     if carried is not None:
-        tess = eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
-                           is_leaf=lambda leaf: leaf is None)
+        tess = eqx.tree_at(
+            lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype), is_leaf=lambda leaf: leaf is None
+        )
     for reason in fallbacks:
         warn_at_caller(f"jaxgeom.delaunay: {reason}.", RuntimeWarning)
     return tess
 
 
-def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto"
-                   ) -> tuple[Tessellation, tuple[str, ...]]:
+def build_delaunay(
+    points, *, box=None, periodic: bool = False, capacity=None, triangulator: str = "auto"
+) -> tuple[Tessellation, tuple[str, ...]]:
     """`delaunay`, and why its triangulator was replaced by Qhull in each call where it was
     (empty: never); `simulate` counts these instead of warning."""
     x = host_points(points, "points", func="jaxgeom.delaunay")
@@ -149,8 +175,10 @@ def build_delaunay(points, *, box=None, periodic: bool = False, capacity=None, t
         if tess is not None:
             return tess, ()
         replaced = "CDT" if FALLBACK[backend] == "cdt" else FALLBACK[backend]
-        backend, device_failure = FALLBACK[backend], () if reason is None else (
-            f"{reason}; {replaced} built this graph instead",)
+        backend, device_failure = (
+            FALLBACK[backend],
+            () if reason is None else (f"{reason}; {replaced} built this graph instead",),
+        )
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
         return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), device_failure + fallbacks
@@ -169,8 +197,9 @@ def _check_delaunay_dim(d: int) -> None:
         )
 
 
-def planar_triangles(x: np.ndarray, capacity=None, triangulator: str = "qhull"
-                     ) -> tuple[np.ndarray, np.ndarray, Capacity, tuple[str, ...]]:
+def planar_triangles(
+    x: np.ndarray, capacity=None, triangulator: str = "qhull"
+) -> tuple[np.ndarray, np.ndarray, Capacity, tuple[str, ...]]:
     """Host, 2D: counter-clockwise triangles (S, 3) and the triangle across the edge opposite
     each vertex (-1 on the hull), padded to the capacities (padding rows N and -1), and the
     fallback reasons (`build_delaunay`) of the resolved backend `triangulator`.
@@ -210,9 +239,18 @@ def _planar_tessellation(points, simplices, adjacency, box, k_cap: int) -> tuple
     n = points.shape[0]
     degenerate = planar_degenerate_corners(points, simplices, adjacency)
     neighbors, hull, complete = fan_neighbors(simplices, adjacency, n, k_cap, degenerate)
-    tess = Tessellation(points=points, neighbors=neighbors, tier=jnp.full((n,), 2, jnp.int8), hull=hull,
-                        simplices=simplices, neighbor_shifts=None, simplex_shifts=None, box=box,
-                        overflow=~jnp.all(complete), periodic=False)
+    tess = Tessellation(
+        points=points,
+        neighbors=neighbors,
+        tier=jnp.full((n,), 2, jnp.int8),
+        hull=hull,
+        simplices=simplices,
+        neighbor_shifts=None,
+        simplex_shifts=None,
+        box=box,
+        overflow=~jnp.all(complete),
+        periodic=False,
+    )
     return eqx.tree_at(lambda t: t.tier, tess, boundary_tiers(tess, adjacency)), complete
 
 
@@ -238,13 +276,22 @@ def _planar_from_host(x: np.ndarray, simplices: np.ndarray, adjacency: np.ndarra
     triangles = np.concatenate([np.where(simplices == n, m, simplices), np.full((extra, 3), m, simplices.dtype)])
     across = np.concatenate([adjacency, np.full((extra, 3), -1, adjacency.dtype)])
     box = None if box is None else jnp.asarray(box, points.dtype)
-    neighbors, hull, tier, overflow = _planar_rows(padded, jnp.asarray(triangles), jnp.asarray(across), box,
-                                                   jnp.asarray(n, jnp.int32), k_cap=k_cap)
+    neighbors, hull, tier, overflow = _planar_rows(
+        padded, jnp.asarray(triangles), jnp.asarray(across), box, jnp.asarray(n, jnp.int32), k_cap=k_cap
+    )
     neighbors = np.asarray(neighbors)[:n]
-    return Tessellation(points=points, neighbors=jnp.asarray(np.where(neighbors == m, n, neighbors)),
-                        tier=jnp.asarray(np.asarray(tier)[:n]), hull=jnp.asarray(np.asarray(hull)[:n]),
-                        simplices=jnp.asarray(simplices), neighbor_shifts=None, simplex_shifts=None, box=box,
-                        overflow=overflow, periodic=False)
+    return Tessellation(
+        points=points,
+        neighbors=jnp.asarray(np.where(neighbors == m, n, neighbors)),
+        tier=jnp.asarray(np.asarray(tier)[:n]),
+        hull=jnp.asarray(np.asarray(hull)[:n]),
+        simplices=jnp.asarray(simplices),
+        neighbor_shifts=None,
+        simplex_shifts=None,
+        box=box,
+        overflow=overflow,
+        periodic=False,
+    )
 
 
 def planar_graph_on_device(points, box, capacity, backend: str) -> tuple[Tessellation | None, str | None]:
@@ -300,9 +347,18 @@ def _cut_to_walkers(points, triangles, box, neighbors, hull, tier, overflow, *, 
     else:
         triangles = jnp.concatenate([triangles, jnp.full((s_cap - triangles.shape[0], 3), n, triangles.dtype)])
     neighbors = neighbors[:n]
-    return Tessellation(points=points, neighbors=jnp.where(neighbors == m, n, neighbors), tier=tier[:n],
-                        hull=hull[:n], simplices=triangles, neighbor_shifts=None, simplex_shifts=None, box=box,
-                        overflow=overflow, periodic=False)
+    return Tessellation(
+        points=points,
+        neighbors=jnp.where(neighbors == m, n, neighbors),
+        tier=tier[:n],
+        hull=hull[:n],
+        simplices=triangles,
+        neighbor_shifts=None,
+        simplex_shifts=None,
+        box=box,
+        overflow=overflow,
+        periodic=False,
+    )
 
 
 def _csr_rows(tri, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -348,8 +404,9 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray, triangulator: str) -> RawGra
         raw = _periodic_raw(y0 + tie_break * spacing * jitter, y0, lengths, spacing, triangulator)
         if _tiles_the_box(raw, x, lengths):
             return raw
-    raise RuntimeError("periodic Delaunay: the simplices do not tile the box after the largest tie-break; please "
-                       "report this input.")
+    raise RuntimeError(
+        "periodic Delaunay: the simplices do not tile the box after the largest tie-break; please report this input."
+    )
 
 
 def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
@@ -401,7 +458,9 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
             break
         skin *= SKIN_GROWTH
     else:
-        raise RuntimeError("periodic Delaunay: the skin check failed after widening the skin; please report this input.")
+        raise RuntimeError(
+            "periodic Delaunay: the skin check failed after widening the skin; please report this input."
+        )
     canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
     simp = simp[owned[canonical]]
     src, dst = _csr_rows(tri, np.flatnonzero(owned))
@@ -565,12 +624,18 @@ def _padded_walkers(tess: Tessellation) -> Tessellation:
     grow = lambda a, fill: np.concatenate([a, np.full((m - n, *a.shape[1:]), fill, a.dtype)])  # noqa: E731
     points = np.asarray(tess.points)
     return eqx.tree_at(
-        lambda t: (t.points, t.neighbors, t.tier, t.hull, t.simplices, t.neighbor_shifts), tess,
-        (jnp.asarray(np.concatenate([points, np.repeat(points[:1], m - n, axis=0)])),
-         jnp.asarray(grow(relabel(np.asarray(tess.neighbors)), m)), jnp.asarray(grow(np.asarray(tess.tier), 2)),
-         jnp.asarray(grow(np.asarray(tess.hull), False)), jnp.asarray(relabel(np.asarray(tess.simplices))),
-         None if tess.neighbor_shifts is None else jnp.asarray(grow(np.asarray(tess.neighbor_shifts), 0))),
-        is_leaf=lambda leaf: leaf is None)
+        lambda t: (t.points, t.neighbors, t.tier, t.hull, t.simplices, t.neighbor_shifts),
+        tess,
+        (
+            jnp.asarray(np.concatenate([points, np.repeat(points[:1], m - n, axis=0)])),
+            jnp.asarray(grow(relabel(np.asarray(tess.neighbors)), m)),
+            jnp.asarray(grow(np.asarray(tess.tier), 2)),
+            jnp.asarray(grow(np.asarray(tess.hull), False)),
+            jnp.asarray(relabel(np.asarray(tess.simplices))),
+            None if tess.neighbor_shifts is None else jnp.asarray(grow(np.asarray(tess.neighbor_shifts), 0)),
+        ),
+        is_leaf=lambda leaf: leaf is None,
+    )
 
 
 def _cospherical_suspects(tess: Tessellation, n_simplices: int, padded: Tessellation) -> np.ndarray:
@@ -624,9 +689,12 @@ def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarra
         shifts = np.asarray(tess.simplex_shifts)
         sub_shifts = np.zeros((size, *shifts.shape[1:]), shifts.dtype)
         sub_shifts[: len(around)] = shifts[around]
-    sub = eqx.tree_at(lambda t: (t.simplices, t.simplex_shifts), padded,
-                      (jnp.asarray(sub_simplices), None if sub_shifts is None else jnp.asarray(sub_shifts)),
-                      is_leaf=lambda leaf: leaf is None)
+    sub = eqx.tree_at(
+        lambda t: (t.simplices, t.simplex_shifts),
+        padded,
+        (jnp.asarray(sub_simplices), None if sub_shifts is None else jnp.asarray(sub_shifts)),
+        is_leaf=lambda leaf: leaf is None,
+    )
     keep = np.asarray(positive_measure_contacts(sub))[:n]
     neighbors = np.asarray(tess.neighbors)
     candidate = near[:n, None] & near[neighbors]
@@ -643,14 +711,19 @@ def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -
         return tess
     nbrs = nbrs.copy()
     order = np.argsort(~keep[rows], axis=1, kind="stable")  # kept slots first, in order
-    nbrs[rows] = np.where(np.take_along_axis(keep[rows], order, axis=1), np.take_along_axis(nbrs[rows], order, axis=1), n)
+    nbrs[rows] = np.where(
+        np.take_along_axis(keep[rows], order, axis=1), np.take_along_axis(nbrs[rows], order, axis=1), n
+    )
     if shifts is not None:
         shifts = shifts.copy()
         moved = np.take_along_axis(shifts[rows], order[..., None], axis=1)
         shifts[rows] = np.where((nbrs[rows] < n)[..., None], moved, 0)
-    return eqx.tree_at(lambda t: (t.neighbors, t.neighbor_shifts), tess,
-                       (jnp.asarray(nbrs), None if shifts is None else jnp.asarray(shifts)),
-                       is_leaf=lambda leaf: leaf is None)
+    return eqx.tree_at(
+        lambda t: (t.neighbors, t.neighbor_shifts),
+        tess,
+        (jnp.asarray(nbrs), None if shifts is None else jnp.asarray(shifts)),
+        is_leaf=lambda leaf: leaf is None,
+    )
 
 
 def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0.0) -> np.ndarray:
@@ -661,7 +734,9 @@ def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0
         box = np.asarray(tess.box, np.float64)
         center = np.mod(center - box[0], box[1] - box[0])
     keys = np.round(center / max(1e-9 * mean_spacing(x), tolerance)).astype(np.int64)
-    hashed = keys @ np.array([1, 1_000_003, 998_244_353, 1_000_000_007][: x.shape[1]], np.int64)  # a collision only costs time
+    hashed = keys @ np.array(
+        [1, 1_000_003, 998_244_353, 1_000_000_007][: x.shape[1]], np.int64
+    )  # a collision only costs time
     _, inverse, counts = np.unique(hashed, return_inverse=True, return_counts=True)
     return counts[inverse.ravel()] > 1
 
@@ -718,8 +793,14 @@ def circumcenters_outside_hull(tess: Tessellation, adjacency, centers):
         state, waiting = carry
         (rows,) = jnp.nonzero(waiting, size=size, fill_value=s_count)
         safe = jnp.minimum(rows, s_count - 1)
-        _, sub = _hull_walk(tess, adjacency, centers[safe], current[safe],
-                            jnp.where(rows < s_count, state[safe], _INSIDE), HULL_WALK_STEPS - HULL_WALK_ALL)
+        _, sub = _hull_walk(
+            tess,
+            adjacency,
+            centers[safe],
+            current[safe],
+            jnp.where(rows < s_count, state[safe], _INSIDE),
+            HULL_WALK_STEPS - HULL_WALK_ALL,
+        )
         return state.at[rows].set(sub, mode="drop"), waiting.at[rows].set(False, mode="drop")
 
     state, _ = jax.lax.while_loop(lambda carry: jnp.any(carry[1]), next_batch, (state, state == _WALKING))
@@ -749,8 +830,9 @@ def _hull_walk(tess, adjacency, centers, current, state, steps: int):
         current = jnp.where(state == _WALKING, across, current)
         return k + 1, current, state
 
-    _, current, state = jax.lax.while_loop(lambda c: (c[0] < steps) & jnp.any(c[2] == _WALKING), step,
-                                           (0, current, state))
+    _, current, state = jax.lax.while_loop(
+        lambda c: (c[0] < steps) & jnp.any(c[2] == _WALKING), step, (0, current, state)
+    )
     return current, state
 
 

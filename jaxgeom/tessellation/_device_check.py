@@ -20,9 +20,12 @@ import jax
 import jax.numpy as jnp
 
 OK, OUT_OF_RANGE, LEFT_OUT, FLAT, EULER = 0, 1, 2, 3, 4
-REASONS = {OUT_OF_RANGE: "a vertex index out of range", LEFT_OUT: "a walker left out",
-           FLAT: "triangles flat or negatively oriented", EULER: "Euler's formula fails (or an edge has three "
-           "triangles)"}
+REASONS = {
+    OUT_OF_RANGE: "a vertex index out of range",
+    LEFT_OUT: "a walker left out",
+    FLAT: "triangles flat or negatively oriented",
+    EULER: "Euler's formula fails (or an edge has three triangles)",
+}
 
 
 @jax.jit
@@ -63,8 +66,11 @@ def _status(s, padding, safe, n_walkers, sentinel: int, flat, edges=None):
     crowded = jnp.any(pair[1:] & pair[:-1])  # three equal keys in a row: an edge in three triangles
     boundary = n_edges - 2 * jnp.sum(pair, dtype=jnp.int32)  # edges in one triangle (none crowded)
     euler = (jnp.sum(~padding, dtype=jnp.int32) == 2 * n_walkers - boundary - 2) & ~crowded
-    status = jnp.where(~in_range, OUT_OF_RANGE, jnp.where(~jnp.all(used), LEFT_OUT,
-                       jnp.where(flat > 0, FLAT, jnp.where(~euler, EULER, OK))))
+    status = jnp.where(
+        ~in_range,
+        OUT_OF_RANGE,
+        jnp.where(~jnp.all(used), LEFT_OUT, jnp.where(flat > 0, FLAT, jnp.where(~euler, EULER, OK))),
+    )
     return status.astype(jnp.int32)
 
 
@@ -74,8 +80,9 @@ def _sorted_edges(s, sentinel: int):
     whether each shares its key with the next (both real, not padding rows of the `sentinel`),
     and the number of real edges counted with multiplicity."""
     a, b = jnp.roll(s, -1, axis=1).ravel(), jnp.roll(s, -2, axis=1).ravel()  # edge opposite corner k
-    lo, hi, corner = jax.lax.platform_dependent(jnp.minimum(a, b), jnp.maximum(a, b), cpu=sort_by_two_keys,
-                                                default=sort_in_two_radix_passes)
+    lo, hi, corner = jax.lax.platform_dependent(
+        jnp.minimum(a, b), jnp.maximum(a, b), cpu=sort_by_two_keys, default=sort_in_two_radix_passes
+    )
     pair = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1]) & (lo[1:] < sentinel)
     return corner, pair, jnp.sum(lo < sentinel, dtype=jnp.int32)
 
@@ -129,8 +136,13 @@ def planar_summary(points, simplices, flat, n_walkers):
     s, padding, safe = _padded(simplices, m)
     edges = _sorted_edges(safe, m)
     adjacency = triangle_adjacency(edges, s.shape)
-    counts = jnp.stack([_status(s, padding, safe, n_walkers, m, flat, edges), jnp.sum(~padding, dtype=jnp.int32),
-                        largest_degree(s, adjacency, m).astype(jnp.int32)])
+    counts = jnp.stack(
+        [
+            _status(s, padding, safe, n_walkers, m, flat, edges),
+            jnp.sum(~padding, dtype=jnp.int32),
+            largest_degree(s, adjacency, m).astype(jnp.int32),
+        ]
+    )
     real = (jnp.arange(m, dtype=jnp.int32) < n_walkers)[:, None]
     lower = jnp.min(jnp.where(real, points, jnp.inf), axis=0)
     upper = jnp.max(jnp.where(real, points, -jnp.inf), axis=0)

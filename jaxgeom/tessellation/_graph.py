@@ -121,7 +121,7 @@ class Tessellation(eqx.Module):
         return None if self.box is None else self.box[1] - self.box[0]
 
 
-def take_or_zero(values: Array, index: Int[Array, "..."]) -> Array:
+def take_or_zero(values: Array, index: Int[Array, ...]) -> Array:
     """`values[index]` along the first axis, zero where `index` is the sentinel `len(values)`.
 
     A gather in mode "fill", never `values` with a zero row concatenated: jaxlib 0.8 and 0.9
@@ -222,7 +222,6 @@ def bucket_walkers(n: int) -> int:
     return bucket_simplices(n)
 
 
-
 # A periodic walker may neighbour several images of the same walker (tiny boxes);
 # slot lookup scans this many consecutive columns for the matching image shift.
 MAX_IMAGES_PER_NEIGHBOR = 8
@@ -280,7 +279,7 @@ def takes_tessellation(fn):
         call_args = signature.bind_partial(tess, *args, **kwargs)
         bound = call_args.arguments
         for name in ("values", "velocities", "volumes", "volume_weights"):  # plain lists: arrays (jit would
-            if isinstance(bound.get(name), (list, tuple)):                    # take them as pytrees)
+            if isinstance(bound.get(name), (list, tuple)):  # take them as pytrees)
                 bound[name] = real_array(bound[name], name)
         n, d = tess.points.shape
         if bound.get("mode", "full") != "none":
@@ -301,13 +300,17 @@ def split_spatial_dims(points, box, spatial_dims, func: str):
         return points, None, box
     d_all = np.shape(points)[-1] if np.ndim(points) == 2 else None
     if isinstance(spatial_dims, bool) or not isinstance(spatial_dims, (int, np.integer)):
-        raise TypeError(f"{func}: `spatial_dims` must be a Python int k (tessellate the first k coordinates); "
-                        f"got {type(spatial_dims).__name__}.")
+        raise TypeError(
+            f"{func}: `spatial_dims` must be a Python int k (tessellate the first k coordinates); "
+            f"got {type(spatial_dims).__name__}."
+        )
     if d_all is None:
         return points, None, box  # the shape error is the builder's
     if not 2 <= spatial_dims <= d_all:
-        raise ValueError(f"{func}: `spatial_dims` must lie in [2, {d_all}] for {d_all}-dimensional points; "
-                         f"got {spatial_dims}. Pass spatial_dims=None to tessellate every coordinate.")
+        raise ValueError(
+            f"{func}: `spatial_dims` must lie in [2, {d_all}] for {d_all}-dimensional points; "
+            f"got {spatial_dims}. Pass spatial_dims=None to tessellate every coordinate."
+        )
     k = int(spatial_dims)
     if box is not None and not isinstance(box, str):
         box = _cut_box(box, d_all, k)

@@ -20,8 +20,9 @@ KNN_METHODS = ("auto", "kdtree", "brute")
 TILE_ELEMENTS = 2**22
 
 
-def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str = "auto",
-              spatial_dims: int | None = None) -> Tessellation:
+def knn_graph(
+    points, k: int, *, box=None, periodic: bool = False, method: str = "auto", spatial_dims: int | None = None
+) -> Tessellation:
     """Graph of the exact k nearest neighbours of every walker, in any dimension.
 
     **Arguments:**
@@ -67,18 +68,23 @@ def knn_graph(points, k: int, *, box=None, periodic: bool = False, method: str =
     tess = _knn_tessellation(jnp.asarray(x), nbrs, None if box_arr is None else jnp.asarray(box_arr), periodic)
     if carried is None:
         return tess
-    return eqx.tree_at(lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype),
-                       is_leaf=lambda leaf: leaf is None)
+    return eqx.tree_at(
+        lambda t: t.carried, tess, jnp.asarray(carried, tess.points.dtype), is_leaf=lambda leaf: leaf is None
+    )
 
 
 def _traced_points(points, box, periodic, method):
     if method == "kdtree":
-        raise TypeError("knn_graph(method='kdtree') runs on the host and cannot be traced; use method='brute' inside jit.")
+        raise TypeError(
+            "knn_graph(method='kdtree') runs on the host and cannot be traced; use method='brute' inside jit."
+        )
     if points.ndim != 2 or not jnp.issubdtype(points.dtype, jnp.floating):
         raise TypeError(f"`points` must be an (N, d) float array; got shape {points.shape}, dtype {points.dtype}.")
     if box is None and periodic:
         raise ValueError("`periodic=True` needs `box=(lower, upper)`: the periodic cell is not known otherwise.")
-    box_arr = None if box is None else jnp.broadcast_to(jnp.asarray(box, points.dtype).reshape(2, -1), (2, points.shape[1]))
+    box_arr = (
+        None if box is None else jnp.broadcast_to(jnp.asarray(box, points.dtype).reshape(2, -1), (2, points.shape[1]))
+    )
     return points, box_arr
 
 
@@ -146,8 +152,15 @@ def _knn_tessellation(x, nbrs, box, periodic: bool) -> Tessellation:
         dx = dx + image * lengths
         overflow = jnp.any(jnp.linalg.norm(dx, axis=-1) > 0.5 * jnp.min(lengths))
     tess = Tessellation(
-        points=x, neighbors=nbrs, tier=jnp.full((n,), 2, jnp.int8), hull=jnp.zeros((n,), bool),
-        simplices=None, neighbor_shifts=shifts, simplex_shifts=None, box=box, overflow=overflow,
+        points=x,
+        neighbors=nbrs,
+        tier=jnp.full((n,), 2, jnp.int8),
+        hull=jnp.zeros((n,), bool),
+        simplices=None,
+        neighbor_shifts=shifts,
+        simplex_shifts=None,
+        box=box,
+        overflow=overflow,
         periodic=periodic,
     )
     if box is None or periodic:

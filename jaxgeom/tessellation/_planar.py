@@ -23,7 +23,10 @@ WALKING, CLOSING, DONE = 0, 1, 2
 
 
 def fan_neighbors(
-    simplices: Int[Array, "S 3"], adjacency: Int[Array, "S 3"], n_points: int, k_cap: int,
+    simplices: Int[Array, "S 3"],
+    adjacency: Int[Array, "S 3"],
+    n_points: int,
+    k_cap: int,
     degenerate: Bool[Array, "S 3"] | None = None,
 ) -> tuple[Int[Array, "N K"], Bool[Array, " N"], Bool[Array, " N"]]:
     """Neighbour rows of a planar triangulation by walking each vertex's fan.
@@ -59,8 +62,11 @@ def fan_neighbors(
         k, c, phase, columns = carry
         column = jnp.where(phase == WALKING, following[c], jnp.where(phase == CLOSING, preceding[c], n_points))
         after = turn[c]
-        phase = jnp.where(phase == WALKING, jnp.where(after < 0, CLOSING, jnp.where(after == first, DONE, WALKING)),
-                          jnp.where(phase == CLOSING, DONE, phase))
+        phase = jnp.where(
+            phase == WALKING,
+            jnp.where(after < 0, CLOSING, jnp.where(after == first, DONE, WALKING)),
+            jnp.where(phase == CLOSING, DONE, phase),
+        )
         return k + 1, jnp.where(after >= 0, after, c), phase, columns.at[k].set(column)
 
     # A while loop stops at the largest degree (14-17 in a swarm), not at the capacity (24).
@@ -75,8 +81,7 @@ def _fan_starts(simplices, adjacency, n_points: int):
     corners = 3 * simplices.shape[0]
     corner = jnp.arange(corners, dtype=jnp.int32)
     open_end = (jnp.roll(adjacency, -2, axis=1) < 0).ravel()
-    start = jax.ops.segment_max(jnp.where(open_end, corner + corners, corner), simplices.ravel(),
-                                num_segments=n_points)
+    start = jax.ops.segment_max(jnp.where(open_end, corner + corners, corner), simplices.ravel(), num_segments=n_points)
     isolated = start < 0  # the segment maximum of nothing is the smallest int
     hull = start >= corners
     return jnp.where(isolated, 0, jnp.where(hull, start - corners, start)), hull & ~isolated, isolated
@@ -119,7 +124,7 @@ def sort_rows(columns, *, network: bool | None = None) -> Int[Array, "N K"]:
     return jnp.stack(columns, axis=1)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _merge_network(k: int) -> tuple[tuple[int, int], ...]:
     """Comparators (i, j), i < j < k, of Batcher's odd-even merge sort on the next power of
     two; comparators reaching past k are dropped (those slots would hold +inf)."""

@@ -38,8 +38,11 @@ from ..base._checks import check_choice, columns, flat_word, thinness
 TRIANGULATORS = ("auto", "qhull", "cdt", "shull", "cupy")
 DIMENSIONS = {"qhull": (2, 3, 4), "cdt": (2,), "shull": (2, 3), "cupy": (2,)}
 MODULES = {"qhull": "scipy", "cdt": "pythoncdt", "shull": "shull", "cupy": "cupy"}
-INSTALL = {"cdt": 'pip install pythoncdt (MPL-2.0)', "shull": 'pip install "jaxgeom[gpl]" (shull, GPL-3.0)',
-           "cupy": 'pip install "jaxgeom[cuda12]" (or [cuda13]: CuPy for that CUDA), on a machine with a CUDA GPU'}
+INSTALL = {
+    "cdt": "pip install pythoncdt (MPL-2.0)",
+    "shull": 'pip install "jaxgeom[gpl]" (shull, GPL-3.0)',
+    "cupy": 'pip install "jaxgeom[cuda12]" (or [cuda13]: CuPy for that CUDA), on a machine with a CUDA GPU',
+}
 AUTO_ORDER = ("cupy", "shull", "cdt", "qhull")  # fastest first, per dimension where supported
 FALLBACK = {"cupy": "cdt"}  # the backend that builds a call whose result failed (default: Qhull)
 QHULL_OPTIONS = "Qbb Qc Qz Q12"
@@ -97,16 +100,20 @@ def resolve_triangulator(name: str, d: int) -> str:
     if name == "auto":
         return next((b for b in AUTO_ORDER if d in DIMENSIONS[b] and installed(b)), "qhull")
     if d not in DIMENSIONS[name]:
-        raise ValueError(f"triangulator={name!r} builds d = {', '.join(map(str, DIMENSIONS[name]))} only; these "
-                         f"points have d = {d}. Use triangulator='auto' or 'qhull'.")
+        raise ValueError(
+            f"triangulator={name!r} builds d = {', '.join(map(str, DIMENSIONS[name]))} only; these "
+            f"points have d = {d}. Use triangulator='auto' or 'qhull'."
+        )
     if not installed(name):
         if name == "cupy" and importlib.util.find_spec("cupy") is not None:
             import jax
 
-            raise ValueError(f"triangulator='cupy' needs JAX's default backend on a CUDA GPU, where the positions "
-                             f"live; CuPy is installed, but JAX's backend is {jax.default_backend()!r} (or CuPy finds "
-                             "no CUDA device). Install jax with CUDA (pip install \"jax[cuda12]\"), or use "
-                             "triangulator='auto'.")
+            raise ValueError(
+                f"triangulator='cupy' needs JAX's default backend on a CUDA GPU, where the positions "
+                f"live; CuPy is installed, but JAX's backend is {jax.default_backend()!r} (or CuPy finds "
+                'no CUDA device). Install jax with CUDA (pip install "jax[cuda12]"), or use '
+                "triangulator='auto'."
+            )
         raise ValueError(f"triangulator={name!r} is not installed: {INSTALL[name]}. Or use triangulator='auto'.")
     return name
 
@@ -124,9 +131,11 @@ def check_coordinates(x: np.ndarray) -> None:
     if x.dtype.itemsize >= 8:  # float32 cannot exceed 3.4e38
         bad |= np.abs(np.where(bad[:, None], 0.0, x)).max(axis=1) > MAX_COORDINATE
     if bad.any():
-        raise ValueError(f"{int(bad.sum())} walker(s) have non-finite coordinates or coordinates beyond "
-                         f"+-{MAX_COORDINATE:g} (first rows {np.flatnonzero(bad)[:5].tolist()}), which no "
-                         "triangulator can take: the walkers diverged, or the input is corrupt.")
+        raise ValueError(
+            f"{int(bad.sum())} walker(s) have non-finite coordinates or coordinates beyond "
+            f"+-{MAX_COORDINATE:g} (first rows {np.flatnonzero(bad)[:5].tolist()}), which no "
+            "triangulator can take: the walkers diverged, or the input is corrupt."
+        )
 
 
 def triangulate(x: np.ndarray, name: str) -> Triangulated:
@@ -168,10 +177,16 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
 
 
 # Masks that spread 16 bits of a coordinate to every d-th bit (d = 2, 3): shift, then mask.
-_SPREAD = {2: ((8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333),
-               (1, 0x5555555555555555)),
-           3: ((32, 0x001F00000000FFFF), (16, 0x001F0000FF0000FF), (8, 0x100F00F00F00F00F),
-               (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249))}
+_SPREAD = {
+    2: ((8, 0x00FF00FF00FF00FF), (4, 0x0F0F0F0F0F0F0F0F), (2, 0x3333333333333333), (1, 0x5555555555555555)),
+    3: (
+        (32, 0x001F00000000FFFF),
+        (16, 0x001F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ),
+}
 
 
 def morton_codes(x: np.ndarray) -> tuple[np.ndarray, int]:
@@ -228,9 +243,11 @@ def check_thick_enough_for_qhull(x: np.ndarray) -> None:
     if thickness is not None and thickness < QHULL_MIN_THICKNESS:
         what = flat_word(x.shape[1])
         exact = "triangulator='cdt'" if x.shape[1] == 2 else "the gpl extra's triangulator='shull'"
-        raise ValueError(f"`points` is nearly {what} (RMS distance from the best-fit plane {thickness:.2g} of the "
-                         f"extent): Qhull, whose predicates are not exact, cannot triangulate it correctly. Use "
-                         f"{exact} (exact predicates), or spread the walkers out.")
+        raise ValueError(
+            f"`points` is nearly {what} (RMS distance from the best-fit plane {thickness:.2g} of the "
+            f"extent): Qhull, whose predicates are not exact, cannot triangulate it correctly. Use "
+            f"{exact} (exact predicates), or spread the walkers out."
+        )
 
 
 def qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
@@ -268,12 +285,15 @@ def raise_duplicates(x: np.ndarray, rows: np.ndarray, partners: np.ndarray) -> N
             f"`points` is nearly degenerate: walker {rows[far]} lies within rounding of a {what} piece of the "
             f"swarm (its nearest triangulated walker {partners[far]} is {gap[far]:.3g} away, so it is no "
             f"duplicate) and no triangulation resolves it. Spread the walkers out (nearly {what} walkers "
-            "have Voronoi cells ~1/thickness large), or drop the flat coordinate(s).")
+            "have Voronoi cells ~1/thickness large), or drop the flat coordinate(s)."
+        )
     kind = "duplicates" if np.array_equal(x[i], x[j]) else "nearly coincident"
     raise CoincidentPointsError(
         f"`points` has {len(rows)} walker(s) left out of the triangulation; e.g. rows {i} and {j} "
         f"are {kind} ({x[i].tolist()}). Remove duplicate walkers (np.unique(points, axis=0)) or jitter them.",
-        rows, partners)
+        rows,
+        partners,
+    )
 
 
 # --- CDT and shull ----------------------------------------------------------------------
@@ -315,8 +335,9 @@ def _cdt(x: np.ndarray) -> _Triangulation:
     # in order (N = 1e6: 1.38 s -> 0.85 s for the insertion; the codes and the sort ~0.2 s).
     perm = morton_order(x, stable=False) if len(x) >= MORTON_MIN_POINTS else None
     points = np.ascontiguousarray(x if perm is None else x[perm], dtype=np.float64)
-    tri = pythoncdt.Triangulation(pythoncdt.VertexInsertionOrder.AUTO,
-                                  pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
+    tri = pythoncdt.Triangulation(
+        pythoncdt.VertexInsertionOrder.AUTO, pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0
+    )
     try:
         tri.insert_vertices(points)
     except RuntimeError as err:
@@ -408,8 +429,10 @@ def padded_triangles(p, rows: int, sentinel: int, delaunay, xp):
     positions and coordinates beyond +-`MAX_COORDINATE` (before the backend sees them; the host
     path says which) and `TooManyTriangles`."""
     if not bool(xp.all(xp.abs(p) <= MAX_COORDINATE)):  # NaN fails it too
-        raise ValueError("walkers with non-finite coordinates or coordinates beyond "
-                         f"+-{MAX_COORDINATE:g}, which no triangulator can take")
+        raise ValueError(
+            "walkers with non-finite coordinates or coordinates beyond "
+            f"+-{MAX_COORDINATE:g}, which no triangulator can take"
+        )
     simplices = xp.asarray(delaunay(p).simplices).astype(xp.int32)
     if simplices.shape[0] > rows:
         raise TooManyTriangles(f"{simplices.shape[0]} triangles for {len(p)} walkers, more than the {rows} rows")
@@ -524,9 +547,15 @@ def _volumes(x: np.ndarray, s: np.ndarray, xp=np) -> tuple[np.ndarray, np.ndarra
     if x.shape[1] == 2:
         terms = (e[0][0] * e[1][1], e[0][1] * e[1][0])
         return terms[0] - terms[1], xp.abs(terms[0]) + xp.abs(terms[1])
-    minors = [e[1][1] * e[2][2] - e[1][2] * e[2][1], e[1][0] * e[2][2] - e[1][2] * e[2][0],
-              e[1][0] * e[2][1] - e[1][1] * e[2][0]]
+    minors = [
+        e[1][1] * e[2][2] - e[1][2] * e[2][1],
+        e[1][0] * e[2][2] - e[1][2] * e[2][0],
+        e[1][0] * e[2][1] - e[1][1] * e[2][0],
+    ]
     volume = e[0][0] * minors[0] - e[0][1] * minors[1] + e[0][2] * minors[2]
-    size = sum(xp.abs(e[0][k]) * sum(xp.abs(e[1][m]) * xp.abs(e[2][q]) for m in range(3) for q in range(3)
-                                     if len({k, m, q}) == 3) for k in range(3))
+    size = sum(
+        xp.abs(e[0][k])
+        * sum(xp.abs(e[1][m]) * xp.abs(e[2][q]) for m in range(3) for q in range(3) if len({k, m, q}) == 3)
+        for k in range(3)
+    )
     return volume, size

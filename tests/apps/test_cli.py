@@ -30,7 +30,7 @@ def assert_every_simulate_row_defined(printed: str) -> None:
     lines = printed.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("observable"))
     names = []
-    for line in lines[start + 1:]:
+    for line in lines[start + 1 :]:
         parts = line.split()
         if len(parts) != 5:
             break
@@ -108,8 +108,10 @@ def test_analyze_points_without_a_landscape_reports_only_geometry(tmp_path, caps
     assert "total_finite" not in report["volumes"]
     np.testing.assert_allclose(report["volumes"]["total_in_box"], 1.0, rtol=1e-12)
     assert 0 < report["volumes"]["tier2_total"] < 1
-    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--landscape", "quadratic",
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(["analyze", "--points", str(tmp_path / "pts.npy"), "--landscape", "quadratic", "--out", str(tmp_path)])
+        == 0
+    )
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["swarm"]["landscape"] == "quadratic" and report["metric"]["kind"] == "hessian"
     assert "best_fitness" in report["graph_proxies"] and "walkers_with_hessian" in report["estimation"]
@@ -121,8 +123,25 @@ def test_both_commands_take_the_same_precision_flag(tmp_path, capsys):
     try:
         assert main(["analyze", "--n", "100", "--metric", "none", "--precision", "float32"]) == 0
         assert re.search(r"precision\s+float32", capsys.readouterr().out)
-        assert main(["simulate", "--n", "50", "--steps", "1", "--gap-every", "0", "--no-progress",
-                     "--precision", "float32", "--out", str(tmp_path)]) == 0
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--n",
+                    "50",
+                    "--steps",
+                    "1",
+                    "--gap-every",
+                    "0",
+                    "--no-progress",
+                    "--precision",
+                    "float32",
+                    "--out",
+                    str(tmp_path),
+                ]
+            )
+            == 0
+        )
         assert json.loads((tmp_path / "history.json").read_text())["dtype"] == "float32"
     finally:
         jax.config.update("jax_enable_x64", True)  # the CLI sets it for the process
@@ -140,8 +159,12 @@ def test_analyze_emergent_metric_in_3d(tmp_path):
 def test_analyze_periodic_points_file(tmp_path):
     pts = np.random.default_rng(0).random((300, 2))  # 3D periodic graphs: test_reliability lattices
     np.save(tmp_path / "pts.npy", pts)
-    assert main(["analyze", "--points", str(tmp_path / "pts.npy"), "--periodic", "--box", "0", "1",
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            ["analyze", "--points", str(tmp_path / "pts.npy"), "--periodic", "--box", "0", "1", "--out", str(tmp_path)]
+        )
+        == 0
+    )
     report = json.loads((tmp_path / "summary.json").read_text())
     assert report["graph"]["tier2"] == 300
     assert abs(report["volumes"]["tier2_total"] - 1.0) < 1e-9 and abs(report["volumes"]["total_in_box"] - 1.0) < 1e-9
@@ -205,10 +228,24 @@ def simulate_run(tmp_path_factory):
     out_dir = tmp_path_factory.mktemp("simulate")
     saved, savefig, printed = [], matplotlib.figure.Figure.savefig, io.StringIO()
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
-        patch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig),
-                                                                                 savefig(fig, *a, **k))[1])
-        status = main(["simulate", "--n", "120", "--steps", "10", "--gap-every", "3", "--no-progress", "--scutoids",
-                       "--out", str(out_dir)])
+        patch.setattr(
+            matplotlib.figure.Figure, "savefig", lambda fig, *a, **k: (saved.append(fig), savefig(fig, *a, **k))[1]
+        )
+        status = main(
+            [
+                "simulate",
+                "--n",
+                "120",
+                "--steps",
+                "10",
+                "--gap-every",
+                "3",
+                "--no-progress",
+                "--scutoids",
+                "--out",
+                str(out_dir),
+            ]
+        )
     history = json.loads((out_dir / "history.json").read_text()) if status == 0 else None
     return {"status": status, "out": printed.getvalue(), "history": history, "saved": saved, "dir": out_dir}
 
@@ -252,29 +289,78 @@ def test_cli_history_equals_one_call_and_every_gap_is_on_schedule(simulate_run):
 
 
 def test_simulate_user_landscape_file_in_3d_knn(tmp_path, capsys):
-    (tmp_path / "bowl.py").write_text("import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\ndef V(x):\n"
-                                      "    return jnp.sum(x ** 2)\n")
-    assert main(["simulate", "--landscape", str(tmp_path / "bowl.py"), "--n", "200", "--steps", "6", "--dim", "4",
-                 "--graph", "knn", "--k", "8", "--gap-every", "0", "--no-cloning",
-                 "--no-progress", "--out", str(tmp_path / "out")]) == 0
+    (tmp_path / "bowl.py").write_text(
+        "import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\ndef V(x):\n    return jnp.sum(x ** 2)\n"
+    )
+    assert (
+        main(
+            [
+                "simulate",
+                "--landscape",
+                str(tmp_path / "bowl.py"),
+                "--n",
+                "200",
+                "--steps",
+                "6",
+                "--dim",
+                "4",
+                "--graph",
+                "knn",
+                "--k",
+                "8",
+                "--gap-every",
+                "0",
+                "--no-cloning",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     assert "mean_fitness" in capsys.readouterr().out
     for figure in ("swarm.png", "observables.png"):  # drawn for a k-NN swarm in 4D too
         assert (tmp_path / "out" / figure).stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--dim", "4"], "--dim 4 needs --graph knn"),
-    (["--landscape", "nowhere"], "--landscape must be one of"),
-    (["--dt", "0"], "`dt` must be a finite number > 0"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--dim", "4"], "--dim 4 needs --graph knn"),
+        (["--landscape", "nowhere"], "--landscape must be one of"),
+        (["--dt", "0"], "`dt` must be a finite number > 0"),
+    ],
+)
 def test_simulate_reports_bad_input(argv, message, capsys):
     assert main(["simulate", "--n", "50", "--steps", "2", "--no-progress"] + argv) == 2
     assert message in capsys.readouterr().err
 
 
 def test_tune_prints_iterations_and_writes_json_and_figure(tmp_path, capsys):
-    assert main(["tune", "--n", "30", "--steps", "3", "--max-steps", "2", "--seeds", "2", "--tune", "nu",
-                 "eps_sigma", "--grid", "2", "--out", str(tmp_path), "--no-progress"]) == 0  # as the Ctrl-C tests below
+    assert (
+        main(
+            [
+                "tune",
+                "--n",
+                "30",
+                "--steps",
+                "3",
+                "--max-steps",
+                "2",
+                "--seeds",
+                "2",
+                "--tune",
+                "nu",
+                "eps_sigma",
+                "--grid",
+                "2",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )  # as the Ctrl-C tests below
     out = capsys.readouterr().out
     assert re.search(r"iter\s+loss\s+\|grad\|\s+nu\s+eps_sigma", out) and "true values:" in out
     assert re.search(r"found:\s+nu=\S+ \+- \S+\s+eps_sigma=\S+ \+- \S+", out)
@@ -288,11 +374,14 @@ def test_tune_prints_iterations_and_writes_json_and_figure(tmp_path, capsys):
     assert (tmp_path / "tune.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--seeds", "0"], "--seeds must be a finite number >= 1"),
-    (["--tune", "mu"], "invalid choice: 'mu'"),
-    (["--objective", "fit"], "invalid choice: 'fit'"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--seeds", "0"], "--seeds must be a finite number >= 1"),
+        (["--tune", "mu"], "invalid choice: 'mu'"),
+        (["--objective", "fit"], "invalid choice: 'fit'"),
+    ],
+)
 def test_tune_refuses_bad_arguments(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["tune", "--n", "50", "--steps", "2"] + argv)
@@ -331,8 +420,24 @@ def test_analyze_in_4d_with_few_walkers(tmp_path):
 @pytest.mark.parametrize("landscape", ["quadratic", "rastrigin"])
 def test_analyze_at_beta_zero_samples_the_box_uniformly(tmp_path, landscape):
     """(Once: a hang for the double well, a misleading error for these two.)"""
-    assert main(["analyze", "--beta", "0", "--landscape", landscape, "--n", "200", "--metric", "none",
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "analyze",
+                "--beta",
+                "0",
+                "--landscape",
+                landscape,
+                "--n",
+                "200",
+                "--metric",
+                "none",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     report = json.loads((tmp_path / "summary.json").read_text())
     assert "exp(-0.0 V)" in report["swarm"]["source"]
 
@@ -351,11 +456,17 @@ def _interrupt_when(argv, pattern, tmp_path, timeout=240, cache=True):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     if not cache:
         env["JAXGEOM_COMPILE_CACHE"] = "0"
-    proc = subprocess.Popen([sys.executable, "-m", "jaxgeom.cli", *argv, "--out", str(tmp_path), "--progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jaxgeom.cli", *argv, "--out", str(tmp_path), "--progress"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        cwd=tmp_path,
+    )
     err = []
-    reader = threading.Thread(target=lambda: err.extend(iter(lambda: proc.stderr.read(1).decode(errors="replace"),
-                                                             "")), daemon=True)
+    reader = threading.Thread(
+        target=lambda: err.extend(iter(lambda: proc.stderr.read(1).decode(errors="replace"), "")), daemon=True
+    )
     reader.start()
     deadline = time.monotonic() + timeout
     while not re.search(pattern, "".join(err)):
@@ -371,8 +482,11 @@ def _interrupt_when(argv, pattern, tmp_path, timeout=240, cache=True):
 
 def test_ctrl_c_during_simulate_writes_the_steps_that_ran(tmp_path):
     """Once: a KeyboardInterrupt traceback and an empty --out."""
-    status, err = _interrupt_when(["simulate", "--n", "100", "--steps", "100000", "--gap-every", "0",
-                                   "--precision", "float64"], r"\b([1-9]\d*)/100000", tmp_path)
+    status, err = _interrupt_when(
+        ["simulate", "--n", "100", "--steps", "100000", "--gap-every", "0", "--precision", "float64"],
+        r"\b([1-9]\d*)/100000",
+        tmp_path,
+    )
     assert status == 130 and "Traceback" not in err, err
     step = int(re.search(r"interrupted at step (\d+) of 100000; the steps that ran are written", err).group(1))
     history = json.loads((tmp_path / "history.json").read_text())
@@ -383,10 +497,16 @@ def test_ctrl_c_during_simulate_writes_the_steps_that_ran(tmp_path):
 
 @pytest.mark.slow  # the default tier: a real SIGINT while tune compiles, and Ctrl-C read between iterations below
 def test_ctrl_c_during_tune_writes_the_iterations_that_ran(tmp_path):
-    status, err = _interrupt_when(["tune", "--n", "30", "--steps", "5", "--max-steps", "100000", "--seeds", "1",
-                                   "--tune", "nu"], r"\b([1-9]\d*)/100001", tmp_path, timeout=480)
+    status, err = _interrupt_when(
+        ["tune", "--n", "30", "--steps", "5", "--max-steps", "100000", "--seeds", "1", "--tune", "nu"],
+        r"\b([1-9]\d*)/100001",
+        tmp_path,
+        timeout=480,
+    )
     assert status == 130 and "Traceback" not in err, err
-    done = int(re.search(r"interrupted at iteration (\d+) of 100000; the iterations that ran are written", err).group(1))
+    done = int(
+        re.search(r"interrupted at iteration (\d+) of 100000; the iterations that ran are written", err).group(1)
+    )
     report = json.loads((tmp_path / "tune.json").read_text())
     assert len(report["iterations"]) == done + 1 and report["message"] == "interrupted" and not report["converged"]
     assert (tmp_path / "tune.png").stat().st_size > 0
@@ -394,18 +514,42 @@ def test_ctrl_c_during_tune_writes_the_iterations_that_ran(tmp_path):
 
 # "while the targets compile": once the empty progress bar is drawn (at a fixed 4 s, a loaded
 # machine was still importing jax: a traceback from the import, not the command's message).
-@pytest.mark.parametrize("moment, pattern", [
-    ("while the targets compile", r"tune \(bfgs\):\s+0%"),
-    pytest.param("in the second iteration", r"\b(2)/3\b", marks=pytest.mark.slow),
-])
+@pytest.mark.parametrize(
+    "moment, pattern",
+    [
+        ("while the targets compile", r"tune \(bfgs\):\s+0%"),
+        pytest.param("in the second iteration", r"\b(2)/3\b", marks=pytest.mark.slow),
+    ],
+)
 def test_ctrl_c_in_tune_ends_with_the_message_and_130(moment, pattern, tmp_path):
     """A real SIGINT at two moments: the message, the iterations that ran, exit status 130."""
-    status, err = _interrupt_when(["tune", "--n", "30", "--steps", "4", "--max-steps", "2", "--seeds", "2",
-                                   "--tune", "nu", "eps_sigma", "--grid", "3"], pattern, tmp_path,
-                                  cache=moment != "while the targets compile")
+    status, err = _interrupt_when(
+        [
+            "tune",
+            "--n",
+            "30",
+            "--steps",
+            "4",
+            "--max-steps",
+            "2",
+            "--seeds",
+            "2",
+            "--tune",
+            "nu",
+            "eps_sigma",
+            "--grid",
+            "3",
+        ],
+        pattern,
+        tmp_path,
+        cache=moment != "while the targets compile",
+    )
     assert status == 130 and "Traceback" not in err, (moment, err)
-    line = re.search(r"jaxgeom tune: interrupted (?:at iteration (\d+) of 2|before it began)(; the iterations that "
-                     r"ran are written|; nothing written)", err)
+    line = re.search(
+        r"jaxgeom tune: interrupted (?:at iteration (\d+) of 2|before it began)(; the iterations that "
+        r"ran are written|; nothing written)",
+        err,
+    )
     assert line, (moment, err)
     if line.group(2).startswith("; the"):
         report = json.loads((tmp_path / "tune.json").read_text())
@@ -444,6 +588,7 @@ def test_a_ctrl_c_no_iteration_reads_still_ends_tune_with_130(moment, monkeypatc
             if len(calls) == on_call:
                 _progress._INTERRUPT["requested"] = True
             return out
+
         return wrapped
 
     if moment == "the last solver step":
@@ -452,8 +597,27 @@ def test_a_ctrl_c_no_iteration_reads_still_ends_tune_with_130(moment, monkeypatc
         monkeypatch.setattr(lib_tune, "parameter_errors", ctrl_c_after(lib_tune.parameter_errors))
     else:
         monkeypatch.setattr(cli_tune, "loss_grid", ctrl_c_after(cli_tune.loss_grid))
-    status = main(["tune", "--n", "30", "--steps", "3", "--max-steps", "2", "--seeds", "2", "--tune", "nu",
-                   "eps_sigma", "--grid", "2", "--out", str(tmp_path), "--no-progress"])
+    status = main(
+        [
+            "tune",
+            "--n",
+            "30",
+            "--steps",
+            "3",
+            "--max-steps",
+            "2",
+            "--seeds",
+            "2",
+            "--tune",
+            "nu",
+            "eps_sigma",
+            "--grid",
+            "2",
+            "--out",
+            str(tmp_path),
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err
     assert status == 130, err
     line = re.search(r"jaxgeom tune: interrupted at iteration (\d+) of 2; the iterations that ran are written", err)
@@ -463,12 +627,15 @@ def test_a_ctrl_c_no_iteration_reads_still_ends_tune_with_130(moment, monkeypatc
     assert not _progress._INTERRUPT["requested"]
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--box", "1", "0"], "--box LOWER UPPER must be finite with LOWER < UPPER; got 1.0 0.0"),
-    (["--box", "nan", "1"], "--box LOWER UPPER must be finite"),
-    (["--box", "0", "1"], "--box applies to walkers given with --points"),
-    (["--periodic", "--box", "0", "1"], "--box applies to walkers given with --points"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--box", "1", "0"], "--box LOWER UPPER must be finite with LOWER < UPPER; got 1.0 0.0"),
+        (["--box", "nan", "1"], "--box LOWER UPPER must be finite"),
+        (["--box", "0", "1"], "--box applies to walkers given with --points"),
+        (["--periodic", "--box", "0", "1"], "--box applies to walkers given with --points"),
+    ],
+)
 def test_analyze_box_is_validated_and_not_ignored(argv, message, capsys):
     """Once: a sampled swarm ignored --box without a word."""
     assert main(["analyze", "--n", "100", *argv]) == 2
@@ -493,8 +660,11 @@ def test_analyze_reports_ollivier_ricci_on_knn_graphs():
 @pytest.fixture
 def jax_cache_settings():
     """Restore JAX's cache settings that `use_compile_cache` changes for the process."""
-    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-             "jax_persistent_cache_min_entry_size_bytes")
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+    )
     saved = {name: getattr(jax.config, name) for name in names}
     yield
     for name, value in saved.items():
@@ -549,8 +719,12 @@ def test_analyze_of_two_separated_blobs_names_the_components_not_a_rounding_gap(
     rng = np.random.default_rng(5)
     blobs = np.concatenate([rng.normal(0.0, 1.0, (150, 2)), rng.normal(100.0, 1.0, (120, 2))])
     np.save(tmp_path / "blobs.npy", blobs)
-    assert main(["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "1.0",
-                 "--out", str(tmp_path / "a")]) == 0
+    assert (
+        main(
+            ["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "1.0", "--out", str(tmp_path / "a")]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     proxies = json.loads((tmp_path / "a" / "summary.json").read_text())["graph_proxies"]
     assert proxies["kernel_graph_components"] == 2 and proxies["walkers_outside_largest_component"] == 120
@@ -564,8 +738,12 @@ def test_analyze_of_two_separated_blobs_names_the_components_not_a_rounding_gap(
     scale = 1.0 / np.sqrt(dense.sum(axis=1))
     gap = np.linalg.eigvalsh(np.eye(150) - scale[:, None] * dense * scale[None, :])[1]
     assert proxies["spectral_gap_largest_component"] == pytest.approx(gap, rel=1e-8) and gap > 1e-3
-    assert main(["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "200",
-                 "--out", str(tmp_path / "b")]) == 0
+    assert (
+        main(
+            ["analyze", "--points", str(tmp_path / "blobs.npy"), "--length-scale", "200", "--out", str(tmp_path / "b")]
+        )
+        == 0
+    )
     wide = json.loads((tmp_path / "b" / "summary.json").read_text())["graph_proxies"]
     assert wide["kernel_graph_components"] == 1 and wide["walkers_outside_largest_component"] == 0
 
@@ -574,14 +752,23 @@ def test_simulate_explain_defines_each_row_it_prints(simulate_run, capsys):
     from jaxgeom.cli._simulate import summary_table
 
     rows = [line.split()[0] for line in simulate_run["out"].splitlines()[1:] if len(line.split()) == 5]
-    result = {"series": {name: np.asarray([np.nan if v is None else v for v in values])
-                         for name, values in simulate_run["history"]["series"].items()},
-              "spectral_gap": np.asarray(simulate_run["history"]["spectral_gap"]["value"], float),
-              "spectral_components": np.asarray(simulate_run["history"]["spectral_gap"]["components"]),
-              "spectral_gap_rounding": np.asarray(simulate_run["history"]["spectral_gap"]["at_rounding_level"]),
-              "spectral_gap_step": np.asarray(simulate_run["history"]["spectral_gap"]["step"]),
-              "n_reallocations": 0, "seconds_total": 1.0, "seconds_init": 0.0, "seconds_steps": 0.0,
-              "seconds_rebuild": 0.0, "seconds_snapshots": 0.0, "config": {"graph": "delaunay"}}
+    result = {
+        "series": {
+            name: np.asarray([np.nan if v is None else v for v in values])
+            for name, values in simulate_run["history"]["series"].items()
+        },
+        "spectral_gap": np.asarray(simulate_run["history"]["spectral_gap"]["value"], float),
+        "spectral_components": np.asarray(simulate_run["history"]["spectral_gap"]["components"]),
+        "spectral_gap_rounding": np.asarray(simulate_run["history"]["spectral_gap"]["at_rounding_level"]),
+        "spectral_gap_step": np.asarray(simulate_run["history"]["spectral_gap"]["step"]),
+        "n_reallocations": 0,
+        "seconds_total": 1.0,
+        "seconds_init": 0.0,
+        "seconds_steps": 0.0,
+        "seconds_rebuild": 0.0,
+        "seconds_snapshots": 0.0,
+        "config": {"graph": "delaunay"},
+    }
     explained = summary_table(result, explain=True)
     legend = explained.split("Rows:")[1]
     for name in rows:
@@ -593,9 +780,11 @@ def test_regge_and_exact_curvature_agree_where_the_criterion_says_comparable(tmp
     """A landscape whose Hessian is positive definite on its box (the floor never acts) and
     smooth on the cells' scale: the criterion says comparable and the two means agree to 5%
     (measured: -0.0615 against -0.0598 at 2000 walkers)."""
-    (tmp_path / "cubic.py").write_text("import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\n\ndef V(p):\n"
-                                       "    return jnp.sum(p**2) + 0.3 * p[0] ** 3 + 0.2 * p[0] * p[1] ** 2"
-                                       " + jnp.exp(0.5 * p[1])\n")
+    (tmp_path / "cubic.py").write_text(
+        "import jax.numpy as jnp\nBOX = (-1.0, 1.0)\n\n\ndef V(p):\n"
+        "    return jnp.sum(p**2) + 0.3 * p[0] ** 3 + 0.2 * p[0] * p[1] ** 2"
+        " + jnp.exp(0.5 * p[1])\n"
+    )
     assert main(["analyze", "--n", "2000", "--landscape", str(tmp_path / "cubic.py"), "--out", str(tmp_path)]) == 0
     capsys.readouterr()
     exact = json.loads((tmp_path / "summary.json").read_text())["metric_curvature"]
@@ -619,8 +808,9 @@ def test_an_exact_scalar_the_sample_does_not_resolve_is_not_comparable():
     log_w, ok = riemannian_log_weights(tess, jaxgeom.metric_at_walkers(tess, metric))
     used = np.asarray(ok & tess.interior) & np.isfinite(exact) & np.isfinite(regge)
     means = [float(weighted_mean_from_logs(v, log_w, used)) for v in (regge, exact)]
-    comparable, why = regge_comparison(tess, exact, np.asarray(log_w), used, np.asarray(info.floor_active),
-                                       "softabs", *means)
+    comparable, why = regge_comparison(
+        tess, exact, np.asarray(log_w), used, np.asarray(info.floor_active), "softabs", *means
+    )
     assert not comparable and why.startswith("unresolved by the sample"), why
     assert abs(means[0] - means[1]) > 0.5 * abs(means[1])
 

@@ -69,8 +69,9 @@ def test_notebook_runs_and_writes_its_figures(path, tmp_path):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     nb = nbformat.read(path, as_version=4)
-    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
-                                     resources={"metadata": {"path": str(path.parent)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}
+    )
     client.execute(env=kernel_environment(tmp_path))  # raises CellExecutionError on any failing cell
     for name in figures_named(path):
         assert (tmp_path / name).stat().st_size > 10_000, name
@@ -85,12 +86,16 @@ def test_progress_auto_is_a_widget_in_a_notebook():
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     pytest.importorskip("ipywidgets")
-    nb = nbformat.v4.new_notebook(metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
-                                                           "language": "python"}})
-    nb.cells = [nbformat.v4.new_code_cell(
-        "import numpy as np, jaxgeom\nfrom jaxgeom.apps._landscapes import rastrigin\n"
-        "st = jaxgeom.init_swarm(rastrigin, np.random.default_rng(0).uniform(-2, 2, (50, 2)))\n"
-        "_ = jaxgeom.simulate(rastrigin, st, jaxgeom.SwarmParams(cloning=False), n_steps=3, progress='auto')")]
+    nb = nbformat.v4.new_notebook(
+        metadata={"kernelspec": {"name": "python3", "display_name": "Python 3", "language": "python"}}
+    )
+    nb.cells = [
+        nbformat.v4.new_code_cell(
+            "import numpy as np, jaxgeom\nfrom jaxgeom.apps._landscapes import rastrigin\n"
+            "st = jaxgeom.init_swarm(rastrigin, np.random.default_rng(0).uniform(-2, 2, (50, 2)))\n"
+            "_ = jaxgeom.simulate(rastrigin, st, jaxgeom.SwarmParams(cloning=False), n_steps=3, progress='auto')"
+        )
+    ]
     nbclient.NotebookClient(nb, timeout=300, kernel_name="python3").execute(env=kernel_environment(Path(".")))
     kinds = [key for o in nb.cells[0].outputs for key in o.get("data", {})]
     assert "application/vnd.jupyter.widget-view+json" in kinds, nb.cells[0].outputs

@@ -1,7 +1,6 @@
 """What a new user sees: --help, the progress bar, the timing line, the figures' content."""
 
 import argparse
-import json
 import re
 
 import jax.numpy as jnp
@@ -66,8 +65,9 @@ def test_cli_draws_one_bar_over_its_segments(capsys):
 def test_tune_progress_bar_shows_the_loss(capsys):
     x0 = np.random.default_rng(1).uniform(-1.0, 1.0, (40, 2))
     state = jaxgeom.init_swarm(rastrigin, x0, key=0)
-    loss = jaxgeom.simulation_loss(rastrigin, state, "mean_fitness", params=jaxgeom.SwarmParams(cloning=False),
-                                   n_steps=2, tuned=("nu",))
+    loss = jaxgeom.simulation_loss(
+        rastrigin, state, "mean_fitness", params=jaxgeom.SwarmParams(cloning=False), n_steps=2, tuned=("nu",)
+    )
     jaxgeom.tune(loss, max_steps=1, progress=True)
     err = capsys.readouterr().err
     assert "tune (bfgs)" in err and "loss" in err and "nu=" in err
@@ -112,9 +112,14 @@ def test_sample_boltzmann_refuses_a_beta_it_cannot_sample():
 
 def test_observable_panels_skip_constant_and_undefined_series():
     t = np.arange(5) * 0.1
-    series = {"time": t, "mean_fitness": np.array([3.0, 2.0, 1.5, 1.2, 1.0]), "nu": np.full(5, 0.1),
-              "mean_expansion": np.array([np.nan, 1.0, 2.0, 1.0, 0.5]), "mean_ricci": np.full(5, np.nan),
-              "ricci_resolution": np.full(5, 1e-9)}
+    series = {
+        "time": t,
+        "mean_fitness": np.array([3.0, 2.0, 1.5, 1.2, 1.0]),
+        "nu": np.full(5, 0.1),
+        "mean_expansion": np.array([np.nan, 1.0, 2.0, 1.0, 0.5]),
+        "mean_ricci": np.full(5, np.nan),
+        "ricci_resolution": np.full(5, 1e-9),
+    }
     drawn, constant, undefined = observable_panels(series, gaps=[0.2])
     assert drawn == ["mean_fitness", "mean_expansion", "spectral_gap"]
     assert constant == ["nu"] and undefined == ["mean_ricci"]
@@ -137,7 +142,24 @@ def test_snapshot_frame_holds_every_walker():
 @pytest.mark.slow  # the k-NN run in 4D: test_cli's user landscape test
 def test_figures_of_a_3d_run(tmp_path, capsys):
     """Smoke: a 3D Delaunay run writes both figures (the content rules are tested above)."""
-    assert main(["simulate", "--n", "150", "--steps", "3", "--gap-every", "0", "--no-progress", "--dim", "3",
-                 "--out", str(tmp_path)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--n",
+                "150",
+                "--steps",
+                "3",
+                "--gap-every",
+                "0",
+                "--no-progress",
+                "--dim",
+                "3",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "swarm.png").stat().st_size > 10_000 and (tmp_path / "observables.png").stat().st_size > 10_000
     capsys.readouterr()

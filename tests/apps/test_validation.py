@@ -56,8 +56,9 @@ def test_coplanar_3d_rejected(rng):
 
 
 def test_qhull_errors_are_wrapped(monkeypatch, rng):
-    import jaxgeom.tessellation._triangulators as backends
     from scipy.spatial import QhullError
+
+    import jaxgeom.tessellation._triangulators as backends
 
     def failing(*args, **kwargs):
         raise QhullError("QH6154 Qhull precision error: initial simplex is flat")

@@ -60,8 +60,9 @@ def test_raychaudhuri_under_uniform_scaling_is_exact(rng, d):
     s, dt = 1.05, 0.1
     before, after = jaxgeom.delaunay(x), jaxgeom.delaunay(s * x)
     valid = (before.tier == 2) & (after.tier == 2)
-    theta = np.asarray(jaxgeom.raychaudhuri_expansion(jaxgeom.voronoi_volumes(before),
-                                                      jaxgeom.voronoi_volumes(after), dt, valid=valid))
+    theta = np.asarray(
+        jaxgeom.raychaudhuri_expansion(jaxgeom.voronoi_volumes(before), jaxgeom.voronoi_volumes(after), dt, valid=valid)
+    )
     ok = np.asarray(valid)
     np.testing.assert_allclose(theta[ok], (s**d - 1) / dt, rtol=1e-10)
     assert np.all(np.isnan(theta[~ok]))

@@ -53,7 +53,9 @@ def test_periodic_flat_deficits_vanish_everywhere(rng):
     assert np.abs(delta).max() < 1e-9
 
 
-@pytest.mark.parametrize("metric", [None, sphere, hyperbolic, anisotropic, "array"], ids=lambda m: getattr(m, "__name__", str(m)))
+@pytest.mark.parametrize(
+    "metric", [None, sphere, hyperbolic, anisotropic, "array"], ids=lambda m: getattr(m, "__name__", str(m))
+)
 def test_discrete_gauss_bonnet_on_a_disk(metric):
     x = ball(1500, 2, seed=2)
     tess = jaxgeom.delaunay(x)
@@ -69,8 +71,12 @@ def test_discrete_gauss_bonnet_on_a_disk(metric):
 
 @pytest.mark.parametrize(
     "d, n, metric, exact, tol",
-    [(2, 20000, sphere, 2.0, 0.01), (2, 20000, hyperbolic, -2.0, 0.01),
-     (3, 20000, sphere, 6.0, 0.02), (3, 20000, hyperbolic, -6.0, 0.02)],
+    [
+        (2, 20000, sphere, 2.0, 0.01),
+        (2, 20000, hyperbolic, -2.0, 0.01),
+        (3, 20000, sphere, 6.0, 0.02),
+        (3, 20000, hyperbolic, -6.0, 0.02),
+    ],
     ids=["sphere2", "hyperbolic2", "sphere3", "hyperbolic3"],
 )
 def test_constant_curvature_region_average(d, n, metric, exact, tol):

@@ -62,8 +62,11 @@ def test_fd_gradient_reproduces_the_chapter_formula(rng):
             js = nbrs[i][nbrs[i] < 60]
             dx = x[js] - x[i]
             dist = np.linalg.norm(dx, axis=1)
-            w = {"uniform": np.ones(len(js)), "inverse_distance": 1 / dist,
-                 "gaussian": np.exp(-dist**2 / (2 * np.median(dist) ** 2))}[weighting]
+            w = {
+                "uniform": np.ones(len(js)),
+                "inverse_distance": 1 / dist,
+                "gaussian": np.exp(-(dist**2) / (2 * np.median(dist) ** 2)),
+            }[weighting]
             w = w / w.sum()
             ref = np.sum((w * (values[js] - values[i]) / dist**2)[:, None] * dx, axis=0)
             np.testing.assert_allclose(ours[i], ref, rtol=1e-12, atol=1e-14)
@@ -94,7 +97,9 @@ def test_degenerate_neighbourhoods_give_nan_and_a_count_without_leaking(rng):
     nbrs = np.asarray(tess.neighbors)[7]
     around = nbrs[nbrs < 400]
     interior_around = around[np.asarray(tess.tier)[around] == 2]
-    np.testing.assert_allclose(grad[interior_around], np.broadcast_to([2.0, 1.0], (len(interior_around), 2)), rtol=1e-10)
+    np.testing.assert_allclose(
+        grad[interior_around], np.broadcast_to([2.0, 1.0], (len(interior_around), 2)), rtol=1e-10
+    )
     assert int(info.n_invalid) == int(np.isnan(grad).any(axis=1).sum())
     thin = jaxgeom.knn_graph(rng.random((50, 3)), 2)  # 2 neighbours cannot determine a 3D gradient
     g2, info2 = jaxgeom.estimate_gradient(thin, rng.random(50), order=1, with_info=True)
@@ -118,8 +123,11 @@ def test_estimates_run_inside_jit_and_in_float32(rng):
 
 def test_geometric_hessian_is_emergent_metric_minus_eps(rng):
     tess = jaxgeom.delaunay(rng.random((200, 2)))
-    np.testing.assert_allclose(np.asarray(jaxgeom.geometric_hessian(tess, 0.1)),
-                               np.asarray(jaxgeom.emergent_metric(tess)) - 0.1 * np.eye(2), rtol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.geometric_hessian(tess, 0.1)),
+        np.asarray(jaxgeom.emergent_metric(tess)) - 0.1 * np.eye(2),
+        rtol=1e-14,
+    )
 
 
 def test_estimation_bad_input(rng):
@@ -146,7 +154,9 @@ def test_compare_estimation_methods_metrics_match_numpy(rng):
     e_fd, e_geo = np.linalg.eigvalsh(h_fd), np.linalg.eigvalsh(h_geo)
     metrics = out["metrics"]
     assert abs(metrics["eigenvalue_correlation"] - np.corrcoef(e_fd.ravel(), e_geo.ravel())[0, 1]) < 1e-12
-    frob = 1 - np.linalg.norm(h_fd - h_geo, axis=(1, 2)) / (np.linalg.norm(h_fd, axis=(1, 2)) + np.linalg.norm(h_geo, axis=(1, 2)))
+    frob = 1 - np.linalg.norm(h_fd - h_geo, axis=(1, 2)) / (
+        np.linalg.norm(h_fd, axis=(1, 2)) + np.linalg.norm(h_geo, axis=(1, 2))
+    )
     assert abs(metrics["frobenius_agreement"] - frob.mean()) < 1e-12
     rho = metrics["eigenvalue_correlation"]
     assert metrics["method_preference"] == ("excellent" if rho > 0.8 else "good" if rho > 0.6 else "poor")

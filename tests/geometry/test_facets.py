@@ -155,8 +155,9 @@ def test_a_square_lattice_has_unit_faces_and_four_vertices():
     np.testing.assert_allclose(np.asarray(facets.wall_areas)[corner], [0, 0, 1 / 8, 1 / 8])
 
 
-@pytest.mark.parametrize("kind", ["cubic periodic", "cubic periodic 8", "cubic boxed", "fcc periodic",
-                                  "cubic jittered 1e-9"])
+@pytest.mark.parametrize(
+    "kind", ["cubic periodic", "cubic periodic 8", "cubic boxed", "fcc periodic", "cubic jittered 1e-9"]
+)
 def test_3d_lattices_have_their_exact_cells(kind):
     """Co-spherical walkers: a cube's eight (and the FCC lattice's rhombic dodecahedron's
     fourteen) Voronoi vertices are shared by several Delaunay simplices, flat ones among them.
@@ -207,18 +208,35 @@ def test_facet_areas_are_freuds_voronoi_neighbour_weights(rng, d):
     box = freud.box.Box.cube(1.0) if d == 3 else freud.box.Box.square(1.0)
     voro.compute((box, x if d == 3 else np.c_[x, np.zeros(len(x))]))
     nlist = voro.nlist
-    ours = {(int(i), int(j)): float(a) for i, row, arow in zip(range(len(x)), np.asarray(tess.neighbors),
-                                                              np.asarray(jaxgeom.voronoi_facets(tess).areas))
-            for j, a in zip(row, arow) if j < len(x)}
-    theirs = {(int(i), int(j)): float(w) for i, j, w in zip(nlist.query_point_indices, nlist.point_indices,
-                                                           nlist.weights) if w > 1e-12}
+    ours = {
+        (int(i), int(j)): float(a)
+        for i, row, arow in zip(
+            range(len(x)), np.asarray(tess.neighbors), np.asarray(jaxgeom.voronoi_facets(tess).areas)
+        )
+        for j, a in zip(row, arow)
+        if j < len(x)
+    }
+    theirs = {
+        (int(i), int(j)): float(w)
+        for i, j, w in zip(nlist.query_point_indices, nlist.point_indices, nlist.weights)
+        if w > 1e-12
+    }
     assert set(theirs) <= set(ours)
     for pair, w in theirs.items():
         assert ours[pair] == pytest.approx(w, rel=1e-5, abs=1e-6)
 
 
-@pytest.mark.parametrize("kind, d", [("periodic", 2), ("periodic", 3), ("open", 2), ("open", 3), ("boxed", 2),
-                                     pytest.param("boxed", 3, marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "kind, d",
+    [
+        ("periodic", 2),
+        ("periodic", 3),
+        ("open", 2),
+        ("open", 3),
+        ("boxed", 2),
+        pytest.param("boxed", 3, marks=pytest.mark.slow),
+    ],
+)
 def test_facet_gradients_equal_central_differences(rng, kind, d):
     """The dual's areas, volumes and centroids are smooth in the positions on a fixed graph:
     jax.grad of a weighted sum of them equals central differences (bounded cells only; in a
@@ -237,8 +255,12 @@ def test_facet_gradients_equal_central_differences(rng, kind, d):
 
     def total(points):
         f = jaxgeom.voronoi_facets(eqx.tree_at(lambda t: t.points, tess, points))
-        return (jnp.sum(jnp.where(mask, f.areas, 0.0) * w) + jnp.sum(jnp.where(inside, f.volumes, 0.0))
-                + jnp.sum(jnp.where(inside[:, None], f.centroids, 0.0) ** 2) + jnp.sum(f.wall_areas * w_walls))
+        return (
+            jnp.sum(jnp.where(mask, f.areas, 0.0) * w)
+            + jnp.sum(jnp.where(inside, f.volumes, 0.0))
+            + jnp.sum(jnp.where(inside[:, None], f.centroids, 0.0) ** 2)
+            + jnp.sum(f.wall_areas * w_walls)
+        )
 
     p = jnp.asarray(x)
     grad = np.asarray(jax.grad(total)(p))

@@ -19,7 +19,7 @@ def dense_viscous_force(x, v, nbrs, nu, mode, ell, g=None, vol=None):
     if mode == "uniform":
         w = np.ones((n, n))
     elif mode == "kernel":
-        w = np.exp(-dist**2 / (2 * ell**2))
+        w = np.exp(-(dist**2) / (2 * ell**2))
     else:
         if mode == "inverse_distance":
             length = dist
@@ -52,10 +52,14 @@ def test_viscous_force_equals_dense_definition(rng, graph, mode, volume):
     v = rng.normal(size=(n, d))
     g = random_metric(rng, n, d)
     vol = rng.uniform(0.5, 2.0, n) if volume else None
-    ell = 3.0 * float(np.mean(np.min(np.where(np.asarray(tess.neighbor_mask),
-                                                np.asarray(jaxgeom.edge_lengths(tess)), np.inf), axis=1)))
-    ours = jaxgeom.viscous_force(tess, v, nu=0.3, weights=mode, metric=g if mode.startswith("metric") else None,
-                                 volume_weights=vol)
+    ell = 3.0 * float(
+        np.mean(
+            np.min(np.where(np.asarray(tess.neighbor_mask), np.asarray(jaxgeom.edge_lengths(tess)), np.inf), axis=1)
+        )
+    )
+    ours = jaxgeom.viscous_force(
+        tess, v, nu=0.3, weights=mode, metric=g if mode.startswith("metric") else None, volume_weights=vol
+    )
     ref = dense_viscous_force(x, v, np.asarray(tess.neighbors), 0.3, mode, ell, g, vol)
     np.testing.assert_allclose(np.asarray(ours), ref, atol=1e-12)
 
@@ -65,8 +69,9 @@ def test_explicit_length_scale_and_callable_metric(rng):
     tess = jaxgeom.delaunay(x)
     v = rng.normal(size=(300, 2))
     ours = jaxgeom.viscous_force(tess, v, nu=1.0, weights="kernel", length_scale=0.07)
-    np.testing.assert_allclose(np.asarray(ours), dense_viscous_force(x, v, np.asarray(tess.neighbors), 1.0,
-                                                                     "kernel", 0.07), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(ours), dense_viscous_force(x, v, np.asarray(tess.neighbors), 1.0, "kernel", 0.07), atol=1e-12
+    )
     # A constant callable metric equals the same constant array metric.
     g0 = jnp.array([[2.0, 0.3], [0.3, 0.5]])
     by_callable = jaxgeom.viscous_force(tess, v, nu=1.0, weights="metric_full", metric=lambda p: g0)
@@ -101,12 +106,14 @@ def test_degree_weighted_momentum_and_variance_for_symmetric_weights(rng, mode):
     assert np.all(np.diff(variances) <= 1e-12 * variances[0])
     assert variances[-1] < 0.5 * variances[0]
     # The plain mean velocity is not conserved (NOTES 4): the chapter's claim fails here.
-    assert not np.allclose(np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, weights=mode, metric=g)).sum(0), 0.0,
-                           atol=1e-9)
+    assert not np.allclose(
+        np.asarray(jaxgeom.viscous_force(tess, v, nu=nu, weights=mode, metric=g)).sum(0), 0.0, atol=1e-9
+    )
 
 
-@pytest.mark.parametrize("graph, mode, volume", [("delaunay", "kernel", True), ("knn", "inverse_distance", False),
-                                                 ("knn", "uniform", True)])
+@pytest.mark.parametrize(
+    "graph, mode, volume", [("delaunay", "kernel", True), ("knn", "inverse_distance", False), ("knn", "uniform", True)]
+)
 def test_explicit_steps_stay_inside_the_old_velocity_range(rng, graph, mode, volume):
     x = rng.random((300, 2))
     tess = jaxgeom.delaunay(x) if graph == "delaunay" else jaxgeom.knn_graph(x, 6)
@@ -133,8 +140,9 @@ def test_isolated_walkers_get_zero_force():
     tess = jaxgeom.knn_graph(x, 2)
     nbrs = np.asarray(tess.neighbors).copy()
     nbrs[0] = tess.n_points  # walker 0 loses its neighbours
-    tess = jaxgeom.Tessellation(tess.points, jnp.asarray(nbrs), tess.tier, tess.hull, None, None, None, None,
-                                tess.overflow)
+    tess = jaxgeom.Tessellation(
+        tess.points, jnp.asarray(nbrs), tess.tier, tess.hull, None, None, None, None, tess.overflow
+    )
     force = jaxgeom.viscous_force(tess, np.ones((5, 2)) * np.arange(5)[:, None], nu=1.0, weights="kernel")
     assert np.all(np.asarray(force[0]) == 0.0) and np.all(np.isfinite(np.asarray(force)))
 
@@ -145,8 +153,9 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
     v = jnp.asarray(rng.normal(size=(120, 2)))
 
     def loss(nu, ell, pts, scale):
-        t = jaxgeom.Tessellation(pts, tess.neighbors, tess.tier, tess.hull, tess.simplices, None, None, None,
-                                 tess.overflow)
+        t = jaxgeom.Tessellation(
+            pts, tess.neighbors, tess.tier, tess.hull, tess.simplices, None, None, None, tess.overflow
+        )
         metric = lambda p: scale * jnp.eye(2) + jnp.outer(p, p)  # noqa: E731
         f = jaxgeom.viscous_force(t, v, nu=nu, weights="kernel", length_scale=ell)
         h = jaxgeom.viscous_force(t, v, nu=nu, weights="metric_full", metric=metric)
@@ -158,20 +167,25 @@ def test_gradients_are_finite_and_match_finite_differences(rng):
     assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
     for i in (0, 1, 3):
         h = 1e-6
-        up = list(args); up[i] = args[i] + h  # noqa: E702
-        dn = list(args); dn[i] = args[i] - h  # noqa: E702
+        up = list(args)
+        up[i] = args[i] + h  # noqa: E702
+        dn = list(args)
+        dn[i] = args[i] - h  # noqa: E702
         np.testing.assert_allclose(float(grads[i]), (loss(*up) - loss(*dn)) / (2 * h), rtol=1e-6)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(weights="gaussian"), "unknown weights 'gaussian'; valid values are 'uniform', 'kernel'"),
-    (dict(nu=-0.1), "`nu` must be a finite number >= 0"),
-    (dict(weights="metric_full"), "needs `metric`"),
-    (dict(length_scale=0.0), "`length_scale` must be a finite number > 0"),
-    (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(50,\)"),
-    (dict(volume_weights=-np.ones(50)), "`volume_weights` must be >= 0"),
-    (dict(velocities=np.ones((50, 3))), r"`velocities` must have shape \(50, 2\)"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(weights="gaussian"), "unknown weights 'gaussian'; valid values are 'uniform', 'kernel'"),
+        (dict(nu=-0.1), "`nu` must be a finite number >= 0"),
+        (dict(weights="metric_full"), "needs `metric`"),
+        (dict(length_scale=0.0), "`length_scale` must be a finite number > 0"),
+        (dict(volume_weights=np.ones(3)), r"`volume_weights` must have shape \(50,\)"),
+        (dict(volume_weights=-np.ones(50)), "`volume_weights` must be >= 0"),
+        (dict(velocities=np.ones((50, 3))), r"`velocities` must have shape \(50, 2\)"),
+    ],
+)
 def test_bad_input_raises(rng, kwargs, match):
     tess = jaxgeom.delaunay(rng.random((50, 2)))
     args = dict(velocities=np.zeros((50, 2)), nu=0.1) | kwargs

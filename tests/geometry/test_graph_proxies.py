@@ -23,8 +23,11 @@ def dense_normalized_laplacian(tess, length_scale):
 @pytest.mark.parametrize("d, n", [(2, 1500), (3, 800)])
 def test_spectral_gap_equals_dense_eigvalsh(rng, d, n):
     tess = jaxgeom.delaunay(rng.random((n, d)))
-    ell = 3.0 * float(np.mean(np.min(np.where(np.asarray(tess.neighbor_mask),
-                                                np.asarray(jaxgeom.edge_lengths(tess)), np.inf), axis=1)))
+    ell = 3.0 * float(
+        np.mean(
+            np.min(np.where(np.asarray(tess.neighbor_mask), np.asarray(jaxgeom.edge_lengths(tess)), np.inf), axis=1)
+        )
+    )
     ref = np.linalg.eigvalsh(dense_normalized_laplacian(tess, ell))[:6]
     np.testing.assert_allclose(np.asarray(jaxgeom.spectral_gap(tess)), ref, atol=1e-8)
     np.testing.assert_allclose(np.asarray(jaxgeom.spectral_gap(tess, length_scale=ell)), ref, atol=1e-8)
@@ -71,8 +74,8 @@ def test_lobpcg_flags_non_convergence_with_nan(rng):
 def test_nested_dissection_eliminates_every_separator_after_its_pieces(rng, d):
     """Fill-reducing invariant: an edge never joins two different pieces of the same
     level, and a separator vertex comes after every vertex of the piece it splits."""
-    from jaxgeom.tessellation._triangulators import morton_codes
     from jaxgeom.geometry._spectral import _separator_levels, nested_dissection_order
+    from jaxgeom.tessellation._triangulators import morton_codes
 
     x = rng.random((5000, d))
     matrix = jaxgeom.graph_laplacian(jaxgeom.delaunay(x)).to_scipy()

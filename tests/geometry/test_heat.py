@@ -92,8 +92,9 @@ def test_constant_metric_equals_euclidean_operators_of_mapped_points(rng):
     a = np.array([[1.3, 0.4], [0.0, 0.7]])
     tess = jaxgeom.delaunay(x)
     g = np.broadcast_to(a.T @ a, (80, 2, 2))
-    mapped = jaxgeom.Tessellation(jnp.asarray(x @ a.T), tess.neighbors, tess.tier, tess.hull, tess.simplices,
-                                  None, None, None, tess.overflow)
+    mapped = jaxgeom.Tessellation(
+        jnp.asarray(x @ a.T), tess.neighbors, tess.tier, tess.hull, tess.simplices, None, None, None, tess.overflow
+    )
     ours, ref = _heat.heat_operators(tess, g), _heat.heat_operators(mapped)
     np.testing.assert_allclose(ours.stiffness, ref.stiffness, atol=1e-11)
     np.testing.assert_allclose(ours.mass, ref.mass, rtol=1e-12)
@@ -329,7 +330,8 @@ def test_components_of_the_weight_graph(rng):
     op = _heat.heat_operators(tess)
     assert np.all(np.asarray(_heat.component_labels(op)) == 0)
     cut = np.any(np.asarray(tess.simplices) == 7, axis=1)
-    op = eqx.tree_at(lambda o: (o.stiffness, o.closes), op,
-                     (jnp.where(cut[:, None, None], 0.0, op.stiffness), jnp.asarray(~cut)))
+    op = eqx.tree_at(
+        lambda o: (o.stiffness, o.closes), op, (jnp.where(cut[:, None, None], 0.0, op.stiffness), jnp.asarray(~cut))
+    )
     labels = np.asarray(_heat.component_labels(op))
     assert labels[7] == 7 and np.all(np.delete(labels, 7) == 0)

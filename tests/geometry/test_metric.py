@@ -75,8 +75,9 @@ def test_emergent_metric_of_stretched_fcc_lattice_with_knn():
     z = (cells + base).reshape(-1, 3)
     a = np.diag([1.1, 1.0, 1.0])
     tess = jaxgeom.knn_graph(z @ a.T, 12)
-    shell = np.array([v for v in np.stack(np.meshgrid(*[[-0.5, 0, 0.5]] * 3), -1).reshape(-1, 3)
-                      if np.isclose(np.sum(v * v), 0.5)])
+    shell = np.array(
+        [v for v in np.stack(np.meshgrid(*[[-0.5, 0, 0.5]] * 3), -1).reshape(-1, 3) if np.isclose(np.sum(v * v), 0.5)]
+    )
     c0 = shell.T @ shell / 12
     c = a @ c0 @ a.T
     expected = np.linalg.inv(c + 1e-5 * np.trace(c) / 3 * np.eye(3))
@@ -104,13 +105,19 @@ def test_edge_lengths_modes(rng):
         return jnp.array([[2.0 + p[0], 0.3], [0.3, 1.0 + p[1] ** 2]])
 
     mid = x[:, None] + 0.5 * dx
-    g = np.stack([np.stack([2 + mid[..., 0], np.full_like(mid[..., 0], 0.3)], -1),
-                  np.stack([np.full_like(mid[..., 0], 0.3), 1 + mid[..., 1] ** 2], -1)], -2)
+    g = np.stack(
+        [
+            np.stack([2 + mid[..., 0], np.full_like(mid[..., 0], 0.3)], -1),
+            np.stack([np.full_like(mid[..., 0], 0.3), 1 + mid[..., 1] ** 2], -1),
+        ],
+        -2,
+    )
     full = np.sqrt(np.einsum("nki,nkij,nkj->nk", dx, g, dx))
     diag = np.sqrt(np.einsum("nki,nkij,nkj->nk", dx, g * np.eye(2), dx))
     np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric))[mask], full[mask], rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric, mode="diagonal"))[mask], diag[mask],
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.edge_lengths(tess, metric=metric, mode="diagonal"))[mask], diag[mask], rtol=1e-12
+    )
     np.testing.assert_allclose(np.asarray(jaxgeom.edge_lengths(tess, metric=metric, mode="none")), euclid, atol=1e-15)
     per_walker = np.asarray(jaxgeom.metric_at_walkers(tess, metric))
     pair = 0.5 * (per_walker[:, None] + per_walker[np.minimum(nbrs, 99)])

@@ -29,8 +29,10 @@ def poincare(x):
 
 def product(d1):
     """S^d1(R) x H^(d - d1), block diagonal: S = d1(d1-1)/R^2 - d2(d2-1)."""
+
     def metric(x):
         return jax.scipy.linalg.block_diag(sphere(x[:d1]), poincare(x[d1:]))
+
     return metric
 
 
@@ -46,6 +48,7 @@ def convex_landscape(seed, d):
 
     def fitness(x):
         return jax.nn.logsumexp(a @ x) + 0.25 * x @ x
+
     return fitness
 
 
@@ -116,25 +119,37 @@ def test_gradients_in_eps_sigma_and_a_landscape_parameter_match_central_differen
     def mean_curvature(eps, a):
         def fitness(y):
             return double_well(y) + a * jnp.sum(y**3) / 3
+
         return jnp.mean(jaxgeom.metric_curvature(jaxgeom.hessian_metric(fitness, eps), x))
 
     grads = jax.grad(mean_curvature, argnums=(0, 1))(0.1, 0.2)
     h = 1e-5
-    fd = ((mean_curvature(0.1 + h, 0.2) - mean_curvature(0.1 - h, 0.2)) / (2 * h),
-          (mean_curvature(0.1, 0.2 + h) - mean_curvature(0.1, 0.2 - h)) / (2 * h))
+    fd = (
+        (mean_curvature(0.1 + h, 0.2) - mean_curvature(0.1 - h, 0.2)) / (2 * h),
+        (mean_curvature(0.1, 0.2 + h) - mean_curvature(0.1, 0.2 - h)) / (2 * h),
+    )
     assert all(np.isfinite(grads)) and abs(grads[0]) > 1e-3 and abs(grads[1]) > 1e-3
     np.testing.assert_allclose(grads, fd, rtol=1e-6)
     # and through the Christoffel form, and in the positions
-    chris = jax.grad(lambda e: jnp.mean(jaxgeom.metric_curvature(jaxgeom.hessian_metric(double_well, e), x,
-                                                                 method="christoffel")))(0.1)
+    chris = jax.grad(
+        lambda e: jnp.mean(jaxgeom.metric_curvature(jaxgeom.hessian_metric(double_well, e), x, method="christoffel"))
+    )(0.1)
     hessian_form = jax.grad(mean_curvature, argnums=(0, 1))(0.1, 0.0)[0]  # the program compiled above
     np.testing.assert_allclose(chris, hessian_form, rtol=1e-8)
     gx = jax.grad(lambda p: jnp.sum(jaxgeom.metric_curvature(sphere, p)))(points(2, 3))
     np.testing.assert_allclose(gx, 0.0, atol=1e-9)  # constant curvature: no gradient in the points
 
 
-@pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.slow), pytest.param(4, marks=pytest.mark.slow),
-                               pytest.param(5, marks=pytest.mark.slow), 6])  # the sweep in d: slow
+@pytest.mark.parametrize(
+    "d",
+    [
+        2,
+        pytest.param(3, marks=pytest.mark.slow),
+        pytest.param(4, marks=pytest.mark.slow),
+        pytest.param(5, marks=pytest.mark.slow),
+        6,
+    ],
+)  # the sweep in d: slow
 def test_exact_hessian_form_equals_the_christoffel_form(d):
     fitness = convex_landscape(d, d)
     x = points(10, d, scale=1.0)
@@ -158,8 +173,16 @@ def test_separable_landscapes_give_flat_hessian_metrics():
     np.testing.assert_allclose(jaxgeom.metric_curvature(metric, x), 0.0, atol=1e-10)
 
 
-@pytest.mark.parametrize("d", [pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(4, marks=pytest.mark.slow),
-                               pytest.param(5, marks=pytest.mark.slow), 6])  # the sweep in d: slow
+@pytest.mark.parametrize(
+    "d",
+    [
+        pytest.param(2, marks=pytest.mark.slow),
+        3,
+        pytest.param(4, marks=pytest.mark.slow),
+        pytest.param(5, marks=pytest.mark.slow),
+        6,
+    ],
+)  # the sweep in d: slow
 def test_stochastic_form_is_unbiased_within_three_standard_errors(d):
     metric = jaxgeom.hessian_metric(convex_landscape(d, d), 0.05)
     x = points(12, d, scale=1.0)
@@ -176,8 +199,12 @@ def test_stochastic_form_is_unbiased_within_three_standard_errors(d):
 
 def test_stochastic_standard_error_falls_like_one_over_root_m():
     x = points(20, 5, scale=1.0)
-    se = [np.median(jaxgeom.metric_curvature(fisher(), x, probes=m, key=jax.random.key(1), with_info=True)[1]
-                    .standard_error) for m in (64, 1024)]
+    se = [
+        np.median(
+            jaxgeom.metric_curvature(fisher(), x, probes=m, key=jax.random.key(1), with_info=True)[1].standard_error
+        )
+        for m in (64, 1024)
+    ]
     assert 3.0 < se[0] / se[1] < 5.5  # sqrt(16) = 4
 
 
@@ -228,23 +255,26 @@ def _not_traceable(x):
     return np.eye(x.shape[0]) * float(x[0])
 
 
-@pytest.mark.parametrize("kwargs, error, match", [
-    (dict(metric=np.eye(2)), TypeError, "callable"),
-    (dict(metric=lambda x: jnp.eye(3)), ValueError, r"\(2, 2\)"),
-    (dict(metric=lambda x: jnp.eye(2, dtype=jnp.int32)), TypeError, "floating"),
-    (dict(metric=lambda x: jnp.eye(2, dtype=jnp.complex64)), TypeError, "floating"),
-    (dict(metric=_not_traceable), TypeError, "traceable"),
-    (dict(points=np.array([[0.1, np.nan], [0.0, 0.2]])), ValueError, "NaN"),
-    (dict(points=np.zeros(2)), ValueError, r"\(N, d\)"),
-    (dict(points=np.zeros((2, 2), int)), TypeError, "float"),
-    (dict(probes=0, key=jax.random.key(0)), ValueError, "probes"),
-    (dict(probes=2.5, key=jax.random.key(0)), TypeError, "probes"),
-    (dict(probes=4), ValueError, "key"),
-    (dict(metric=sphere, probes=4, key=jax.random.key(0)), ValueError, "Hessian form"),
-    (dict(method="exact"), ValueError, "christoffel"),
-    (dict(metric=sphere, method="hessian"), ValueError, "hessian_metric"),
-    (dict(chunk=0), ValueError, "chunk"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(metric=np.eye(2)), TypeError, "callable"),
+        (dict(metric=lambda x: jnp.eye(3)), ValueError, r"\(2, 2\)"),
+        (dict(metric=lambda x: jnp.eye(2, dtype=jnp.int32)), TypeError, "floating"),
+        (dict(metric=lambda x: jnp.eye(2, dtype=jnp.complex64)), TypeError, "floating"),
+        (dict(metric=_not_traceable), TypeError, "traceable"),
+        (dict(points=np.array([[0.1, np.nan], [0.0, 0.2]])), ValueError, "NaN"),
+        (dict(points=np.zeros(2)), ValueError, r"\(N, d\)"),
+        (dict(points=np.zeros((2, 2), int)), TypeError, "float"),
+        (dict(probes=0, key=jax.random.key(0)), ValueError, "probes"),
+        (dict(probes=2.5, key=jax.random.key(0)), TypeError, "probes"),
+        (dict(probes=4), ValueError, "key"),
+        (dict(metric=sphere, probes=4, key=jax.random.key(0)), ValueError, "Hessian form"),
+        (dict(method="exact"), ValueError, "christoffel"),
+        (dict(metric=sphere, method="hessian"), ValueError, "hessian_metric"),
+        (dict(chunk=0), ValueError, "chunk"),
+    ],
+)
 def test_bad_input_is_refused_with_a_clear_message(kwargs, error, match):
     args = dict(metric=fisher(0.1), points=points(2, 2)) | kwargs
     metric, pts = args.pop("metric"), args.pop("points")

@@ -21,8 +21,13 @@ def _linprog_w1(cost, a, b):
     m, n = cost.shape
     rows = scipy.sparse.kron(scipy.sparse.eye(m), np.ones((1, n)))
     cols = scipy.sparse.kron(np.ones((1, m)), scipy.sparse.eye(n))
-    res = scipy.optimize.linprog(cost.ravel(), A_eq=scipy.sparse.vstack([rows, cols]), b_eq=np.concatenate([a, b]),
-                                 bounds=(0, None), method="highs")
+    res = scipy.optimize.linprog(
+        cost.ravel(),
+        A_eq=scipy.sparse.vstack([rows, cols]),
+        b_eq=np.concatenate([a, b]),
+        bounds=(0, None),
+        method="highs",
+    )
     assert res.status == 0
     return res.fun
 
@@ -81,7 +86,9 @@ def test_transport_cancels_a_residual_cycle_that_float32_rounding_made_negative(
     w1, converged = transport_cost(cost, a, b, same)
     assert cost.dtype == jnp.float32 and bool(converged)
     a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    np.testing.assert_allclose(w1, _linprog_w1(np.asarray(cost, np.float64), a64, b64 * a64.sum() / b64.sum()), rtol=1e-5)
+    np.testing.assert_allclose(
+        w1, _linprog_w1(np.asarray(cost, np.float64), a64, b64 * a64.sum() / b64.sum()), rtol=1e-5
+    )
 
 
 def _undirected_lengths(tess, hops=False):
@@ -113,10 +120,10 @@ def _reference_curvature(tess, alpha, measure, cost, kernel_scale=None):
         if measure == "uniform":
             p = np.ones(len(nb))
         elif measure == "grc":
-            p = np.exp(-weights[i, nb] ** 2)
+            p = np.exp(-(weights[i, nb] ** 2))
         else:
             h = w[i, nb].mean() if kernel_scale is None else kernel_scale
-            p = np.exp(-w[i, nb] ** 2 / (2 * h**2))
+            p = np.exp(-(w[i, nb] ** 2) / (2 * h**2))
         return np.concatenate([[i], nb]), np.concatenate([[alpha], (1 - alpha) * p / p.sum()])
 
     out = {}
@@ -141,8 +148,10 @@ def _assert_matches(orc, ref, atol):
     return count
 
 
-@pytest.mark.parametrize("cost,measure", [("hops", "uniform"), ("graph", "uniform"), ("graph", "grc"),
-                                          ("direct", "kernel"), ("graph", "kernel")])
+@pytest.mark.parametrize(
+    "cost,measure",
+    [("hops", "uniform"), ("graph", "uniform"), ("graph", "grc"), ("direct", "kernel"), ("graph", "kernel")],
+)
 def test_knn_graph_matches_the_definition(rng, cost, measure):
     tess = jaxgeom.knn_graph(rng.random((70, 2)), 5)
     orc = jaxgeom.ollivier_ricci(tess, alpha=0.3, cost=cost, measure=measure)
@@ -183,7 +192,9 @@ def test_matches_graph_ricci_curvature_exact_transport(rng, n, d, clusters):
     x = _two_clusters(rng, n, d) if clusters else rng.random((n, d))
     tess = jaxgeom.knn_graph(x, 6)
     if clusters:
-        adjacency = scipy.sparse.csr_matrix((np.ones(n * 6), (np.repeat(np.arange(n), 6), np.asarray(tess.neighbors).ravel())))
+        adjacency = scipy.sparse.csr_matrix(
+            (np.ones(n * 6), (np.repeat(np.arange(n), 6), np.asarray(tess.neighbors).ravel()))
+        )
         assert scipy.sparse.csgraph.connected_components(adjacency, directed=False)[0] == 2
     orc = jaxgeom.ollivier_ricci(tess, alpha=0.5, cost="hops")  # GRC's default: unweighted, uniform
     reference = _grc_curvature(tess, weighted=False)
@@ -208,7 +219,9 @@ def test_matches_graph_ricci_curvature_on_a_weighted_graph(rng):
     for i, row in enumerate(nbrs):
         for slot, j in enumerate(row[row < len(w)]):
             total += 1
-            if np.allclose(exact[np.ix_(closed[i], closed[j])], limited[np.ix_(closed[i], closed[j])], rtol=0, atol=1e-12):
+            if np.allclose(
+                exact[np.ix_(closed[i], closed[j])], limited[np.ix_(closed[i], closed[j])], rtol=0, atol=1e-12
+            ):
                 agree += 1
                 assert abs(kappa[i, slot] - reference[i][j]["ricciCurvature"]) <= 1e-6
     assert agree > 0.75 * total  # measured 82% (600 points, k = 6)
@@ -325,13 +338,20 @@ def test_float32_nearly_equal_measures_are_transported_not_dropped(rng):
     np.testing.assert_allclose(single.edge_curvature, ref.edge_curvature, atol=5e-5)
 
 
-@pytest.mark.parametrize("kwargs,error,match", [
-    ({"alpha": 1.5}, ValueError, "alpha"), ({"alpha": -0.1}, ValueError, "alpha"),
-    ({"measure": "gauss"}, ValueError, "unknown measure 'gauss'; valid values are 'uniform', 'kernel', 'grc'"),
-    ({"cost": "geodesic"}, ValueError, "unknown cost"), ({"solver": "sinkhorn"}, ValueError, "unknown solver 'sinkhorn'"),
-    ({"kernel_scale": 0.0}, ValueError, "kernel_scale"), ({"capacity": 0}, ValueError, "capacity"),
-    ({"batch_size": 0}, ValueError, "`batch_size` must be an int >= 1"), ({"batch_size": 2.5}, TypeError, "batch_size"),
-])
+@pytest.mark.parametrize(
+    "kwargs,error,match",
+    [
+        ({"alpha": 1.5}, ValueError, "alpha"),
+        ({"alpha": -0.1}, ValueError, "alpha"),
+        ({"measure": "gauss"}, ValueError, "unknown measure 'gauss'; valid values are 'uniform', 'kernel', 'grc'"),
+        ({"cost": "geodesic"}, ValueError, "unknown cost"),
+        ({"solver": "sinkhorn"}, ValueError, "unknown solver 'sinkhorn'"),
+        ({"kernel_scale": 0.0}, ValueError, "kernel_scale"),
+        ({"capacity": 0}, ValueError, "capacity"),
+        ({"batch_size": 0}, ValueError, "`batch_size` must be an int >= 1"),
+        ({"batch_size": 2.5}, TypeError, "batch_size"),
+    ],
+)
 def test_bad_arguments(rng, kwargs, error, match):
     tess = jaxgeom.knn_graph(rng.random((20, 2)), 3)
     with pytest.raises(error, match=match):

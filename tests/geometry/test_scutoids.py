@@ -15,8 +15,9 @@ from jaxgeom.geometry._scutoids import COMPLEX, PRISM, SIMPLE
 def reference_changes(x0, x1, parents):
     """(shared, lost, gained) of every walker by Python sets on scipy's Delaunay graphs."""
     before, after = scipy_neighbor_sets(x0), scipy_neighbor_sets(x1)
-    rows = [(len(before[p] & after[i]), len(before[p] - after[i]), len(after[i] - before[p]))
-            for i, p in enumerate(parents)]
+    rows = [
+        (len(before[p] & after[i]), len(before[p] - after[i]), len(after[i] - before[p])) for i, p in enumerate(parents)
+    ]
     return np.array(rows).T
 
 
@@ -47,8 +48,9 @@ def test_a_translation_makes_every_walker_a_prism_of_volume_v_dt(rng):
     assert (np.asarray(s.kind) == PRISM).all() and (np.asarray(s.lost) == 0).all()
     bounded = np.isfinite(np.asarray(s.bottom_volume))
     assert bounded.sum() > 350 and np.array_equal(~bounded, np.asarray(s.hull))
-    np.testing.assert_allclose(np.asarray(s.spacetime_volume)[bounded], 0.05 * np.asarray(s.bottom_volume)[bounded],
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(s.spacetime_volume)[bounded], 0.05 * np.asarray(s.bottom_volume)[bounded], rtol=1e-12
+    )
     assert np.isnan(np.asarray(s.spacetime_volume)[~bounded]).all()
 
 

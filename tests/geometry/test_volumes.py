@@ -28,8 +28,8 @@ def test_obtuse_simplices_give_negative_pieces_and_exact_cells():
     x = np.stack([i + 0.5 * (j % 2), j * np.sqrt(3) / 2], -1).reshape(-1, 2).astype(float)
     x += 0.3 * rng.normal(size=x.shape)
     tess = jaxgeom.delaunay(x)
-    from jaxgeom.tessellation._graph import simplex_coords
     from jaxgeom.base._simplex import dual_pieces
+    from jaxgeom.tessellation._graph import simplex_coords
 
     pieces = np.asarray(jax.vmap(dual_pieces)(simplex_coords(tess)))[np.asarray(tess.simplex_mask)]
     assert (pieces < 0).any(), "the test set contains obtuse triangles"
@@ -141,8 +141,8 @@ def test_float32_volumes_are_accurate(rng, d):
 
 @pytest.mark.parametrize("d", [2, 3])
 def test_closed_form_pieces_equal_flag_decomposition(rng, d):
-    from jaxgeom.tessellation._graph import simplex_coords
     from jaxgeom.base._simplex import dual_pieces, dual_pieces_flags
+    from jaxgeom.tessellation._graph import simplex_coords
 
     tess = jaxgeom.delaunay(rng.random((150, d)) * 3 - 1)
     coords = simplex_coords(tess)
@@ -207,8 +207,9 @@ def test_nearly_collinear_walkers_never_get_a_volume_of_the_wrong_sign(triangula
     tess = jaxgeom.delaunay(near_line(1e-12), triangulator=triangulator)
     inner = np.flatnonzero(np.asarray(tess.tier) == 2)
     exact = np.array([float(exact_voronoi_area(near_line(1e-12), i)) for i in inner])
-    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess))[inner], exact,
-                               rtol=1e-4 if triangulator == "cdt" else 0.05)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.voronoi_volumes(tess))[inner], exact, rtol=1e-4 if triangulator == "cdt" else 0.05
+    )
 
 
 @pytest.mark.parametrize("d, m", [(2, 8), (3, 5)])
@@ -223,4 +224,4 @@ def test_boxed_lattice_cells_are_exact_at_the_wall(d, m, dtype):
     tess = jaxgeom.delaunay(x, box=(np.zeros(d), np.ones(d)))
     vol = np.asarray(jaxgeom.voronoi_volumes(tess))
     assert vol.dtype == dtype
-    np.testing.assert_allclose(vol, m ** -d, rtol=1e-12 if dtype == np.float64 else 1e-5)
+    np.testing.assert_allclose(vol, m**-d, rtol=1e-12 if dtype == np.float64 else 1e-5)

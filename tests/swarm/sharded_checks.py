@@ -66,8 +66,16 @@ def check_loss_and_gradient():
     params = jaxgeom.SwarmParams(cloning=False, weights="metric_full", anisotropic=True, temperature=0.5)
     results = []
     for mesh in (None, jaxgeom.batch_mesh()):
-        loss = jaxgeom.simulation_loss(rastrigin, swarm(0), "mean_fitness", params=params, n_steps=5, n_seeds=8,
-                                       tuned=("nu", "eps_sigma"), mesh=mesh)
+        loss = jaxgeom.simulation_loss(
+            rastrigin,
+            swarm(0),
+            "mean_fitness",
+            params=params,
+            n_steps=5,
+            n_seeds=8,
+            tuned=("nu", "eps_sigma"),
+            mesh=mesh,
+        )
         value, grad = eqx.filter_jit(lambda f, t: jax.value_and_grad(f)(t))(loss, loss.to_theta())
         results.append((float(value), np.asarray(grad)))
     (v1, g1), (v4, g4) = results
@@ -79,7 +87,9 @@ def check_loss_and_gradient():
 
 def gaussian_swarm(n, seed, **kwargs):
     x = np.random.default_rng(seed).normal(size=(n, 2))
-    return jaxgeom.init_swarm(rastrigin, x, key=seed, capacity=jaxgeom.Capacity(simplices=4 * n, neighbors=24), **kwargs)
+    return jaxgeom.init_swarm(
+        rastrigin, x, key=seed, capacity=jaxgeom.Capacity(simplices=4 * n, neighbors=24), **kwargs
+    )
 
 
 def check_split_rebuild():
@@ -96,6 +106,7 @@ def check_split_rebuild():
     assert same(one, split), "the split rebuild differs from the one-device rebuild"
     np.testing.assert_array_equal(np.asarray(split.neighbors), np.asarray(jaxgeom.delaunay(moved).neighbors))
     from jaxgeom.tessellation._cellclip import rebuild_unchecked
+
     hlo = {m: rebuild_unchecked.lower(tess, moved, m).compile().as_text() for m in (None, mesh)}
     assert "f64[400,24,3]" in hlo[None] and "f64[25,24,3]" not in hlo[None]
     assert "f64[400,24,3]" not in hlo[mesh] and "f64[25,24,3]" in hlo[mesh], "the cells were not split"
@@ -109,9 +120,10 @@ def check_split_walkers():
     state = gaussian_swarm(400, 3)
     observe = ("mean_fitness", "mean_ricci", "n_clones", "volume_distortion", "mean_expansion")
     mesh = jaxgeom.walker_mesh()
-    for params, fallbacks in ((jaxgeom.SwarmParams(cloning=False, weights="metric_full", anisotropic=True,
-                                                   dt=0.005), "none"),
-                              (jaxgeom.SwarmParams(cloning=True, clone_rate=0.5, dt=0.02), "some")):
+    for params, fallbacks in (
+        (jaxgeom.SwarmParams(cloning=False, weights="metric_full", anisotropic=True, dt=0.005), "none"),
+        (jaxgeom.SwarmParams(cloning=True, clone_rate=0.5, dt=0.02), "some"),
+    ):
         run = dict(n_steps=5, rebuild="device", observe=observe)
         one = jaxgeom.simulate(rastrigin, state, params, **run)
         split = jaxgeom.simulate(rastrigin, state, params, mesh=mesh, **run)
@@ -125,8 +137,10 @@ def check_split_walkers():
         assert int(one[1]["n_fallbacks"]) == int(split[1]["n_fallbacks"])
         assert (int(one[1]["n_fallbacks"]) == 0) == (fallbacks == "none"), one[1]["n_fallbacks"]
     assert float(jnp.sum(one[1]["n_clones"])) > 0
-    for bad, match in ((dict(rebuild="callback"), "needs the device rebuild"),
-                       (dict(mesh=jaxgeom.batch_mesh()), "split its walkers with mesh=jaxgeom.walker_mesh")):
+    for bad, match in (
+        (dict(rebuild="callback"), "needs the device rebuild"),
+        (dict(mesh=jaxgeom.batch_mesh()), "split its walkers with mesh=jaxgeom.walker_mesh"),
+    ):
         try:
             jaxgeom.simulate(rastrigin, state, params, **{**run, "mesh": jaxgeom.walker_mesh(), **bad})
         except ValueError as err:

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import jaxgeom
-from jaxgeom.swarm._dynamics import ornstein_uhlenbeck, relativize, swarm_step
 from jaxgeom.apps._landscapes import quadratic, rastrigin
+from jaxgeom.swarm._dynamics import ornstein_uhlenbeck, relativize, swarm_step
 
 
 def bowl(x):
@@ -85,8 +85,9 @@ def test_cloning_improves_the_best_fitness_on_rastrigin(rng):
     runs = {}
     for cloning in (True, False):
         params = jaxgeom.SwarmParams(dt=0.02, gamma=2.0, temperature=1.0, nu=0.05, clone_rate=0.5, cloning=cloning)
-        runs[cloning] = jaxgeom.simulate(rastrigin, state, params, n_steps=150,
-                                         observe=("best_fitness", "mean_fitness", "n_clones"))[1]
+        runs[cloning] = jaxgeom.simulate(
+            rastrigin, state, params, n_steps=150, observe=("best_fitness", "mean_fitness", "n_clones")
+        )[1]
     history = runs[True]
     assert history["best_fitness"][-1] < 0.6 * history["best_fitness"][0]
     assert history["n_clones"].sum() > 100 and runs[False]["n_clones"].sum() == 0
@@ -106,21 +107,27 @@ def test_viscous_only_dynamics_reach_a_common_velocity(rng):
 def test_langevin_equipartition_without_viscosity(rng):
     state = swarm(rng, n=1000)
     params = jaxgeom.SwarmParams(dt=0.05, gamma=1.0, temperature=0.5, nu=0.0, cloning=False)
-    final, history = jaxgeom.simulate(bowl, state, params, n_steps=400, rebuild_every=50,
-                                      observe=("velocity_variance", "mean_fitness"))
+    final, history = jaxgeom.simulate(
+        bowl, state, params, n_steps=400, rebuild_every=50, observe=("velocity_variance", "mean_fitness")
+    )
     # the velocity variance is per component: T at equilibrium in any d; <V> = d T / 2 for a
     # quadratic V (BAOAB is exact-ish at this dt)
     np.testing.assert_allclose(history["velocity_variance"][200:].mean(), 0.5, rtol=0.03)
-    np.testing.assert_allclose(history["velocity_variance"][-1], np.var(np.asarray(final.velocities), axis=0).mean(),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        history["velocity_variance"][-1], np.var(np.asarray(final.velocities), axis=0).mean(), rtol=1e-12
+    )
     np.testing.assert_allclose(history["mean_fitness"][200:].mean(), 0.5, rtol=0.05)
 
 
 def test_anisotropic_noise_has_covariance_T_inverse_metric():
     g = jnp.array([[4.0, 1.0], [1.0, 2.0]])
     params = jaxgeom.SwarmParams(dt=1.0, gamma=50.0, temperature=0.3, anisotropic=True)
-    v = ornstein_uhlenbeck(params, jnp.zeros((200_000, 2)), jnp.broadcast_to(g, (200_000, 2, 2)),
-                           jax.random.normal(jax.random.PRNGKey(0), (200_000, 2)))
+    v = ornstein_uhlenbeck(
+        params,
+        jnp.zeros((200_000, 2)),
+        jnp.broadcast_to(g, (200_000, 2, 2)),
+        jax.random.normal(jax.random.PRNGKey(0), (200_000, 2)),
+    )
     np.testing.assert_allclose(np.cov(np.asarray(v).T), 0.3 * np.linalg.inv(np.asarray(g)), atol=3e-3)
 
 
@@ -133,8 +140,16 @@ def test_relativize_is_monotone_and_positive():
 def test_schedules(rng):
     stiff = lambda x: 0.5 * (1e7 * x[0] ** 2 + x[1] ** 2)  # noqa: E731
     state = jaxgeom.init_swarm(stiff, rng.uniform(-1e-3, 1e-3, (200, 2)) * [1, 1000], key=0)
-    params = jaxgeom.SwarmParams(dt=1e-4, nu=0.1, nu_initial=0.01, eps_sigma=1e-3, anneal_nu=True,
-                                 adapt_eps_sigma=True, adapt_length_scale=True, cloning=False)
+    params = jaxgeom.SwarmParams(
+        dt=1e-4,
+        nu=0.1,
+        nu_initial=0.01,
+        eps_sigma=1e-3,
+        anneal_nu=True,
+        adapt_eps_sigma=True,
+        adapt_length_scale=True,
+        cloning=False,
+    )
     _, history = jaxgeom.simulate(stiff, state, params, n_steps=6, observe=("nu", "eps_sigma"))
     np.testing.assert_allclose(history["nu"][:6], np.linspace(0.01, 0.1, 6), rtol=1e-12)
     # cond(g) = (1e7 + eps) / (1 + eps) > 1e6 until eps ~ 9: raised 10x per step up to 10
@@ -163,8 +178,9 @@ def test_simulate_runs_the_phases_of_swarm_step_apart_with_the_same_result(rng, 
     assert int(np.sum(expected.cloned)) > 0
     final, _ = jaxgeom.simulate(bowl, state, params, n_steps=1, rebuild=rebuild, observe=())
     for field in ("positions", "velocities", "fitness", "cloned"):
-        np.testing.assert_allclose(np.asarray(getattr(final, field)), np.asarray(getattr(expected, field)),
-                                   rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            np.asarray(getattr(final, field)), np.asarray(getattr(expected, field)), rtol=1e-12, atol=1e-14
+        )
 
 
 def test_history_has_the_same_keys_and_types_in_both_rebuild_modes(rng):
@@ -212,9 +228,11 @@ def test_an_uncertified_device_rebuild_falls_back_to_qhull_and_is_counted(rng, m
     import jaxgeom.swarm._rebuild
 
     real = jaxgeom.swarm._rebuild.rebuild_unchecked
-    monkeypatch.setattr(jaxgeom.swarm._rebuild, "rebuild_unchecked",
-                        lambda tess, x, mesh=None: eqx.tree_at(lambda t: t.overflow, real(tess, x, mesh),
-                                                               jnp.asarray(True)))
+    monkeypatch.setattr(
+        jaxgeom.swarm._rebuild,
+        "rebuild_unchecked",
+        lambda tess, x, mesh=None: eqx.tree_at(lambda t: t.overflow, real(tess, x, mesh), jnp.asarray(True)),
+    )
     state = swarm(rng, n=140)
     params = jaxgeom.SwarmParams(dt=0.05, temperature=0.2, nu=0.3, clone_rate=0.5)
     a, _ = jaxgeom.simulate(bowl, state, params, n_steps=6, rebuild="callback")
@@ -230,10 +248,18 @@ def test_gradient_through_a_whole_simulation_matches_finite_differences(rng, reb
     state = jaxgeom.init_swarm(quadratic, x, rng.normal(size=(120, 2)), key=1)
 
     def loss(theta):
-        params = jaxgeom.SwarmParams(dt=0.05, temperature=0.1, nu=theta[0], eps_sigma=theta[1],
-                                     weights="metric_full", anisotropic=True, cloning=False)
-        _, history = jaxgeom.simulate(quadratic, state, params, n_steps=n_steps, rebuild=rebuild,
-                                      observe=("mean_fitness",))
+        params = jaxgeom.SwarmParams(
+            dt=0.05,
+            temperature=0.1,
+            nu=theta[0],
+            eps_sigma=theta[1],
+            weights="metric_full",
+            anisotropic=True,
+            cloning=False,
+        )
+        _, history = jaxgeom.simulate(
+            quadratic, state, params, n_steps=n_steps, rebuild=rebuild, observe=("mean_fitness",)
+        )
         return history["mean_fitness"][-1]
 
     theta = jnp.array([0.3, 0.5])
@@ -255,16 +281,18 @@ def test_capacity_overflow_reallocates_instead_of_truncating(rng, rebuild):
     assert final.tess.capacity.neighbors > tight.neighbors
     assert not bool(final.tess.overflow)
     rebuilt = jaxgeom.delaunay(np.asarray(final.positions))
-    assert np.array_equal(np.sort(np.asarray(rebuilt.neighbors), 1)[:, :8],
-                          np.sort(np.asarray(final.tess.neighbors), 1)[:, :8])
+    assert np.array_equal(
+        np.sort(np.asarray(rebuilt.neighbors), 1)[:, :8], np.sort(np.asarray(final.tess.neighbors), 1)[:, :8]
+    )
     if rebuild == "host":
         assert history["n_reallocations"] >= 1
 
 
 def test_volume_weighted_metric_mode_runs_and_keeps_the_velocity_range(rng):
     state = swarm(rng, n=300, fitness=flat, velocities=rng.normal(size=(300, 2)))
-    params = jaxgeom.SwarmParams(dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, weights="metric_diagonal",
-                                 volume_weighting=True, cloning=False)
+    params = jaxgeom.SwarmParams(
+        dt=0.5, gamma=0.0, temperature=0.0, nu=1.0, weights="metric_diagonal", volume_weighting=True, cloning=False
+    )
     final, history = jaxgeom.simulate(flat, state, params, n_steps=20, observe=("velocity_variance",))
     v0, v1 = np.asarray(state.velocities), np.asarray(final.velocities)
     assert np.all(v1.min(0) >= v0.min(0) - 1e-12) and np.all(v1.max(0) <= v0.max(0) + 1e-12)
@@ -279,13 +307,16 @@ def test_knn_swarm_in_4d(rng):
     assert final.tess.neighbors.shape == state.tess.neighbors.shape
 
 
-@pytest.mark.parametrize("kwargs, error, match", [
-    (dict(weights="gauss"), ValueError, "unknown weights 'gauss'; valid values are 'uniform'"),
-    (dict(nu=-1.0), ValueError, "`nu` must be a finite number >= 0"),
-    (dict(dt=-0.1), ValueError, "`dt` must be a finite number > 0"),
-    (dict(temperature=-1.0), ValueError, "`temperature` must be a finite number >= 0"),
-    (dict(eps_sigma=-0.1), ValueError, "`eps_sigma` must be a finite number >= 0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(weights="gauss"), ValueError, "unknown weights 'gauss'; valid values are 'uniform'"),
+        (dict(nu=-1.0), ValueError, "`nu` must be a finite number >= 0"),
+        (dict(dt=-0.1), ValueError, "`dt` must be a finite number > 0"),
+        (dict(temperature=-1.0), ValueError, "`temperature` must be a finite number >= 0"),
+        (dict(eps_sigma=-0.1), ValueError, "`eps_sigma` must be a finite number >= 0"),
+    ],
+)
 def test_bad_params(kwargs, error, match):
     with pytest.raises(error, match=match):
         jaxgeom.SwarmParams(**kwargs)
@@ -339,8 +370,9 @@ def test_mean_metric_curvature_on_a_knn_swarm_in_high_dimension(rng):
     d, k = 18, 10  # above EXACT_HESSIAN_MAX_DIM: the stochastic form
     x = rng.normal(scale=0.5, size=(200, d))
     state = jaxgeom.init_swarm(convex, x, key=3, graph="knn", k=k)
-    _, history = jaxgeom.simulate(convex, state, jaxgeom.SwarmParams(dt=0.01, eps_sigma=0.2), n_steps=1,
-                                  observe=("mean_metric_curvature",))
+    _, history = jaxgeom.simulate(
+        convex, state, jaxgeom.SwarmParams(dt=0.01, eps_sigma=0.2), n_steps=1, observe=("mean_metric_curvature",)
+    )
     # independent: the exact Hessian form, weights r_k^d sqrt(det g) computed in numpy (logs)
     metric = jaxgeom.hessian_metric(convex, 0.2)
     exact = np.asarray(jaxgeom.metric_curvature(metric, jnp.asarray(x)))

@@ -5,9 +5,15 @@ import numpy as np
 import pytest
 
 import jaxgeom
+from jaxgeom.swarm._rebuild import (
+    NEIGHBOR_HEADROOM,
+    SIMPLEX_HEADROOM,
+    allocate_graph,
+    capacity_with_headroom,
+    grown,
+    pad_to_capacity,
+)
 from jaxgeom.tessellation._graph import bucket_neighbors, bucket_simplices
-from jaxgeom.swarm._rebuild import (NEIGHBOR_HEADROOM, SIMPLEX_HEADROOM, allocate_graph, capacity_with_headroom, grown,
-                              pad_to_capacity)
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -20,8 +26,11 @@ def test_padding_keeps_every_kernel_result_and_the_periodic_image_shifts(d):
     assert padded.neighbor_shifts.shape == padded.neighbors.shape + (d,)
     assert padded.simplex_shifts.shape == padded.simplices.shape + (d,)
     np.testing.assert_allclose(jaxgeom.voronoi_volumes(padded), jaxgeom.voronoi_volumes(tess), rtol=1e-12)
-    np.testing.assert_allclose(np.sort(np.asarray(jaxgeom.edge_lengths(padded)), axis=1)[:, -tess.capacity.neighbors:],
-                               np.sort(np.asarray(jaxgeom.edge_lengths(tess)), axis=1), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.sort(np.asarray(jaxgeom.edge_lengths(padded)), axis=1)[:, -tess.capacity.neighbors :],
+        np.sort(np.asarray(jaxgeom.edge_lengths(tess)), axis=1),
+        rtol=1e-12,
+    )
     assert float(np.sum(jaxgeom.voronoi_volumes(padded))) == pytest.approx(1.0, rel=1e-12)
 
 
@@ -30,7 +39,10 @@ def test_one_growth_rule_for_allocation_and_overflow():
     fresh = jaxgeom.delaunay(x)
     cap = capacity_with_headroom(fresh)
     degree, count = int(np.max(fresh.degree)), int(np.sum(fresh.simplex_mask))
-    assert cap == (bucket_simplices(int(np.ceil(SIMPLEX_HEADROOM * count))), bucket_neighbors(degree + NEIGHBOR_HEADROOM))
+    assert cap == (
+        bucket_simplices(int(np.ceil(SIMPLEX_HEADROOM * count))),
+        bucket_neighbors(degree + NEIGHBOR_HEADROOM),
+    )
     tess, grew, _, moved, _ = allocate_graph(x, "delaunay", 12, None)
     assert tess.capacity == cap and not grew and moved == 0
     bigger = grown(tess)
@@ -49,4 +61,4 @@ def test_planar_graphs_keep_the_exact_simplex_bound():
     tess = allocate_graph(x, "delaunay", 12, None).tess
     assert tess.capacity.simplices == jaxgeom.delaunay(x).capacity.simplices
     assert grown(tess).capacity.simplices == tess.capacity.simplices
-    assert jnp.all(grown(tess).neighbors[:, tess.capacity.neighbors:] == 300)
+    assert jnp.all(grown(tess).neighbors[:, tess.capacity.neighbors :] == 300)

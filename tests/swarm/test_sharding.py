@@ -23,8 +23,11 @@ def swarm(n, seed=0, **kwargs):
 # Under them XLA emits some float ops differently for 2 lanes a device than for 8 on one, and the
 # sharded ensemble drifts from the unsharded one by an ulp (velocities at step 3: 4.5e-15
 # relative). The bitwise claim is made, and checked, under XLA's own settings: what users run.
-_SUITE_ONLY_XLA_FLAGS = ("--xla_backend_optimization_level", "--xla_llvm_disable_expensive_passes",
-                         "--xla_cpu_use_fusion_emitters")
+_SUITE_ONLY_XLA_FLAGS = (
+    "--xla_backend_optimization_level",
+    "--xla_llvm_disable_expensive_passes",
+    "--xla_cpu_use_fusion_emitters",
+)
 
 
 def _xla_default_env() -> dict[str, str]:
@@ -35,8 +38,9 @@ def _xla_default_env() -> dict[str, str]:
 @pytest.mark.multidevice
 def test_sharded_ensembles_and_gradients_equal_one_device():
     script = Path(__file__).with_name("sharded_checks.py")
-    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900,
-                          env=_xla_default_env())
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=900, env=_xla_default_env()
+    )
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-6000:]
     assert "sharded checks passed" in done.stdout
 
@@ -81,9 +85,15 @@ def test_multihost_recipe_runs_with_two_processes_on_this_machine():
     """bench/multihost.py: jax.distributed.initialize with two CPU processes (gloo collectives)."""
     script = Path(__file__).parents[2] / "bench" / "multihost.py"
     port = str(12000 + os.getpid() % 1000)
-    procs = [subprocess.Popen([sys.executable, str(script), "--process-id", str(i), "--coordinator",
-                               f"127.0.0.1:{port}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), "--process-id", str(i), "--coordinator", f"127.0.0.1:{port}"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
     outputs = [p.communicate(timeout=600) for p in procs]
     assert all(p.returncode == 0 for p in procs), [o[1][-3000:] for o in outputs]
     assert "multi-process ensemble equals one process: True" in outputs[0][0], outputs[0]

@@ -22,8 +22,9 @@ def run():
     state = jaxgeom.init_swarm(rastrigin, np.random.default_rng(0).uniform(-3, 3, (150, 2)), triangulator="qhull")
     frames, history = [], {name: [] for name in RECORDED}
     for _ in range(6):
-        frames.append([np.asarray(a) for a in (state.positions, state.velocities, state.fitness,
-                                               state.scutoid_trace.parents)])
+        frames.append(
+            [np.asarray(a) for a in (state.positions, state.velocities, state.fitness, state.scutoid_trace.parents)]
+        )
         state, h = jaxgeom.simulate(rastrigin, state, PARAMS, n_steps=1, observe=RECORDED)
         for name in RECORDED:
             history[name].append(float(h[name][0]))
@@ -34,14 +35,16 @@ def run():
 
 def test_a_saved_run_reanalysed_gives_its_own_history(run):
     x, v, f, p, history = run
-    out = jaxgeom.analyze_trajectory(x, landscape=rastrigin, velocities=v, parents=p, dt=0.05, params=PARAMS,
-                                     triangulator="qhull")
+    out = jaxgeom.analyze_trajectory(
+        x, landscape=rastrigin, velocities=v, parents=p, dt=0.05, params=PARAMS, triangulator="qhull"
+    )
     for name in RECORDED:
         np.testing.assert_allclose(out[name], history[name], rtol=1e-9, atol=1e-12, equal_nan=True, err_msg=name)
     assert set(out["unavailable"]) == {"nu", "eps_sigma"}
     # the fitness values recorded instead of the landscape: the same fitness statistics
-    values = jaxgeom.analyze_trajectory(x, fitness=f, dt=0.05, triangulator="qhull",
-                                        observe=("mean_fitness", "best_fitness", "mean_expansion"))
+    values = jaxgeom.analyze_trajectory(
+        x, fitness=f, dt=0.05, triangulator="qhull", observe=("mean_fitness", "best_fitness", "mean_expansion")
+    )
     for name in ("mean_fitness", "best_fitness", "mean_expansion"):
         np.testing.assert_allclose(values[name], history[name], rtol=1e-9, equal_nan=True)
 
@@ -72,13 +75,13 @@ def test_a_periodic_3d_file_written_by_pyh5md_is_read(tmp_path):
     with pyh5md.File(str(path), "w", creator="test") as h5:
         part = h5.particles_group("atoms")
         part.create_box(dimension=3, boundary=["periodic"] * 3, store="fixed", data=np.full(3, 2.0))
-        position = pyh5md.element(part, "position", store="linear", step=5, time=0.5, shape=(120, 3),
-                                  dtype=np.float64)
+        position = pyh5md.element(part, "position", store="linear", step=5, time=0.5, shape=(120, 3), dtype=np.float64)
         for frame in x:
             position.append(frame)
     out = jaxgeom.analyze_trajectory(path, observe=("volume_distortion", "mean_expansion"))
-    same = jaxgeom.analyze_trajectory(x, box=(0.0, 2.0), periodic=True, dt=0.5,
-                                      observe=("volume_distortion", "mean_expansion"))
+    same = jaxgeom.analyze_trajectory(
+        x, box=(0.0, 2.0), periodic=True, dt=0.5, observe=("volume_distortion", "mean_expansion")
+    )
     for name in ("volume_distortion", "mean_expansion"):
         np.testing.assert_allclose(out[name], same[name], rtol=1e-12, equal_nan=True)
     np.testing.assert_array_equal(out["step"], 5 * np.arange(4))
@@ -159,19 +162,49 @@ def test_simulate_writes_an_h5md_trajectory_that_reanalyses_to_its_history(tmp_p
     from jaxgeom.cli import main
 
     out = tmp_path / "run"
-    assert main(["simulate", "--n", "80", "--steps", "4", "--gap-every", "0", "--out", str(out), "--trajectory",
-                 "--save-every", "2", "--triangulator", "qhull", "--precision", "float64"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--n",
+                "80",
+                "--steps",
+                "4",
+                "--gap-every",
+                "0",
+                "--out",
+                str(out),
+                "--trajectory",
+                "--save-every",
+                "2",
+                "--triangulator",
+                "qhull",
+                "--precision",
+                "float64",
+            ]
+        )
+        == 0
+    )
     assert "wrote trajectory" in capsys.readouterr().out
     series = json.loads((out / "history.json").read_text())["series"]
     config = json.loads((out / "history.json").read_text())["config"]
-    params = jaxgeom.SwarmParams(dt=config["dt"], gamma=config["gamma"], temperature=config["temperature"],
-                                 nu=config["nu"], eps_sigma=config["eps_sigma"])
+    params = jaxgeom.SwarmParams(
+        dt=config["dt"],
+        gamma=config["gamma"],
+        temperature=config["temperature"],
+        nu=config["nu"],
+        eps_sigma=config["eps_sigma"],
+    )
     with jaxgeom.H5MDTrajectory(out / "trajectory.h5md") as h5:
         np.testing.assert_array_equal(h5.steps, [0, 2, 4])
         assert h5.has == ("velocity", "fitness")  # a state holds only its last step's clone parents
-    again = jaxgeom.analyze_trajectory(out / "trajectory.h5md", landscape=rastrigin, params=params,
-                                       triangulator="qhull", observe=("mean_fitness", "mean_ricci",
-                                                                      "volume_distortion"))
+    again = jaxgeom.analyze_trajectory(
+        out / "trajectory.h5md",
+        landscape=rastrigin,
+        params=params,
+        triangulator="qhull",
+        observe=("mean_fitness", "mean_ricci", "volume_distortion"),
+    )
     for name in ("mean_fitness", "mean_ricci", "volume_distortion"):
         np.testing.assert_allclose(again[name], np.asarray(series[name], float)[[0, 2, 4]], rtol=1e-9, err_msg=name)
     with h5py.File(out / "trajectory.h5md") as h5:
@@ -186,8 +219,29 @@ def saved_run(tmp_path_factory):
     from jaxgeom.cli import main
 
     out = tmp_path_factory.mktemp("saved") / "run"
-    assert main(["simulate", "--n", "120", "--steps", "7", "--gap-every", "0", "--out", str(out), "--trajectory",
-                 "--scutoids", "--triangulator", "qhull", "--precision", "float64", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--n",
+                "120",
+                "--steps",
+                "7",
+                "--gap-every",
+                "0",
+                "--out",
+                str(out),
+                "--trajectory",
+                "--scutoids",
+                "--triangulator",
+                "qhull",
+                "--precision",
+                "float64",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return out / "trajectory.h5md", json.loads((out / "history.json").read_text())
 
 
@@ -206,20 +260,34 @@ def test_the_command_line_reports_a_saved_run_as_its_own_history(saved_run, tmp_
 
     path, run = saved_run
     out = tmp_path / "an"
-    assert main(["analyze", "--trajectory", str(path), "--landscape", "rastrigin", "--gap-every", "3",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["analyze", "--trajectory", str(path), "--landscape", "rastrigin", "--gap-every", "3", "--out", str(out)])
+        == 0
+    )
     printed = capsys.readouterr().out
     table = _table(printed)
-    for name in ("mean_fitness", "mean_ricci", "volume_distortion", "mean_expansion", "n_clones",
-                 "complex_scutoid_fraction", "velocity_variance"):
+    for name in (
+        "mean_fitness",
+        "mean_ricci",
+        "volume_distortion",
+        "mean_expansion",
+        "n_clones",
+        "complex_scutoid_fraction",
+        "velocity_variance",
+    ):
         series = np.asarray(run["series"][name], float)
         # the saved run's own series (the table rounds to 5 digits)
         np.testing.assert_allclose(table[name][:2], series[[0, -1]], rtol=1e-4, equal_nan=True, err_msg=name)
     assert "not measured: nu" in printed and "frames analysed 8 of 8" in printed
     saved = json.loads((out / "observables.json").read_text())
     for name in ("mean_fitness", "mean_ricci", "mean_expansion", "n_clones", "complex_scutoid_fraction"):
-        np.testing.assert_allclose(np.asarray(saved["series"][name], float),
-                                   np.asarray(run["series"][name], float), rtol=1e-9, equal_nan=True, err_msg=name)
+        np.testing.assert_allclose(
+            np.asarray(saved["series"][name], float),
+            np.asarray(run["series"][name], float),
+            rtol=1e-9,
+            equal_nan=True,
+            err_msg=name,
+        )
     # the spectral gap every 3 analysed frames, each the gap of its own frame's graph
     assert saved["spectral_gap"]["frame"] == [0, 3, 6]
     with jaxgeom.H5MDTrajectory(path) as h5:
@@ -243,8 +311,26 @@ def test_the_command_line_takes_frame_ranges_and_files_without_a_landscape(saved
         x = np.stack([h5.frame(t)["positions"] for t in range(h5.n_frames)])
     np.save(tmp_path / "x.npy", x)
     out = tmp_path / "an"
-    assert main(["analyze", "--trajectory", str(tmp_path / "x.npy"), "--frames", "1:7", "--every", "2",
-                 "--gap-every", "0", "--snapshots", "2", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "analyze",
+                "--trajectory",
+                str(tmp_path / "x.npy"),
+                "--frames",
+                "1:7",
+                "--every",
+                "2",
+                "--gap-every",
+                "0",
+                "--snapshots",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     saved = json.loads((out / "observables.json").read_text())
     assert saved["frame"] == [1, 3, 5] and "mean_fitness" not in saved["series"]
@@ -256,12 +342,15 @@ def test_the_command_line_takes_frame_ranges_and_files_without_a_landscape(saved
     assert (out / "swarm.png").exists()
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--n", "100"], "--n describe"),
-    (["--metric", "emergent"], "--metric describe"),
-    (["--frames", "5:2"], "--frames must be A:B"),
-    (["--graph", "delaunay", "--every", "0"], "--every must be"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--n", "100"], "--n describe"),
+        (["--metric", "emergent"], "--metric describe"),
+        (["--frames", "5:2"], "--frames must be A:B"),
+        (["--graph", "delaunay", "--every", "0"], "--every must be"),
+    ],
+)
 def test_the_command_line_refuses_options_of_the_other_mode(saved_run, argv, message, capsys):
     from jaxgeom.cli import main
 
@@ -292,5 +381,7 @@ def test_ctrl_c_returns_the_frames_done(run):
         jaxgeom.analyze_trajectory(frames(), observe=("volume_distortion",))
     assert stopped.value.frames == 3
     np.testing.assert_array_equal(stopped.value.history["frame"], [0, 1, 2])
-    np.testing.assert_array_equal(stopped.value.history["volume_distortion"],
-                                  jaxgeom.analyze_trajectory(x[:3], observe=("volume_distortion",))["volume_distortion"])
+    np.testing.assert_array_equal(
+        stopped.value.history["volume_distortion"],
+        jaxgeom.analyze_trajectory(x[:3], observe=("volume_distortion",))["volume_distortion"],
+    )

@@ -43,8 +43,9 @@ FIVE = ("nu", "eps_sigma", "dt", "gamma", "temperature")
 
 
 def check_gradient(graph, weights, objective="mean_fitness"):
-    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, eps_sigma=0.1, weights=weights,
-                                 cloning=False)
+    params = jaxgeom.SwarmParams(
+        dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, eps_sigma=0.1, weights=weights, cloning=False
+    )
     tuned = tuple(name for name in FIVE if not ignored_parameter(name, params, ("mean_fitness",)))
     loss = jaxgeom.simulation_loss(V, swarm(graph=graph), objective, n_steps=30, params=params, tuned=tuned)
     theta = loss.to_theta()
@@ -68,14 +69,23 @@ def test_gradient_equals_central_differences_other_modes(graph, weights):
 def test_cloning_gradient_is_pathwise_with_the_selection_held():
     """With cloning on, the gradient is that of the run with every clone decision fixed: equal to
     central differences whose two runs make the same decisions (checked on the clone counts)."""
-    params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, weights="kernel", cloning=True,
-                                 clone_rate=0.5)
-    loss = jaxgeom.simulation_loss(V, swarm(n=120), lambda h: h["mean_fitness"][-1], n_steps=12, params=params,
-                                   tuned=("nu", "temperature"), observe=("mean_fitness", "n_clones"))
+    params = jaxgeom.SwarmParams(
+        dt=0.02, temperature=0.3, gamma=1.0, nu=0.3, weights="kernel", cloning=True, clone_rate=0.5
+    )
+    loss = jaxgeom.simulation_loss(
+        V,
+        swarm(n=120),
+        lambda h: h["mean_fitness"][-1],
+        n_steps=12,
+        params=params,
+        tuned=("nu", "temperature"),
+        observe=("mean_fitness", "n_clones"),
+    )
     theta = loss.to_theta()
     h = 1e-6
     runs = eqx.filter_jit(lambda l, t: jax.vmap(lambda u: l.histories(u)[1])(t))(
-        loss, jnp.stack([theta + h * e for e in np.eye(2)] + [theta - h * e for e in np.eye(2)]))
+        loss, jnp.stack([theta + h * e for e in np.eye(2)] + [theta - h * e for e in np.eye(2)])
+    )
     clones = np.asarray(runs["n_clones"])
     assert clones.sum() > 0  # cloning happened
     assert (clones == clones[0]).all()  # and the perturbed runs made the same decisions
@@ -91,9 +101,19 @@ def test_seeds_are_vmapped_runs_and_the_loss_is_their_mean():
     theta = loss.to_theta({"nu": 0.25})
     per_seed = np.asarray(eqx.filter_jit(lambda l, t: l.per_seed(t))(loss, theta))
     keys = jax.random.split(jax.random.PRNGKey(3), 8)
-    separate = [float(jaxgeom.simulate(V, eqx.tree_at(lambda s: s.key, state, k), loss.to_params(theta), n_steps=8,
-                                       rebuild="callback", observe=("mean_fitness",))[1]["mean_fitness"][-1])
-                for k in keys]
+    separate = [
+        float(
+            jaxgeom.simulate(
+                V,
+                eqx.tree_at(lambda s: s.key, state, k),
+                loss.to_params(theta),
+                n_steps=8,
+                rebuild="callback",
+                observe=("mean_fitness",),
+            )[1]["mean_fitness"][-1]
+        )
+        for k in keys
+    ]
     np.testing.assert_allclose(per_seed, separate, rtol=1e-12)
     assert len(set(np.round(per_seed, 10))) == 8  # the seeds differ
     np.testing.assert_allclose(float(eqx.filter_jit(lambda l, t: l(t))(loss, theta)), np.mean(separate), rtol=1e-12)
@@ -101,8 +121,9 @@ def test_seeds_are_vmapped_runs_and_the_loss_is_their_mean():
 
 def test_parameter_map_round_trips_and_respects_bounds():
     params = jaxgeom.SwarmParams(nu=0.2, eps_sigma=0.05, weights="metric_full")
-    loss = jaxgeom.simulation_loss(V, swarm(n=30), n_steps=2, params=params, tuned=("nu", "eps_sigma"),
-                                   bounds={"eps_sigma": (0.01, 0.5)})
+    loss = jaxgeom.simulation_loss(
+        V, swarm(n=30), n_steps=2, params=params, tuned=("nu", "eps_sigma"), bounds={"eps_sigma": (0.01, 0.5)}
+    )
     theta = loss.to_theta({"nu": 0.7, "eps_sigma": 0.3})
     assert loss.values(theta) == pytest.approx({"nu": 0.7, "eps_sigma": 0.3}, rel=1e-12)
     far = loss.values(jnp.asarray([50.0, -50.0]))
@@ -127,12 +148,14 @@ def test_a_diverging_swarm_gives_inf_not_an_exception_and_tune_names_the_iterati
 
 def test_tune_takes_the_iterates_of_optimistix_minimise():
     params = jaxgeom.SwarmParams(dt=0.05, temperature=0.5, gamma=0.5, nu=0.3, cloning=False)
-    loss = jaxgeom.simulation_loss(V, swarm(n=40), "match", n_steps=6, params=params, tuned=("nu",),
-                                   targets={"velocity_variance": 1.0})
+    loss = jaxgeom.simulation_loss(
+        V, swarm(n=40), "match", n_steps=6, params=params, tuned=("nu",), targets={"velocity_variance": 1.0}
+    )
     result = jaxgeom.tune(loss, {"nu": 0.1}, max_steps=3)
     theta0 = loss.to_theta({"nu": 0.1})
-    direct = optx.minimise(scaled(loss, jnp.asarray(result.scale)), optx.BFGS(rtol=1e-4, atol=1e-6), theta0,
-                           max_steps=3, throw=False)
+    direct = optx.minimise(
+        scaled(loss, jnp.asarray(result.scale)), optx.BFGS(rtol=1e-4, atol=1e-6), theta0, max_steps=3, throw=False
+    )
     np.testing.assert_allclose(result.theta, np.asarray(direct.value), rtol=1e-10)
     assert result.iterations[0]["loss"] == pytest.approx(float(loss(theta0)), rel=1e-12)
     losses = [it["loss"] for it in result.iterations]
@@ -143,15 +166,40 @@ def recovery(name, truth, start, tolerance, n_steps=60, solvers=("bfgs", "lbfgsb
     """Simulate at the true value, record its velocity variance (seed average over the second
     half of the run), tune from `start` with each of `solvers` on the loss matching it: each
     recovers the truth within `tolerance`, and they agree."""
-    params = jaxgeom.SwarmParams(**{"dt": 0.05, "temperature": 0.5, "gamma": 0.5, "cloning": False,
-                                    "weights": "metric_full", name: truth, **setup})
+    params = jaxgeom.SwarmParams(
+        **{
+            "dt": 0.05,
+            "temperature": 0.5,
+            "gamma": 0.5,
+            "cloning": False,
+            "weights": "metric_full",
+            name: truth,
+            **setup,
+        }
+    )
     state = swarm()
-    record = jaxgeom.simulation_loss(V, state, lambda h: h["velocity_variance"][-1], n_steps=n_steps, params=params,
-                                     tuned=(name,), n_seeds=4, observe=("velocity_variance",))
+    record = jaxgeom.simulation_loss(
+        V,
+        state,
+        lambda h: h["velocity_variance"][-1],
+        n_steps=n_steps,
+        params=params,
+        tuned=(name,),
+        n_seeds=4,
+        observe=("velocity_variance",),
+    )
     _, history = eqx.filter_jit(lambda l, t: l.histories(t))(record, record.to_theta())
-    target = float(np.mean(np.asarray(history["velocity_variance"])[:, n_steps // 2:]))
-    loss = jaxgeom.simulation_loss(V, state, "match", n_steps=n_steps, params=params, tuned=(name,), n_seeds=4,
-                                   targets={"velocity_variance": target})
+    target = float(np.mean(np.asarray(history["velocity_variance"])[:, n_steps // 2 :]))
+    loss = jaxgeom.simulation_loss(
+        V,
+        state,
+        "match",
+        n_steps=n_steps,
+        params=params,
+        tuned=(name,),
+        n_seeds=4,
+        targets={"velocity_variance": target},
+    )
     found = [jaxgeom.tune(loss, {name: start}, solver=solver, max_steps=30).values[name] for solver in solvers]
     np.testing.assert_allclose(found, truth, rtol=tolerance)
     np.testing.assert_allclose(found, found[0], rtol=tolerance)
@@ -220,8 +268,16 @@ def test_bad_arguments_are_refused():
 
 def error_problem(tuned=("nu", "eps_sigma"), targets=("velocity_variance", "mean_fitness")):
     """A small match problem: targets from 4 runs at nu 0.3, eps 0.1 with seeds of their own."""
-    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.5, gamma=0.5, nu=0.3, eps_sigma=0.1, weights="metric_full",
-                                 anisotropic=True, cloning=False)
+    params = jaxgeom.SwarmParams(
+        dt=0.05,
+        temperature=0.5,
+        gamma=0.5,
+        nu=0.3,
+        eps_sigma=0.1,
+        weights="metric_full",
+        anisotropic=True,
+        cloning=False,
+    )
     state = swarm(n=40)
     common = dict(n_steps=4, params=params, tuned=tuned, n_seeds=4, rebuild_every=4)
     record = jaxgeom.simulation_loss(V, state, "match", targets={name: 1.0 for name in targets}, key=99, **common)
@@ -247,10 +303,11 @@ def test_standard_errors_are_the_sandwich_of_the_seed_spread():
     reference = bread @ jac.T @ w @ sigma @ w @ jac @ bread
     np.testing.assert_allclose(covariance, reference, rtol=1e-4)
     values = loss.values(theta)  # exp map: d value / d theta = value
-    np.testing.assert_allclose([errors["nu"], errors["eps_sigma"]],
-                               [values["nu"] * np.sqrt(reference[0, 0]),
-                                values["eps_sigma"] * np.sqrt(reference[1, 1])],
-                               rtol=1e-4)
+    np.testing.assert_allclose(
+        [errors["nu"], errors["eps_sigma"]],
+        [values["nu"] * np.sqrt(reference[0, 0]), values["eps_sigma"] * np.sqrt(reference[1, 1])],
+        rtol=1e-4,
+    )
 
 
 def test_standard_errors_are_nan_with_a_reason_where_undefined():
@@ -259,8 +316,9 @@ def test_standard_errors_are_nan_with_a_reason_where_undefined():
     loss = error_problem(targets=("velocity_variance",))  # one observable cannot pin two parameters
     errors, covariance, note = parameter_errors(loss, loss.to_theta())
     assert np.isnan(list(errors.values())).all() and covariance is None and "do not identify" in note
-    fitness_loss = jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=2, params=jaxgeom.SwarmParams(),
-                                           n_seeds=2)
+    fitness_loss = jaxgeom.simulation_loss(
+        V, swarm(n=40), "mean_fitness", n_steps=2, params=jaxgeom.SwarmParams(), n_seeds=2
+    )
     errors, _, note = parameter_errors(fitness_loss, fitness_loss.to_theta())
     assert np.isnan(list(errors.values())).all() and "objective='match'" in note
     with pytest.raises(ValueError, match="target_seeds"):
@@ -320,21 +378,34 @@ def test_a_parameter_the_loss_cannot_depend_on_is_refused_and_truly_unused(name,
     state = swarm(n=40)
     with pytest.raises(ValueError, match=f"`tuned` names '{name}', on which this loss cannot depend"):
         jaxgeom.simulation_loss(V, state, "mean_fitness", n_steps=2, params=params, tuned=("nu", name))
-    runs = [jaxgeom.simulate(V, state, eqx.tree_at(lambda p: getattr(p, name), params, jnp.asarray(value)),
-                             n_steps=6, rebuild="callback", observe=("mean_fitness", "velocity_variance"))[1]
-            for value in (getattr(params, name), other)]
+    runs = [
+        jaxgeom.simulate(
+            V,
+            state,
+            eqx.tree_at(lambda p: getattr(p, name), params, jnp.asarray(value)),
+            n_steps=6,
+            rebuild="callback",
+            observe=("mean_fitness", "velocity_variance"),
+        )[1]
+        for value in (getattr(params, name), other)
+    ]
     for key in ("mean_fitness", "velocity_variance"):
         np.testing.assert_array_equal(runs[0][key], runs[1][key])
 
 
-@pytest.mark.parametrize("fields, objective, observe", [
-    (dict(weights="metric_full"), "mean_fitness", None),
-    (dict(weights="kernel", anisotropic=True), "mean_fitness", None),
-    (dict(weights="kernel"), lambda h: h["mean_ricci"][-1], ("mean_ricci",))])
+@pytest.mark.parametrize(
+    "fields, objective, observe",
+    [
+        (dict(weights="metric_full"), "mean_fitness", None),
+        (dict(weights="kernel", anisotropic=True), "mean_fitness", None),
+        (dict(weights="kernel"), lambda h: h["mean_ricci"][-1], ("mean_ricci",)),
+    ],
+)
 def test_eps_sigma_is_tunable_where_the_metric_is_read(fields, objective, observe):
     params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, nu=0.3, eps_sigma=0.1, cloning=False, **fields)
-    loss = jaxgeom.simulation_loss(V, swarm(n=40), objective, n_steps=2, params=params, tuned=("eps_sigma",),
-                                   observe=observe)
+    loss = jaxgeom.simulation_loss(
+        V, swarm(n=40), objective, n_steps=2, params=params, tuned=("eps_sigma",), observe=observe
+    )
     assert gradient(loss, loss.to_theta())[0] != 0.0
 
 
@@ -343,8 +414,9 @@ def test_the_quick_tours_old_tuning_is_refused_with_the_reason():
     exactly 0 at every iteration, said nowhere."""
     params = jaxgeom.SwarmParams(dt=0.01, gamma=2.0, temperature=0.5, nu=0.1, weights="kernel")
     with pytest.raises(ValueError, match="eps_Sigma enters only the Hessian metric.*weights='kernel'"):
-        jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=20, params=params, n_seeds=4,
-                                tuned=("nu", "eps_sigma"))
+        jaxgeom.simulation_loss(
+            V, swarm(n=40), "mean_fitness", n_steps=20, params=params, n_seeds=4, tuned=("nu", "eps_sigma")
+        )
     with pytest.raises(ValueError, match="clone_rate.*gradient is exactly 0"):
         jaxgeom.simulation_loss(V, swarm(n=40), "mean_fitness", n_steps=2, params=params, tuned=("clone_rate",))
 
@@ -352,8 +424,15 @@ def test_the_quick_tours_old_tuning_is_refused_with_the_reason():
 def test_a_gradient_that_stays_zero_is_reported_and_warned():
     """A callable objective can ignore a parameter no rule sees: here the initial fitness."""
     params = jaxgeom.SwarmParams(dt=0.02, temperature=0.3, nu=0.3, cloning=False)
-    loss = jaxgeom.simulation_loss(V, swarm(n=40), lambda h: h["mean_fitness"][0], n_steps=2, params=params,
-                                   tuned=("nu", "dt"), observe=("mean_fitness",))
+    loss = jaxgeom.simulation_loss(
+        V,
+        swarm(n=40),
+        lambda h: h["mean_fitness"][0],
+        n_steps=2,
+        params=params,
+        tuned=("nu", "dt"),
+        observe=("mean_fitness",),
+    )
     with pytest.warns(RuntimeWarning, match=r"gradient in \['nu', 'dt'\] was exactly 0") as record:
         result = jaxgeom.tune(loss, max_steps=3)
     assert result.zero_gradient == ("nu", "dt")

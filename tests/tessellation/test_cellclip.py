@@ -26,8 +26,9 @@ def assert_same_graph(new, ref):
     np.testing.assert_array_equal(np.asarray(new.tier), np.asarray(ref.tier))
     np.testing.assert_array_equal(np.asarray(new.hull), np.asarray(ref.hull))
     assert simplex_set(new) == simplex_set(ref)
-    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(new)), np.asarray(jaxgeom.voronoi_volumes(ref)),
-                               rtol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.voronoi_volumes(new)), np.asarray(jaxgeom.voronoi_volumes(ref)), rtol=1e-10
+    )
 
 
 def moved(x, scale, seed, box=None):

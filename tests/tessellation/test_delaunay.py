@@ -220,16 +220,30 @@ def test_host_builds_pad_walkers_to_a_bucket_and_equal_the_unpadded_build(rng, m
     from jaxgeom.tessellation import _delaunay
 
     d = int(case[0])
-    x = np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.2 + 0.1 \
-        if "lattice" in case else rng.random((301 if d < 4 else 90, d))
+    x = (
+        np.stack(np.meshgrid(*[np.arange(5)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.2 + 0.1
+        if "lattice" in case
+        else rng.random((301 if d < 4 else 90, d))
+    )
     x = x.astype(np.float32) if "float32" in case else x
-    kwargs = dict(box=(0.0, 1.0), periodic=True) if "periodic" in case else dict(box=(0.0, 1.0)) if "box" in case else {}
+    kwargs = (
+        dict(box=(0.0, 1.0), periodic=True) if "periodic" in case else dict(box=(0.0, 1.0)) if "box" in case else {}
+    )
     assert _delaunay.bucket_walkers(len(x)) > len(x)
     padded = jaxgeom.delaunay(x, **kwargs)
     monkeypatch.setattr(_delaunay, "bucket_walkers", lambda n: n)
     plain = jaxgeom.delaunay(x, **kwargs)
-    for field in ("points", "neighbors", "tier", "hull", "simplices", "neighbor_shifts", "simplex_shifts", "box",
-                  "overflow"):
+    for field in (
+        "points",
+        "neighbors",
+        "tier",
+        "hull",
+        "simplices",
+        "neighbor_shifts",
+        "simplex_shifts",
+        "box",
+        "overflow",
+    ):
         got, want = getattr(padded, field), getattr(plain, field)
         assert (got is None) == (want is None), field
         if want is not None:

@@ -10,21 +10,31 @@ import pytest
 from scipy.spatial import Delaunay
 
 import jaxgeom
-from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.apps._landscapes import rastrigin
 from jaxgeom.swarm._rebuild import update_host, update_in_trace
 from jaxgeom.tessellation import _delaunay as delaunay_module
+from jaxgeom.tessellation import _triangulators as triangulators
 from jaxgeom.tessellation._delaunay import CapacityError, planar_graph_on_device
 from jaxgeom.tessellation._device_check import (
-    EULER, FLAT, LEFT_OUT, OK, OUT_OF_RANGE, planar_summary, planar_triangulation_status,
+    EULER,
+    FLAT,
+    LEFT_OUT,
+    OK,
+    OUT_OF_RANGE,
+    planar_summary,
+    planar_triangulation_status,
 )
 
 
 def point_sets(rng):
     swarm = rng.normal(size=(40, 2))[rng.integers(0, 40, 3000)] + 1e-3 * rng.normal(size=(3000, 2))  # clones
     i, j = np.meshgrid(np.arange(30), np.arange(30))
-    return {"uniform": rng.random((3000, 2)), "gaussian": rng.normal(size=(3000, 2)), "clustered": swarm,
-            "lattice": np.c_[i.ravel(), j.ravel()].astype(float) + 0.25 * (j.ravel() % 2)[:, None]}
+    return {
+        "uniform": rng.random((3000, 2)),
+        "gaussian": rng.normal(size=(3000, 2)),
+        "clustered": swarm,
+        "lattice": np.c_[i.ravel(), j.ravel()].astype(float) + 0.25 * (j.ravel() % 2)[:, None],
+    }
 
 
 def test_the_adapter_reads_simplices_checks_them_and_derives_the_adjacency(rng, stand_in):
@@ -65,7 +75,8 @@ def test_a_failed_gpu_build_falls_back_to_cdt_and_says_so(rng, monkeypatch):
     built = triangulators.triangulate(x, "cupy")
     assert "cupy raised RuntimeError" in built.fallback and built.fallback.endswith("; CDT built this graph instead")
     assert sorted(map(tuple, np.sort(built.tri.simplices, axis=1))) == sorted(
-        map(tuple, np.sort(triangulators._cdt(x).simplices, axis=1)))
+        map(tuple, np.sort(triangulators._cdt(x).simplices, axis=1))
+    )
 
 
 def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by(monkeypatch):
@@ -73,10 +84,14 @@ def test_cupy_is_refused_clearly_without_a_gpu_and_auto_passes_it_by(monkeypatch
         pytest.skip("this machine has a GPU with CuPy")
     x = np.random.default_rng(0).random((50, 2))
     find_spec = triangulators.importlib.util.find_spec
-    monkeypatch.setattr(triangulators.importlib.util, "find_spec", lambda name: None if name == "cupy" else find_spec(name))
+    monkeypatch.setattr(
+        triangulators.importlib.util, "find_spec", lambda name: None if name == "cupy" else find_spec(name)
+    )
     with pytest.raises(ValueError, match=r"triangulator='cupy' is not installed: pip install \"jaxgeom\[cuda12\]\""):
         jaxgeom.delaunay(x, triangulator="cupy")
-    monkeypatch.setattr(triangulators.importlib.util, "find_spec", lambda name: object() if name == "cupy" else find_spec(name))
+    monkeypatch.setattr(
+        triangulators.importlib.util, "find_spec", lambda name: object() if name == "cupy" else find_spec(name)
+    )
     with pytest.raises(ValueError, match=r"CuPy is installed, but JAX's backend is 'cpu'"):  # the extra on a CPU
         jaxgeom.delaunay(x, triangulator="cupy")
     assert triangulators.resolve_triangulator("auto", 2) != "cupy"
@@ -109,7 +124,8 @@ def same_graph(ours, ref):
     for field in ("neighbors", "tier", "hull", "overflow"):
         np.testing.assert_array_equal(np.asarray(getattr(ours, field)), np.asarray(getattr(ref, field)), err_msg=field)
     assert sorted(map(tuple, np.sort(np.asarray(ours.simplices), axis=1))) == sorted(
-        map(tuple, np.sort(np.asarray(ref.simplices), axis=1)))
+        map(tuple, np.sort(np.asarray(ref.simplices), axis=1))
+    )
 
 
 @pytest.mark.parametrize("name", ["uniform", "gaussian", "clustered"])
@@ -135,13 +151,17 @@ def test_a_failed_device_check_falls_back_to_cdt_and_says_why(rng, stand_in, mon
     x = rng.random((400, 2))
     clockwise = lambda q: type("T", (), {"simplices": Delaunay(q).simplices[:, [0, 2, 1]]})  # noqa: E731
     monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (clockwise, np))
-    with pytest.warns(RuntimeWarning, match="cupy's triangulation failed its check: triangles flat or negatively"
-                                            ".*; CDT built this graph instead"):
+    with pytest.warns(
+        RuntimeWarning,
+        match="cupy's triangulation failed its check: triangles flat or negatively.*; CDT built this graph instead",
+    ):
         tess = jaxgeom.delaunay(x, triangulator="cupy")
     same_graph(tess, jaxgeom.delaunay(x, triangulator="cdt"))
     monkeypatch.setitem(triangulators.DEVICE_BACKENDS, "cupy", lambda: (lambda q: 1 / 0, np))
     assert planar_graph_on_device(jax.numpy.asarray(x), None, None, "cupy") == (
-        None, "cupy raised ZeroDivisionError: division by zero")
+        None,
+        "cupy raised ZeroDivisionError: division by zero",
+    )
 
 
 def test_positions_the_device_build_refuses_get_the_host_paths_error(rng, stand_in):
@@ -167,10 +187,11 @@ def test_the_device_check_skips_padding_rows_and_walkers(rng):
     (counts, box), adjacency = planar_summary(walkers, triangles, 0, 300)
     ref = Delaunay(x)
     assert counts.tolist()[:2] == [OK, len(s)]
-    assert int(counts[2]) == max(len(r) for r in np.split(ref.vertex_neighbor_vertices[1],
-                                                             ref.vertex_neighbor_vertices[0][1:-1]))
+    assert int(counts[2]) == max(
+        len(r) for r in np.split(ref.vertex_neighbor_vertices[1], ref.vertex_neighbor_vertices[0][1:-1])
+    )
     np.testing.assert_array_equal(np.asarray(adjacency)[: len(s)], ref.neighbors)
-    assert (np.asarray(adjacency)[len(s):] == -1).all()
+    assert (np.asarray(adjacency)[len(s) :] == -1).all()
     np.testing.assert_array_equal(np.asarray(box), np.r_[x.min(axis=0), x.max(axis=0), np.abs(x).max()])
     assert int(planar_summary(walkers, triangles[1:], 0, 300)[0][0][0]) == EULER
     assert int(planar_summary(walkers, triangles, 0, 301)[0][0][0]) == LEFT_OUT  # walker 300 in no triangle
@@ -198,8 +219,13 @@ def test_simulate_rebuilds_on_the_device_as_cdt_would(rng, stand_in, rebuild_eve
     capacity = (600, degree) if tight else None  # tight: the rebuilds must grow it
     params = jaxgeom.SwarmParams(dt=0.05, nu=0.3)
     run = lambda t: jaxgeom.simulate(  # noqa: E731
-        rastrigin, jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=t, capacity=capacity), params, n_steps=6,
-        rebuild_every=rebuild_every, observe=("mean_ricci", "n_clones"))
+        rastrigin,
+        jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=t, capacity=capacity),
+        params,
+        n_steps=6,
+        rebuild_every=rebuild_every,
+        observe=("mean_ricci", "n_clones"),
+    )
     ref_state, ref = run("cdt")
     stand_in.clear()
     state, history = run("cupy")
@@ -218,8 +244,14 @@ def callback_run(x, triangulator, nu=0.3, capacity=None):
 
 
 def simulate_callback(state, nu):
-    return jaxgeom.simulate(rastrigin, state, jaxgeom.SwarmParams(dt=0.05, nu=nu), n_steps=4, rebuild="callback",
-                            observe=("mean_fitness", "mean_ricci"))[1]
+    return jaxgeom.simulate(
+        rastrigin,
+        state,
+        jaxgeom.SwarmParams(dt=0.05, nu=nu),
+        n_steps=4,
+        rebuild="callback",
+        observe=("mean_fitness", "mean_ricci"),
+    )[1]
 
 
 def test_the_callback_rebuild_triangulates_in_a_buffer_callback_under_jit_vmap_and_grad(rng, stand_in, monkeypatch):
@@ -237,7 +269,9 @@ def test_the_callback_rebuild_triangulates_in_a_buffer_callback_under_jit_vmap_a
     moved = swarm.positions + 0.05 * jax.numpy.sin(3 * swarm.positions)
     both = jax.vmap(rebuilt)(jax.numpy.stack([moved, swarm.positions]))  # one swarm after the other
     for k, p in enumerate((moved, swarm.positions)):
-        np.testing.assert_array_equal(np.asarray(both.tess.neighbors[k]), np.asarray(jax.jit(rebuilt)(p).tess.neighbors))
+        np.testing.assert_array_equal(
+            np.asarray(both.tess.neighbors[k]), np.asarray(jax.jit(rebuilt)(p).tess.neighbors)
+        )
     np.testing.assert_array_equal(np.asarray(both.tess.neighbors[1]), np.asarray(swarm.tess.neighbors))
     np.testing.assert_array_equal(np.asarray(both.n_triangulator_fallbacks), [0, 0])
     gradient = jax.grad(lambda p: jax.numpy.sum(rebuilt(p).positions ** 2))(moved)  # positions pass through
@@ -263,13 +297,16 @@ def incircle(a, b, c, d) -> Fraction:
     """> 0 when d lies inside the circle through the counter-clockwise a, b, c; exact."""
     rows = [[Fraction(p[0]) - Fraction(d[0]), Fraction(p[1]) - Fraction(d[1])] for p in (a, b, c)]
     m = [[u, v, u * u + v * v] for u, v in rows]
-    return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+    return (
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    )
 
 
 def locally_delaunay_everywhere(x, simplices, adjacency) -> bool:
     for t, (tri, across) in enumerate(zip(simplices, adjacency)):
-        for k, other in enumerate(across):
+        for other in across:
             if other > t:
                 opposite = next(v for v in simplices[other] if v not in tri)
                 if incircle(*x[tri], x[opposite]) > 0:
@@ -281,7 +318,7 @@ def locally_delaunay_everywhere(x, simplices, adjacency) -> bool:
 @pytest.mark.parametrize("name", ["uniform", "gaussian", "clustered", "lattice"])
 def test_cupy_gives_cdts_graph_or_an_equally_delaunay_one(rng, name):
     if not triangulators.cuda_cupy_available():
-        pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
+        pytest.skip('needs a CUDA GPU with CuPy (pip install "jaxgeom[cuda12]")')
     x = point_sets(rng)[name]
     gpu, cdt = triangulators._cupy(jax.numpy.asarray(x)), triangulators._cdt(x)
     ours, theirs = (set(map(tuple, np.sort(t.simplices, axis=1))) for t in (gpu, cdt))
@@ -289,32 +326,35 @@ def test_cupy_gives_cdts_graph_or_an_equally_delaunay_one(rng, name):
         assert locally_delaunay_everywhere(x, gpu.simplices, gpu.neighbors)
         assert locally_delaunay_everywhere(x, cdt.simplices, cdt.neighbors)
     a, b = jaxgeom.delaunay(x, triangulator="cupy"), jaxgeom.delaunay(x, triangulator="cdt")
-    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(a)), np.asarray(jaxgeom.voronoi_volumes(b)),
-                               rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.voronoi_volumes(a)), np.asarray(jaxgeom.voronoi_volumes(b)), rtol=1e-9, equal_nan=True
+    )
 
 
 @pytest.mark.gpu
 def test_a_cupy_rebuild_keeps_the_positions_on_the_device(rng):
     if not triangulators.cuda_cupy_available():
-        pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
+        pytest.skip('needs a CUDA GPU with CuPy (pip install "jaxgeom[cuda12]")')
     state = jaxgeom.init_swarm(rastrigin, rng.uniform(-3, 3, (20_000, 2)), triangulator="cupy")
     moved = eqx.tree_at(lambda s: s.positions, state, state.positions + 0.01 * jax.numpy.sin(state.positions * 7))
     with jax.transfer_guard_device_to_host("disallow"):  # an implicit copy of the positions raises
         rebuilt, grew, separated = update_host(moved, 8)
     assert int(rebuilt.n_triangulator_fallbacks) == 0 and separated == 0
-    same_graph(rebuilt.tess, jaxgeom.delaunay(np.asarray(moved.positions), triangulator="cdt",
-                                              capacity=rebuilt.tess.capacity))
+    same_graph(
+        rebuilt.tess, jaxgeom.delaunay(np.asarray(moved.positions), triangulator="cdt", capacity=rebuilt.tess.capacity)
+    )
 
 
 @pytest.mark.gpu
 def test_cupy_rebuilds_in_a_trace_on_xlas_stream_as_cdt_does(rng):
     if not triangulators.cuda_cupy_available():
-        pytest.skip("needs a CUDA GPU with CuPy (pip install \"jaxgeom[cuda12]\")")
+        pytest.skip('needs a CUDA GPU with CuPy (pip install "jaxgeom[cuda12]")')
     x = rng.uniform(-3, 3, (5000, 2))
     ours, ref = callback_run(x, "cupy"), callback_run(x, "cdt")
     assert int(ours["n_triangulator_fallbacks"]) == 0
     np.testing.assert_allclose(ours["mean_fitness"], ref["mean_fitness"], rtol=1e-9)
     swarm = jaxgeom.init_swarm(rastrigin, x, key=1, triangulator="cupy")
-    batched = jax.jit(jax.vmap(lambda nu: simulate_callback(swarm, nu)["mean_fitness"][-1]))(jax.numpy.array([0.3, 0.1]))
+    batched = jax.jit(jax.vmap(lambda nu: simulate_callback(swarm, nu)["mean_fitness"][-1]))(
+        jax.numpy.array([0.3, 0.1])
+    )
     np.testing.assert_allclose(float(batched[0]), float(ref["mean_fitness"][-1]), rtol=1e-9)
-

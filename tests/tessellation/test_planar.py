@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial import ConvexHull, Delaunay
 
 from jaxgeom.tessellation._delaunay import planar_tessellation, planar_triangles
-from jaxgeom.tessellation._triangulators import QHULL_OPTIONS
 from jaxgeom.tessellation._planar import _merge_network, fan_neighbors, sort_rows
+from jaxgeom.tessellation._triangulators import QHULL_OPTIONS
 
 
 def scipy_rows(tri, n, k_cap):
@@ -37,6 +37,7 @@ def test_fan_walk_equals_scipy_rows_and_hull(rng, layout):
         x = rng.random((500, 2))
     elif "network" in layout:
         from jaxgeom.tessellation._planar import MERGE_NETWORK_MIN_ROWS
+
         x = rng.random((MERGE_NETWORK_MIN_ROWS + 1, 2))
     elif layout == "grid":
         x = np.stack(np.meshgrid(np.arange(15.0), np.arange(12.0)), axis=-1).reshape(-1, 2)
@@ -102,6 +103,7 @@ def test_sort_rows_on_random_rows(rng, k, network):
 
 def test_the_network_sorts_from_its_row_count_on(monkeypatch):
     from jaxgeom.tessellation import _planar
+
     monkeypatch.setattr(_planar, "MERGE_NETWORK_MIN_ROWS", 100)
     ops = lambda n: len(jax.make_jaxpr(lambda c: sort_rows(c))(jnp.zeros((16, n), jnp.int32)).eqns)  # noqa: E731
     assert ops(99) < 10 < 100 < ops(100)  # one sort, against the network's min/max pairs
@@ -123,21 +125,28 @@ def test_planar_triangles_pads_and_checks_capacity(rng):
 def test_delaunay_pads_walkers_to_a_bucket_and_equals_the_unpadded_program(rng):
     """`jaxgeom.delaunay` in 2D runs `planar_tessellation` over walkers padded to
     `bucket_walkers(N)`: field for field the unpadded program's graph, also with a box, a
-    pinned capacity, float32 and a square grid, and overflow for rows past the capacity; swarms in one bucket compile it once."""
+    pinned capacity, float32 and a square grid, and overflow for rows past the capacity; swarms in one bucket
+    compile it once."""
     import jaxgeom
     from jaxgeom.tessellation._delaunay import _planar_from_host, _planar_rows
     from jaxgeom.tessellation._graph import bucket_walkers
 
     grid = np.c_[np.repeat(np.arange(8), 8), np.tile(np.arange(8), 8)][:57] * 0.1 + 0.01
-    cases = [(rng.random((113, 2)), None, None), (rng.random((120, 2)), (0.0, 1.0), None), (grid, None, None),
-             (rng.random((117, 2)).astype(np.float32), None, None), (rng.random((115, 2)), None, (240, 16))]
+    cases = [
+        (rng.random((113, 2)), None, None),
+        (rng.random((120, 2)), (0.0, 1.0), None),
+        (grid, None, None),
+        (rng.random((117, 2)).astype(np.float32), None, None),
+        (rng.random((115, 2)), None, (240, 16)),
+    ]
     assert bucket_walkers(113) == bucket_walkers(120) == 120 and bucket_walkers(57) == 60
     for x, box, capacity in cases:
         tess = jaxgeom.delaunay(x, box=box, capacity=capacity, triangulator="qhull")
         simplices, adjacency, cap, _ = planar_triangles(x, capacity)
         b = None if box is None else jnp.asarray(np.array(box)[:, None] * np.ones(2), tess.points.dtype)
-        ref = planar_tessellation(jnp.asarray(x), jnp.asarray(simplices), jnp.asarray(adjacency), b,
-                                  k_cap=cap.neighbors)
+        ref = planar_tessellation(
+            jnp.asarray(x), jnp.asarray(simplices), jnp.asarray(adjacency), b, k_cap=cap.neighbors
+        )
         for field in ("points", "neighbors", "tier", "hull", "simplices", "box", "overflow"):
             got, want = getattr(tess, field), getattr(ref, field)
             assert (got is None) == (want is None), field

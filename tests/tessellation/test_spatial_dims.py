@@ -61,8 +61,11 @@ def test_knn_with_spatial_dims_traces(rng):
 @pytest.mark.parametrize("build", ["delaunay", "knn"])
 def test_spatial_dims_outside_two_to_d_is_refused(rng, k, build):
     x = rng.random((50, 4))
-    call = (lambda: jaxgeom.delaunay(x, spatial_dims=k)) if build == "delaunay" else (
-        lambda: jaxgeom.knn_graph(x, 4, spatial_dims=k))
+    call = (
+        (lambda: jaxgeom.delaunay(x, spatial_dims=k))
+        if build == "delaunay"
+        else (lambda: jaxgeom.knn_graph(x, 4, spatial_dims=k))
+    )
     with pytest.raises(ValueError, match=r"spatial_dims.*\[2, 4\]"):
         call()
 

@@ -12,12 +12,23 @@ import jaxgeom
 import jaxgeom.tessellation._triangulators as backends
 from jaxgeom.apps._landscapes import rastrigin
 from jaxgeom.tessellation._triangulators import (
-    CoincidentPointsError, check_triangulation, installed, resolve_triangulator, triangulate,
+    CoincidentPointsError,
+    check_triangulation,
+    installed,
+    resolve_triangulator,
+    triangulate,
 )
 
 OTHERS = [(name, d) for name in ("cdt", "shull") for d in backends.DIMENSIONS[name]]
-CASES = [pytest.param(name, d, id=f"{name}-{d}d", marks=() if installed(name) else pytest.mark.skip(
-    reason=f"{name} is not installed ({backends.INSTALL[name]})")) for name, d in OTHERS]
+CASES = [
+    pytest.param(
+        name,
+        d,
+        id=f"{name}-{d}d",
+        marks=() if installed(name) else pytest.mark.skip(reason=f"{name} is not installed ({backends.INSTALL[name]})"),
+    )
+    for name, d in OTHERS
+]
 
 
 def simplex_set(tess) -> set:
@@ -48,8 +59,9 @@ def swarm_after_cloning(d: int) -> np.ndarray:
     """Positions of a simulated swarm with cloning (clones sit next to their companions)."""
     x = np.random.default_rng(5).uniform(-3, 3, (300, d))
     state = jaxgeom.init_swarm(rastrigin, x, triangulator="qhull")
-    final, history = jaxgeom.simulate(rastrigin, state, jaxgeom.SwarmParams(dt=0.05, nu=0.3), n_steps=8,
-                                      observe=("n_clones",))
+    final, history = jaxgeom.simulate(
+        rastrigin, state, jaxgeom.SwarmParams(dt=0.05, nu=0.3), n_steps=8, observe=("n_clones",)
+    )
     assert history["n_clones"].sum() > 0
     return np.asarray(final.positions)
 
@@ -64,7 +76,7 @@ def lifted_det(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 def exact_det(m: list) -> Fraction:
     if len(m) == 1:
         return m[0][0]
-    return sum((-1) ** j * m[0][j] * exact_det([row[:j] + row[j + 1:] for row in m[1:]]) for j in range(len(m)))
+    return sum((-1) ** j * m[0][j] * exact_det([row[:j] + row[j + 1 :] for row in m[1:]]) for j in range(len(m)))
 
 
 def exact_lifted_det(p: np.ndarray, q: np.ndarray) -> Fraction:
@@ -80,17 +92,18 @@ def exact_delaunay_violations(x: np.ndarray, simplices: np.ndarray) -> int:
     owners = {}
     for t, simplex in enumerate(simplices.tolist()):
         for k in range(d1):
-            owners.setdefault(frozenset(simplex[:k] + simplex[k + 1:]), []).append((t, simplex[k]))
-    pairs = np.array([(t, w) for pair in owners.values() if len(pair) == 2
-                      for (t, _), (_, w) in (pair, pair[::-1])])
+            owners.setdefault(frozenset(simplex[:k] + simplex[k + 1 :]), []).append((t, simplex[k]))
+    pairs = np.array([(t, w) for pair in owners.values() if len(pair) == 2 for (t, _), (_, w) in (pair, pair[::-1])])
     t_idx, w_idx = pairs.T
     p = x[simplices[t_idx]]
     inside_sign = np.sign(lifted_det(p, p.mean(axis=1)))  # the centroid is inside the circumsphere
     value = lifted_det(p, x[w_idx]) * inside_sign
     unsure = np.abs(value) < 1e-6 * (np.abs(p).max() + 1.0) ** (2 * d1)
     sure = int((value[~unsure] > 0).sum())
-    return sure + sum(exact_lifted_det(x[simplices[t]], x[w]) * sign > 0
-                      for t, w, sign in zip(t_idx[unsure], w_idx[unsure], inside_sign[unsure]))
+    return sure + sum(
+        exact_lifted_det(x[simplices[t]], x[w]) * sign > 0
+        for t, w, sign in zip(t_idx[unsure], w_idx[unsure], inside_sign[unsure])
+    )
 
 
 # --- the same graph as Qhull ----------------------------------------------------------------
@@ -154,11 +167,12 @@ def test_lattices_keep_exact_volumes_and_positive_measure_neighbours(name, d, pe
     # rule of Tessellation.neighbors), so only the other walkers' neighbours are unique.
     inside = ~np.asarray(ref.hull)
     assert [s for s, keep in zip(neighbor_sets(ours), inside) if keep] == [
-        s for s, keep in zip(neighbor_sets(ref), inside) if keep]
+        s for s, keep in zip(neighbor_sets(ref), inside) if keep
+    ]
     volumes = np.asarray(jaxgeom.voronoi_volumes(ours))
     # Every cell is a cube of side 1/side, the boxed hull cells included (their clipping once
     # gave 0.009-0.01 for 0.008 in 3D with every backend: tests/geometry/test_volumes.py)
-    np.testing.assert_allclose(volumes, side ** -d, rtol=1e-9)
+    np.testing.assert_allclose(volumes, side**-d, rtol=1e-9)
     if periodic:
         assert all(len(s) == 2 * d for s in neighbor_sets(ours))
 
@@ -180,8 +194,9 @@ def test_cdt_drops_its_zero_area_triangles_along_a_collinear_hull_side():
     hull = np.asarray(ours.hull) | np.asarray(ref.hull)
     for k, (a, b) in enumerate(zip(neighbor_sets(ours), neighbor_sets(ref))):
         assert all(hull[m] and hull[k] for m in a ^ b), k
-    np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(ours)), np.asarray(jaxgeom.voronoi_volumes(ref)),
-                               rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(
+        np.asarray(jaxgeom.voronoi_volumes(ours)), np.asarray(jaxgeom.voronoi_volumes(ref)), rtol=1e-9, equal_nan=True
+    )
 
 
 @pytest.mark.parametrize("name, d", CASES)
@@ -265,8 +280,10 @@ def test_the_check_accepts_delaunay_and_names_each_defect(rng):
     tri3 = backends.qhull(x3)[0]
     assert "flat or negatively oriented" in check_triangulation(tri3, x3)  # Qhull's 3D simplices are not oriented
     flip = backends._volumes(x3, tri3.simplices)[0] < 0
-    oriented = backends._Triangulation(np.where(flip[:, None], tri3.simplices[:, [1, 0, 2, 3]], tri3.simplices),
-                                       np.where(flip[:, None], tri3.neighbors[:, [1, 0, 2, 3]], tri3.neighbors))
+    oriented = backends._Triangulation(
+        np.where(flip[:, None], tri3.simplices[:, [1, 0, 2, 3]], tri3.simplices),
+        np.where(flip[:, None], tri3.neighbors[:, [1, 0, 2, 3]], tri3.neighbors),
+    )
     assert check_triangulation(oriented, x3) is None
     hollow = backends._Triangulation(oriented.simplices[1:], oriented.neighbors[1:])
     assert check_triangulation(hollow, x3) is not None
@@ -283,7 +300,8 @@ def test_cdt_marks_its_triangles_oriented_only_where_the_check_would_pass(rng):
         assert tri.oriented and not backends._flat(x, tri.simplices).any()
         assert check_triangulation(backends._Triangulation(tri.simplices, tri.neighbors), x) is None
     assert "flat or negatively oriented" in check_triangulation(
-        backends._Triangulation(tri.simplices[:, [0, 2, 1]], tri.neighbors[:, [0, 2, 1]], oriented=False), x)
+        backends._Triangulation(tri.simplices[:, [0, 2, 1]], tri.neighbors[:, [0, 2, 1]], oriented=False), x
+    )
 
 
 def test_a_backend_that_fails_is_replaced_by_qhull_with_a_warning(rng, monkeypatch):
@@ -293,8 +311,11 @@ def test_a_backend_that_fails_is_replaced_by_qhull_with_a_warning(rng, monkeypat
         tess = jaxgeom.delaunay(x, triangulator="cdt")
     assert simplex_set(tess) == simplex_set(jaxgeom.delaunay(x, triangulator="qhull"))
     real = backends._cdt
-    monkeypatch.setitem(backends.BUILDERS, "cdt", lambda pts: (t := real(pts)) and backends._Triangulation(
-        t.simplices[1:], t.neighbors[1:]))
+    monkeypatch.setitem(
+        backends.BUILDERS,
+        "cdt",
+        lambda pts: (t := real(pts)) and backends._Triangulation(t.simplices[1:], t.neighbors[1:]),
+    )
     with pytest.warns(RuntimeWarning, match="failed its check"):
         jaxgeom.delaunay(x, triangulator="cdt")
 
@@ -303,8 +324,14 @@ def test_a_backend_that_fails_is_replaced_by_qhull_with_a_warning(rng, monkeypat
 def test_simulate_counts_each_fallback_and_runs_as_qhull_would(rng, monkeypatch, rebuild):
     x = rng.uniform(-3, 3, (200, 2))
     params = jaxgeom.SwarmParams(dt=0.05, nu=0.3)
-    run = lambda t: jaxgeom.simulate(rastrigin, jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=t), params,
-                                     n_steps=4, rebuild=rebuild, observe=("mean_ricci",))
+    run = lambda t: jaxgeom.simulate(
+        rastrigin,
+        jaxgeom.init_swarm(rastrigin, x, key=1, triangulator=t),
+        params,
+        n_steps=4,
+        rebuild=rebuild,
+        observe=("mean_ricci",),
+    )
     ref_state, ref = run("qhull")
     calls = []
     real = backends._cdt
@@ -341,7 +368,9 @@ def test_bad_triangulators_are_refused(rng, monkeypatch):
     with pytest.raises(TypeError, match="`triangulator` must be a string"):
         jaxgeom.init_swarm(rastrigin, x, triangulator=None)
     monkeypatch.setattr(backends, "installed", lambda name: name != "shull")
-    with pytest.raises(ValueError, match=r"'shull' is not installed: pip install \"jaxgeom\[gpl\]\" \(shull, GPL-3.0\)"):
+    with pytest.raises(
+        ValueError, match=r"'shull' is not installed: pip install \"jaxgeom\[gpl\]\" \(shull, GPL-3.0\)"
+    ):
         jaxgeom.delaunay(x, triangulator="shull")
 
 
