@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -107,7 +109,7 @@ def _agreement(eig_fd, eig_geo, h_fd, h_geo) -> dict:
         rho = float("nan")
     else:
         rho = float(np.corrcoef(eig_fd.ravel(), eig_geo.ravel())[0, 1])
-    out = {"eigenvalue_correlation": rho, "n_valid": int(len(eig_fd))}
+    out: dict[str, Any] = {"eigenvalue_correlation": rho, "n_valid": int(len(eig_fd))}
     if h_fd is not None and len(h_fd):
         diff = np.linalg.norm(h_fd - h_geo, axis=(1, 2))
         total = np.linalg.norm(h_fd, axis=(1, 2)) + np.linalg.norm(h_geo, axis=(1, 2))

@@ -6,6 +6,7 @@ import contextlib
 import functools
 import os
 import sys
+import types
 import warnings
 import weakref
 from collections.abc import Iterable
@@ -123,7 +124,7 @@ def check_walker_array(value, name: str, shape: tuple, *, nonnegative: bool = Fa
     else:
         value = real_array(value, name)
         if nonnegative and np.any(value < 0):
-            rows = np.flatnonzero(value < 0) if value.ndim == 1 else []
+            rows = np.flatnonzero(value < 0) if value.ndim == 1 else np.zeros(0, int)
             raise ValueError(
                 f"`{name}` must be >= 0 (cell volumes or weights); got negative entries, first "
                 f"rows {list(map(int, rows[:5]))}."
@@ -214,7 +215,11 @@ def _already_checked(value) -> bool:
 def _remember_checked(value) -> None:
     if isinstance(value, jax.Array):
         key = id(value)
-        _CHECKED[key] = weakref.ref(value, lambda _, key=key: _CHECKED.pop(key, None))
+        _CHECKED[key] = weakref.ref(value, functools.partial(_forget, key))
+
+
+def _forget(key: int, _reference) -> None:
+    _CHECKED.pop(key, None)
 
 
 def metric_defect_masks(g, xp):
@@ -429,7 +434,7 @@ def _library_dirs() -> tuple[str, ...]:
     import jaxtyping
 
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the jaxgeom package
-    dirs = [os.path.dirname(os.path.abspath(m.__file__)) for m in (jax, equinox, jaxtyping)] + [here]
+    dirs = [os.path.dirname(os.path.abspath(str(m.__file__))) for m in (jax, equinox, jaxtyping)] + [here]
     return tuple(d + os.sep for d in dirs)
 
 
@@ -439,7 +444,8 @@ _STDLIB_WRAPPERS = (os.path.abspath(contextlib.__file__), os.path.abspath(functo
 def warn_at_caller(message: str, category: type[Warning] = UserWarning) -> None:
     """`warnings.warn` attributed to the first frame outside jaxgeom, JAX, equinox and jaxtyping:
     the user's own line, however deep the library's call (decorators, jit tracing) runs."""
-    inside, frame, level = _library_dirs(), sys._getframe(1), 2
+    inside, level = _library_dirs(), 2
+    frame: types.FrameType | None = sys._getframe(1)
     while frame is not None and (
         os.path.abspath(frame.f_code.co_filename).startswith(inside)
         or os.path.abspath(frame.f_code.co_filename) in _STDLIB_WRAPPERS

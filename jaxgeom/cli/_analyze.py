@@ -14,6 +14,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
@@ -25,6 +26,7 @@ from ..apps._plots import pyplot, relative_error, save_figure
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM
 from ..geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from ..swarm._observables import riemannian_log_weights, weighted_mean_from_logs
+from ..tessellation._graph import Tessellation
 from ._legend import UNITS, analyze_definition
 from ._simulate import HelpFormatter, load_landscape
 from ._trajectory import add_trajectory_arguments, refuse_mixed_options, trajectory_main
@@ -38,8 +40,8 @@ class Analysis:
     points: np.ndarray
     box: tuple | None
     source: str
-    fitness: Callable = None
-    tess: object = None
+    fitness: Callable | None = None
+    tess: Tessellation | None = None
     timings: dict = dataclasses.field(default_factory=dict)
     cache: dict = dataclasses.field(default_factory=dict)
 
@@ -73,7 +75,7 @@ def _stats(values: np.ndarray, prefix: str) -> dict:
 
 def section_swarm(a: Analysis) -> dict:
     n, d = a.points.shape
-    out = {
+    out: dict[str, Any] = {
         "source": a.source,
         "n_walkers": n,
         "dim": d,
@@ -92,7 +94,7 @@ def section_graph(a: Analysis) -> dict:
     tess = a.tess
     degree = np.asarray(tess.degree)
     tiers = np.bincount(np.asarray(tess.tier), minlength=3)
-    out = {f"tier{t}": int(tiers[t]) for t in range(3)}
+    out: dict[str, Any] = {f"tier{t}": int(tiers[t]) for t in range(3)}
     out.update(degree_mean=float(degree.mean()), degree_min=int(degree.min()), degree_max=int(degree.max()))
     out.update(capacity_neighbors=tess.capacity.neighbors, capacity_simplices=tess.capacity.simplices)
     if tess.simplices is not None:
@@ -117,7 +119,7 @@ def section_volumes(a: Analysis) -> dict:
     vol = np.asarray(timed_warm(a, "voronoi_volumes", jaxgeom.voronoi_volumes, a.tess))
     a.cache["volumes"] = vol
     interior = np.asarray(a.tess.interior)
-    out = {"tier2_total": float(vol[interior].sum()), "n_unbounded": int(np.isnan(vol).sum())}
+    out: dict[str, Any] = {"tier2_total": float(vol[interior].sum()), "n_unbounded": int(np.isnan(vol).sum())}
     if a.tess.box is not None:  # cells clipped to the box: they tile it
         out["total_in_box"] = float(np.sum(vol))
     out.update(_stats(vol[interior], "tier2"))
@@ -129,6 +131,7 @@ def analysis_metric(a: Analysis):
     if "metric" not in a.cache:
         kind = a.args.metric
         if kind == "hessian":
+            assert a.fitness is not None  # --metric hessian without a landscape: refused by resolve_options
             a.cache["metric"] = jaxgeom.hessian_metric(a.fitness, a.args.eps_sigma, floor=ANALYSIS_FLOOR)
         elif kind == "emergent":
             a.cache["metric"] = timed_warm(a, "emergent_metric", jaxgeom.emergent_metric, a.tess)
@@ -138,7 +141,7 @@ def analysis_metric(a: Analysis):
 
 
 def section_metric(a: Analysis) -> dict:
-    out = {"kind": a.args.metric}
+    out: dict[str, Any] = {"kind": a.args.metric}
     if a.args.metric == "hessian":  # only with a landscape (`resolve_options`)
         out.update(landscape=a.args.landscape, eps_sigma=a.args.eps_sigma)
     g = jaxgeom.metric_at_walkers(a.tess, analysis_metric(a))
@@ -159,7 +162,7 @@ def section_curvature(a: Analysis) -> dict:
     resolution = np.asarray(jaxgeom.ricci_resolution(a.tess, metric=metric, volumes=vol))
     a.cache.update(ricci=ricci, riemannian_volumes=riem)
     interior = np.asarray(a.tess.interior)
-    out = {
+    out: dict[str, Any] = {
         "tier2_volume_weighted_ricci": float(jaxgeom.riemannian_mean(ricci, riem, interior)),
         "tier2_volume_weighted_ricci_resolution": float(jaxgeom.riemannian_mean(resolution, riem, interior)),
         "precision": str(a.tess.points.dtype),
@@ -201,7 +204,7 @@ def section_metric_curvature(a: Analysis) -> dict:
     ok = np.asarray(ok & a.tess.interior)
     values, se = np.asarray(s), np.asarray(info.standard_error)
     usable = ok & np.isfinite(values)
-    out = {
+    out: dict[str, Any] = {
         "method": info.method,
         "probes": probes,
         "tier2_walkers_used": int(usable.sum()),
@@ -310,7 +313,7 @@ def section_ollivier_ricci(a: Analysis) -> dict:
     edges = np.asarray(orc.edge_mask)
     kappa = np.asarray(orc.edge_curvature)[edges]
     tier2 = np.asarray(orc.interior & ~orc.isolated)
-    out = {
+    out: dict[str, Any] = {
         "k": tess.neighbors.shape[1],
         "alpha": 0.5,
         "measure": "uniform",
@@ -342,7 +345,9 @@ def section_cells(a: Analysis) -> dict:
     a.cache["shape"] = shape
     spread = np.asarray(jaxgeom.vertex_distance_variance(a.tess))
     interior = np.asarray(a.tess.interior)
-    out = {"volume_distortion": float(timed_warm(a, "volume_distortion", jaxgeom.volume_distortion, a.tess))}
+    out: dict[str, Any] = {
+        "volume_distortion": float(timed_warm(a, "volume_distortion", jaxgeom.volume_distortion, a.tess))
+    }
     if "riemannian_volumes" in a.cache:
         out["volume_distortion_riemannian"] = float(jaxgeom.volume_distortion(a.tess, a.cache["riemannian_volumes"]))
     out.update(_stats(shape[interior], "tier2_shape_distortion"))
@@ -359,7 +364,7 @@ def section_graph_proxies(a: Analysis) -> dict:
     graphs, Dijkstra's graph distance on k-NN graphs)."""
     gap, components, outside = timed(a, "spectral_gap", bulk_spectral_gap, a.tess, length_scale=a.args.length_scale)
     level = gap_rounding_level(a.tess.n_points - outside)
-    out = {
+    out: dict[str, Any] = {
         "kernel_graph_components": components,
         "walkers_outside_largest_component": outside,
         "spectral_gap_largest_component": gap if not gap < level else f"< {level:.1e} (float64 rounding)",
@@ -402,7 +407,7 @@ def section_estimation(a: Analysis) -> dict:
     exact = np.asarray(jax.vmap(jax.hessian(a.fitness))(np.asarray(a.points)))  # the landscape's own Hessian
     a.cache["estimation"] = {"comparison": result, "true_hessian": exact}
     valid = result["valid"]
-    out = {"walkers_with_hessian": int(valid.sum()), "walkers": len(valid)}
+    out: dict[str, Any] = {"walkers_with_hessian": int(valid.sum()), "walkers": len(valid)}
     out |= _stats(np.linalg.norm(np.asarray(result["gradient"])[valid], axis=1), "tier2_gradient_norm")
     eig = np.asarray(result["eigenvalues_fd"])[valid]
     out.update(_stats(eig[:, 0], "tier2_hessian_min_eigenvalue"))

@@ -134,6 +134,8 @@ def load_landscape(spec: str, dim: int):
             f"defining V(x); got {spec!r}."
         )
     module_spec = importlib.util.spec_from_file_location("jaxgeom_user_landscape", path)
+    if module_spec is None or module_spec.loader is None:  # not for a .py file that exists
+        raise ValueError(f"--landscape {path} cannot be loaded as a Python module.")
     module = importlib.util.module_from_spec(module_spec)
     try:
         module_spec.loader.exec_module(module)

@@ -9,6 +9,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -287,7 +288,7 @@ def write_swarm(result: dict, args, path: Path) -> Path:
 
 def _snapshot(frame: dict, t: int, step: int, landscape, params, box, periodic, args) -> dict:
     x = np.asarray(frame["positions"], np.dtype(args.precision))
-    snap = {"step": f"{step} (frame {t})", "positions": x, "ricci": None, "colour": None}
+    snap: dict[str, Any] = {"step": f"{step} (frame {t})", "positions": x, "ricci": None, "colour": None}
     tess = jaxgeom.delaunay(x, box=box, periodic=periodic) if args.graph == "delaunay" else None
     if landscape is not None:
         if tess is not None:
@@ -313,8 +314,10 @@ def _snapshot(frame: dict, t: int, step: int, landscape, params, box, periodic, 
         from scipy.spatial import cKDTree
 
         shift = np.zeros(x.shape[1]) if box is None else np.broadcast_to(np.asarray(box[0], float), (x.shape[1],))
-        size = None if not periodic else np.broadcast_to(np.asarray(box[1], float), (x.shape[1],)) - shift
-        held = np.mod(x - shift, size) if periodic else x - shift
+        held, size = x - shift, None
+        if periodic:
+            size = np.broadcast_to(np.asarray(box[1], float), (x.shape[1],)) - shift
+            held = np.mod(held, size)
         kth = cKDTree(held, boxsize=size).query(held, k=args.k + 1)[0][:, -1]
         snap.update(
             values=np.log10(kth),

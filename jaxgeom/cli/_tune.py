@@ -267,10 +267,10 @@ def tune_main(args) -> int:
         print(f"jaxgeom tune: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:  # Ctrl-C: report and write the iterations accepted so far
-        result = getattr(stop, "result", None)
-        if result is None:
+        partial = getattr(stop, "result", None)
+        if partial is None:
             return say_interrupted("tune", "iteration", 0, args.max_steps, None)
-        interrupted = len(result.iterations) - 1
+        result, interrupted = partial, len(partial.iterations) - 1
     grid = None
     if interrupted is None and args.out is not None and args.grid >= 2 and len(loss.tuned) >= 2:
         grid = loss_grid(loss, result, truth, args.grid)

@@ -268,14 +268,14 @@ def _hinge_sums(tess: Tessellation, metric, mode: str):
         # also where `same`: a metric that varies below its rounding has lost its curvature
         errors.append(RICCI_ULPS * eps * size_g * size_scale)
     valid = tess.simplex_mask
-    scale = 2.0 / (d - 1)
+    factor = 2.0 / (d - 1)
     out = []
     for per_hinge in (diffs, errors):
         # sum each vertex's hinges inside the simplex first: d + 1 scattered values per simplex
         per_vertex = jnp.stack(
             [jnp.where(valid, sum(per_hinge[h] for h in hs), 0.0) for hs in _hinges_of_vertex(d)], axis=1
         )
-        out.append(scale * jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points))
+        out.append(factor * jax.ops.segment_sum(per_vertex.ravel(), tess.simplices.ravel(), num_segments=tess.n_points))
     return tuple(out)
 
 

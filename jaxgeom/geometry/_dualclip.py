@@ -217,7 +217,7 @@ def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
     sign, orient, polygon, count, direction = _flag_piece(q, centres, hull, lower, upper, kind, toward, size)
     tol = ROUNDING_ULPS * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
     clipped = clip_polygon(polygon, count, lower, upper, tol)
-    area, moment, lengths, length_moments = polygon_measures(*clipped, direction)
+    area, moment, lengths, length_moments = polygon_measures(*clipped, direction)  # type: ignore[call-arg]  # (verts, count, on)
     area, moment = sign * orient * area, sign * orient * moment
     axes, bounds, signs = wall_bounds(lower, upper)
     # a piece outside a wall that its face meets there (a walker on the wall, its hull

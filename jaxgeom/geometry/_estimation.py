@@ -9,7 +9,7 @@ at one walker only removes that walker from its neighbours' stencils.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -217,7 +217,8 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
 
 def _unpack_hessian(coef, scale, d: int):
     """Hessian from the quadratic coefficients c (first d entries are the gradient)."""
-    rows, k = [[None] * d for _ in range(d)], d
+    rows: list[list[Any]] = [[None] * d for _ in range(d)]
+    k = d
     for a in range(d):
         for b in range(a, d):
             rows[a][b] = rows[b][a] = coef[:, k] * (2.0 if a == b else 1.0)
@@ -309,9 +310,8 @@ def _local_quadratic(tess: Tessellation, values, weighting: str = "uniform"):
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
     walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)
-    hess2, grad2, ok2 = _quadratic_fit(
-        *_two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1)), weighting=weighting
-    )
+    dxs2, dv2, usable2 = _two_ring(tess, values, jnp.minimum(walkers, tess.n_points - 1))
+    hess2, grad2, ok2 = _quadratic_fit(dxs2, dv2, usable2, weighting=weighting)
     ok2 = ok2 & (walkers < tess.n_points)
     hess = hess.at[walkers].set(hess2, mode="drop")
     grad = grad.at[walkers].set(grad2, mode="drop")

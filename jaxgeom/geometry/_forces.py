@@ -47,7 +47,7 @@ def _edge_weights(tess, weights, length_scale, metric, alpha):
 
 
 def weights_to_normalize(
-    tess: Tessellation, *, weights: str, length_scale=None, metric=None, alpha: float = DEFAULT_ALPHA
+    tess: Tessellation, *, weights: str, length_scale=None, metric=None, alpha: float | Array = DEFAULT_ALPHA
 ) -> Float[Array, "N K"]:
     """`edge_weights` up to a per-row factor that row normalisation cancels: kernel weights are
     divided by each row's largest, so that they tend to nearest-neighbour weighting as l -> 0

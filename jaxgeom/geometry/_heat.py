@@ -109,6 +109,7 @@ def heat_operators(tess: Tessellation, metric=None, *, mode: str = "full", t=Non
         edges = jnp.where(valid[:, None], safe_sqrt(sq), 0.0)
         mean_edge = jnp.sum(edges) / jnp.maximum(jnp.sum(valid, dtype=jnp.int32) * sq.shape[1], 1).astype(sq.dtype)
         t = default_time_step(mean_edge, n, d)
+    assert tess.simplices is not None  # Delaunay graphs only: refused at the boundary
     return HeatOperators(tess.simplices, stiffness, inverse, volumes, mass, jnp.asarray(t, sq.dtype), closes)
 
 

@@ -16,7 +16,7 @@ import inspect
 import itertools
 import weakref
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -79,6 +79,7 @@ def _wrap(tess: Tessellation, x):
     """Positions moved back into the periodic box (a callable metric sees box coordinates)."""
     if not tess.periodic:
         return x
+    assert tess.box_lengths is not None  # a periodic graph has its box
     return tess.box[0] + jnp.mod(x - tess.box[0], tess.box_lengths)
 
 
@@ -382,7 +383,7 @@ class HessianParts(NamedTuple):
     """What a `hessian_metric` callable is made of (its attribute `hessian_parts`)."""
 
     fitness: Callable
-    eps_sigma: object  # float, or a traced scalar
+    eps_sigma: Any  # float, or a traced scalar
     floor: str
 
 
@@ -452,7 +453,7 @@ def _hessian_metric(fitness: Callable, eps_sigma, floor: str, eigh: Callable = e
 
     metric = clip if floor == "clip" else softabs
     # what `metric_curvature` reads to use the Hessian-geometry formulas (g = Hess(V + eps |x|^2 / 2))
-    metric.hessian_parts = HessianParts(fitness, eps_sigma, floor)
+    metric.hessian_parts = HessianParts(fitness, eps_sigma, floor)  # type: ignore[attr-defined]  # a function's attribute
     return metric
 
 

@@ -288,7 +288,7 @@ def _ollivier_ricci(
     masses, moment = _walker_measures(graph, lengths, weights, alpha, measure, kernel_scale)
     ctx = _edge_context(graph, ids2, dist2, weights, masses, metric, mode, cost)
     solved = [
-        jax.lax.map(lambda e, w=width: _edge_curvature(ctx, *e, w), (ends, slots), batch_size=batch_size)
+        jax.lax.map(lambda e, w=width: _edge_curvature(ctx, e[0], e[1], w), (ends, slots), batch_size=batch_size)
         for ends, slots, width in groups
     ]
     ends, slots = (jnp.concatenate([g[i] for g in groups]) for i in (0, 1))

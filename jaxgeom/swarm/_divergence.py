@@ -75,8 +75,8 @@ def divergence_message(fitness, params: SwarmParams, before: SwarmState, step: i
 def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
     """One sentence: why a swarm diverged from `state`, judged there (a singular metric, dt
     against the landscape's stiffness, or forces that outgrew the step)."""
-    x = np.asarray(state.positions)
-    x = jnp.asarray(x[np.isfinite(x).all(axis=1)])
+    everywhere = np.asarray(state.positions)
+    x = jnp.asarray(everywhere[np.isfinite(everywhere).all(axis=1)])
     if params.needs_metric:
         g = np.asarray(_metric_field(fitness, params, params.eps_sigma * state.eps_factor, x))
         lam = np.linalg.eigvalsh(np.where(np.isfinite(g), g, 0.0))[:, 0]
@@ -90,9 +90,9 @@ def likely_cause(fitness, params: SwarmParams, state: SwarmState) -> str:
                 f"{f', the zero metric at {zero}' if zero else ''} (smallest eigenvalue {lam.min():.3g}), so "
                 f"{uses} undefined; raise eps_sigma or use floor='softabs'."
             )
-    curvature, slope = map(np.asarray, _largest_curvature_and_slope(fitness, x))
-    curvature = float(np.max(curvature[np.isfinite(curvature)], initial=0.0))
-    slope = float(np.max(slope[np.isfinite(slope)], initial=0.0))
+    curvatures, slopes = map(np.asarray, _largest_curvature_and_slope(fitness, x))
+    curvature = float(np.max(curvatures[np.isfinite(curvatures)], initial=0.0))
+    slope = float(np.max(slopes[np.isfinite(slopes)], initial=0.0))
     omega_dt = float(params.dt) * np.sqrt(max(curvature, 0.0))
     if omega_dt > 2.0:
         return (

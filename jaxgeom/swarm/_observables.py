@@ -51,7 +51,7 @@ class _View(eqx.Module):
     """What an observable reads: the state with its cell volumes refreshed (`new`; its
     `previous_volumes` are those of the step before, for the expansion)."""
 
-    fitness: object = eqx.field(static=True)
+    fitness: Callable = eqx.field(static=True)
     params: SwarmParams
     new: SwarmState
     progress: Float[Array, ""]

@@ -15,6 +15,7 @@ import functools
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -526,7 +527,7 @@ def _fitness(frame: dict, landscape, xj, n: int, dtype):
 
 
 def _trajectory_history(series, indices, times, src, gaps, reallocations, seconds, missing, dtype) -> dict:
-    history = {name: np.asarray([float(v) for v in values], dtype) for name, values in series.items()}
+    history: dict[str, Any] = {name: np.asarray([float(v) for v in values], dtype) for name, values in series.items()}
     steps = np.asarray(src.steps)[indices] if src.steps is not None and len(indices) else np.asarray(indices)
     history.update(
         frame=np.asarray(indices, np.int64),

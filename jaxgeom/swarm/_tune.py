@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -273,10 +274,12 @@ class _Recorder:
     """The list of accepted iterates; raises `TuningFailed` at the first non-finite one."""
 
     def __init__(self, loss: SimulationLoss, bar, name: str):
-        self.loss, self.bar, self.iterations, self.name, self.thetas = loss, bar, [], name, []
+        self.loss, self.bar, self.name = loss, bar, name
+        self.iterations: list[dict[str, Any]] = []
+        self.thetas: list[np.ndarray] = []
 
     def add(self, theta, value, grad) -> None:
-        record = {
+        record: dict[str, Any] = {
             "iteration": len(self.iterations),
             "loss": float(value),
             "grad_norm": float(np.linalg.norm(np.asarray(grad))),
@@ -295,6 +298,7 @@ class _Recorder:
             what = "loss" if not np.isfinite(record["loss"]) else "gradient"
             diverged = self.loss.divergence(theta)
             why = diverged or "the swarm diverged or an observable is undefined there."
+            assert partial is not None  # this iterate was recorded
             raise TuningFailed(
                 f"tune: the {what} is not finite at iteration {record['iteration']} ({record['values']}): {why} "
                 "Start closer to sound values (a smaller dt, a larger eps_sigma), bound the parameters, or use "
@@ -371,11 +375,12 @@ def _run_optimistix(loss, solver, theta0, scale, max_steps: int, recorder: _Reco
         value, grad = _value_and_grad(loss, theta)
         recorder.add(theta, value, grad)
     converged = done and bool(result == optx.RESULTS.successful)
-    message = (
-        "converged"
-        if converged
-        else (optx.RESULTS[result] if result != optx.RESULTS.successful else f"max_steps={max_steps} reached")
-    )
+    if converged:
+        message = "converged"
+    elif result != optx.RESULTS.successful:
+        message = optx.RESULTS[result]  # type: ignore[misc]  # an equinox Enumeration: indexable
+    else:
+        message = f"max_steps={max_steps} reached"
     return theta, n_steps, converged, message
 
 

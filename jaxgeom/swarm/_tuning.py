@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -77,7 +78,7 @@ class SimulationLoss(eqx.Module):
     keys: Array
     tuned: tuple = eqx.field(static=True)
     bounds: tuple = eqx.field(static=True)  # (lower, upper) per tuned name, None where open
-    objective: object = eqx.field(static=True)
+    objective: Any = eqx.field(static=True)  # a name of OBJECTIVES or a callable
     targets: tuple = eqx.field(static=True)  # ((name, value), ...) for "match"
     observe: tuple = eqx.field(static=True)
     n_steps: int = eqx.field(static=True)
@@ -289,9 +290,9 @@ def simulation_loss(
     window = 0.5 if window is None else window
     _check_loss_args(state, params, objective, n_steps, tuned, n_seeds, targets, window, rebuild)
     tuned = tuple(tuned)
-    bounds = _bounds_of(tuned, bounds)
-    targets = tuple((str(name), float(value)) for name, value in (targets or {}).items())
-    observe = _observables_for(objective, targets, observe)
+    bound_pairs = _bounds_of(tuned, bounds)
+    target_pairs = tuple((str(name), float(value)) for name, value in (targets or {}).items())
+    observe = _observables_for(objective, target_pairs, observe)
     for name in tuned:
         reason = ignored_parameter(name, params, observe, tuned)
         if reason:
@@ -305,9 +306,9 @@ def simulation_loss(
         params,
         keys,
         tuned,
-        bounds,
+        bound_pairs,
         objective,
-        targets,
+        target_pairs,
         observe,
         int(n_steps),
         float(window),
@@ -316,7 +317,7 @@ def simulation_loss(
         bool(checkpoint),
         mesh,
     )
-    for name, (lower, upper) in zip(tuned, bounds, strict=True):
+    for name, (lower, upper) in zip(tuned, bound_pairs, strict=True):
         _check_inside(name, float(getattr(params, name)), lower, upper)
     if callable(objective):
         _check_callable_objective(loss)

@@ -181,7 +181,7 @@ class Cycles(NamedTuple):
     """Each walker's cell as a cycle of labels, with what the certificate needs of it."""
 
     labels: Int[Array, "N P"]  # neighbour across each edge, FAR for the square; N beyond count
-    count: Int[Array, " N"]
+    count: Int[Array, " N"]  # type: ignore[assignment]  # shadows tuple.count, which nothing calls
     before: Int[Array, "N P"]  # label of the previous edge (the vertex m is between before[m] and labels[m])
     after: Int[Array, "N P"]  # label of the next edge
     live: Bool[Array, "N P"]

@@ -169,7 +169,7 @@ def build_delaunay(
     check_full_rank(x)
     check_representable_spacing(x, jnp.asarray(x[:1]).dtype)
     check_resolved_positions(x, jnp.asarray(x[:1]).dtype)
-    device_failure = ()
+    device_failure: tuple[str, ...] = ()
     if d == 2 and not periodic and backend in DEVICE_BACKENDS:
         tess, reason = planar_graph_on_device(x, box_arr, capacity, backend)
         if tess is not None:
@@ -182,7 +182,11 @@ def build_delaunay(
     if d == 2 and not periodic:
         simplices, adjacency, cap, fallbacks = planar_triangles(x, capacity, backend)
         return _planar_from_host(x, simplices, adjacency, box_arr, cap.neighbors), device_failure + fallbacks
-    raw = _periodic_graph(x, box_arr, backend) if periodic else _plain_graph(x, backend)
+    if periodic:
+        assert box_arr is not None  # a periodic graph without a box is refused at the boundary
+        raw = _periodic_graph(x, box_arr, backend)
+    else:
+        raw = _plain_graph(x, backend)
     need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
     return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic), raw.fallbacks
 
@@ -567,10 +571,9 @@ def _pad_neighbors(raw: RawGraph, n: int, k_cap: int):
     if raw.nbr_shifts is None:
         return np.sort(nbrs, axis=1), None
     order = np.argsort(nbrs, axis=1, kind="stable")
-    nbrs = np.take_along_axis(nbrs, order, axis=1)
     shifts = np.zeros((n, k_cap, raw.nbr_shifts.shape[1]), np.int8)
     shifts[rows, slot] = raw.nbr_shifts
-    return nbrs, np.take_along_axis(shifts, order[..., None], axis=1)
+    return np.take_along_axis(nbrs, order, axis=1), np.take_along_axis(shifts, order[..., None], axis=1)
 
 
 def _pad_simplices(raw: RawGraph, n: int, s_cap: int):

@@ -151,7 +151,7 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
     except CoincidentPointsError:
         raise
     except Exception as err:  # noqa: BLE001 - any failure of a backend means Qhull builds this call
-        reason = f"{name} raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+        reason: str | None = f"{name} raised {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
     else:
         if len(tri.coplanar):
             raise_duplicates(x, tri.coplanar[:, 0], tri.coplanar[:, 2])
@@ -308,6 +308,7 @@ class _Triangulation:
         # True where the builder already dropped every simplex that `_flat` flags (the check's
         # own orientation test, on these very simplices): the check skips repeating it.
         self.oriented = oriented
+        self.checked = False  # True where the device already checked it (`_device_triangulation`)
 
     @functools.cached_property
     def convex_hull(self) -> np.ndarray:
@@ -339,7 +340,7 @@ def _cdt(x: np.ndarray) -> _Triangulation:
         pythoncdt.VertexInsertionOrder.AUTO, pythoncdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0
     )
     try:
-        tri.insert_vertices(points)
+        tri.insert_vertices(points)  # type: ignore[call-overload]  # its stub lists V2d; it takes (N, 2) arrays
     except RuntimeError as err:
         if "Duplicate vertex" in str(err):
             _raise_exact_duplicates(x)
