@@ -104,7 +104,7 @@ def delaunay(
     CDT; in 3D shull (GPL extra), else Qhull; in 4D Qhull. Qhull gets the points in Morton
     order, which makes it faster; all indices refer to the original order. In 2D (not
     periodic) the neighbour rows, hull flags and tiers are derived from the triangles by the
-    jitted [`planar_tessellation`][jaxgeom.tessellation._delaunay.planar_tessellation].
+    jitted `planar_tessellation` (tessellation/_delaunay.py).
 
     **Arguments:**
 

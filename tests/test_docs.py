@@ -1,0 +1,85 @@
+"""The documentation site (mkdocs.yml, docs/): every public name has an API entry and every
+entry names something public; the README sections and anchors the site is made of exist. The
+build itself (mkdocs build --strict) and its search index need the docs extra: marked `docs`."""
+
+import importlib.util
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import jaxgeom
+
+ROOT = Path(__file__).parents[1]
+DOCS = ROOT / "docs"
+
+
+def public_names() -> set[str]:
+    init = (ROOT / "jaxgeom" / "__init__.py").read_text()
+    return set(re.findall(r"^from \.[\w.]+ import (\w+) as \1$", init, flags=re.M))
+
+
+def documented() -> dict[str, list[str]]:
+    found: dict[str, list[str]] = {}
+    for page in sorted((DOCS / "api").glob("*.md")):
+        for name in re.findall(r"^::: jaxgeom\.(\w+)$", page.read_text(), flags=re.M):
+            found.setdefault(name, []).append(page.name)
+    return found
+
+
+def hooks():
+    spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "hooks.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_every_public_name_has_one_api_entry():
+    entries = documented()
+    missing = sorted(public_names() - set(entries))
+    assert not missing, f"add `::: jaxgeom.NAME` to a page of docs/api/ for {missing}"
+    twice = {name: pages for name, pages in entries.items() if len(pages) > 1}
+    assert not twice, twice
+
+
+def test_every_api_entry_names_something_public():
+    stale = sorted(name for name in documented() if name not in public_names() or not hasattr(jaxgeom, name))
+    assert not stale, f"docs/api/ documents names jaxgeom no longer exports: {stale}"
+
+
+def test_every_readme_section_and_anchor_the_site_uses_exists():
+    h = hooks()
+    readme = (ROOT / "README.md").read_text()
+    for page in DOCS.rglob("*.md"):
+        for title in re.findall(r"<!-- readme: (.+?) -->", page.read_text()):
+            assert f"\n## {title}\n" in readme, f"{page}: the README has no section {title!r}"
+            h.relative_links(h.readme_section(title), str(page.relative_to(DOCS)))  # every anchor has a page
+    for target in set(h.PAGES.values()):
+        assert (DOCS / target).is_file(), target
+
+
+@pytest.mark.docs
+def test_the_site_builds_strictly_and_search_finds_the_kernels(tmp_path):
+    if shutil.which("mkdocs") is None and importlib.util.find_spec("mkdocs") is None:
+        pytest.skip('the docs extra is not installed: pip install -e ".[docs]"')
+    site = tmp_path / "site"
+    subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    docs = json.loads((site / "search" / "search_index.json").read_text())["docs"]
+
+    def found(location: str, word: str) -> bool:
+        return any(location in d["location"] and word in (d["title"] + d["text"]).lower() for d in docs)
+
+    assert found("#jaxgeom.ricci_scalar", "curvature")
+    assert found("#jaxgeom.delaunay", "periodic")
+    for page in ("cli/", "notebooks/08_trajectories/", "bench/"):
+        assert any(d["location"].startswith(page) for d in docs), page
