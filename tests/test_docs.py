@@ -83,3 +83,18 @@ def test_the_site_builds_strictly_and_search_finds_the_kernels(tmp_path):
     assert found("#jaxgeom.delaunay", "periodic")
     for page in ("cli/", "notebooks/08_trajectories/", "bench/"):
         assert any(d["location"].startswith(page) for d in docs), page
+
+
+def docs_code_blocks() -> list[tuple[str, str]]:
+    """(page, code) of every Python block written in docs/ itself (the README's, which the
+    guides include, run in tests/test_readme.py)."""
+    blocks = []
+    for page in sorted(DOCS.rglob("*.md")):
+        for code in re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S):
+            blocks.append((str(page.relative_to(DOCS)), code))
+    return blocks
+
+
+@pytest.mark.parametrize("page, code", docs_code_blocks(), ids=lambda v: v if v.endswith(".md") else "")
+def test_every_code_block_of_the_docs_runs(page, code):
+    exec(compile(code, f"docs/{page}", "exec"), {})
