@@ -421,7 +421,7 @@ def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
     edges = corners[:, 1:] - corners[:, :1]
     total = np.sum(np.abs(np.linalg.det(edges))) / math.factorial(x.shape[1])
     box_volume = float(np.prod(np.asarray(lengths, np.float64)))
-    return abs(total - box_volume) <= 1e-9 * box_volume
+    return bool(abs(total - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
 
 def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> RawGraph:
