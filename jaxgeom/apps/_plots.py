@@ -490,7 +490,7 @@ def _first_finite(values) -> float:
 
 def _constant(values) -> bool:
     finite = np.asarray(values)[np.isfinite(values)]
-    return finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300)
+    return bool(finite.size > 0 and np.ptp(finite) <= 1e-12 * max(np.abs(finite).max(), 1e-300))
 
 
 def plot_observables(

@@ -51,7 +51,7 @@ class _View(eqx.Module):
     """What an observable reads: the state with its cell volumes refreshed (`new`; its
     `previous_volumes` are those of the step before, for the expansion)."""
 
-    fitness: Callable = eqx.field(static=True)
+    fitness: Callable | None = eqx.field(static=True)  # None: a recorded trajectory without a landscape
     params: SwarmParams
     new: SwarmState
     progress: Float[Array, ""]
@@ -109,6 +109,7 @@ def _mean_metric_curvature(s: _View):
     d = EXACT_HESSIAN_MAX_DIM, the stochastic one (DEFAULT_PROBES probe pairs, a key derived
     from the state's) above; walkers it flags (NaN) drop out of the mean."""
     tess, eps = s.new.tess, s.params.eps_sigma * s.new.eps_factor
+    assert s.fitness is not None  # refused without a landscape (analyze_trajectory); simulate always has one
     metric = hessian_metric(s.fitness, eps, floor=s.params.floor)
     d = tess.dim
     probes = None if d <= EXACT_HESSIAN_MAX_DIM else DEFAULT_PROBES
