@@ -86,21 +86,19 @@ def refuse_mixed_options(args, defaults: dict) -> None:
             raise ValueError(f"{flags} appl(y/ies) to --trajectory FILE only.")
 
 
-def run_trajectory(args) -> dict:
-    """analyze_trajectory with the command line's options, timed; Ctrl-C keeps the frames done."""
+def run_trajectory(args, src: _Source) -> dict:
+    """analyze_trajectory of the open trajectory `src` with the command line's options, timed;
+    Ctrl-C keeps the frames done."""
     start_time = time.perf_counter()
     start, stop = frame_range(args.frames) if args.frames else (0, None)
-    src = _Source(args.trajectory)
-    try:
-        d, n_frames = src.dim, src.n_frames
-    finally:
-        src.close()
+    d = src.dim
     if args.k is None:
         from ._analyze import default_k  # _analyze imports this module
 
         args.k = default_k(d)
     landscape = load_landscape(args.landscape, d)[0] if args.landscape else None
-    box = None if args.box is None else (np.full(d, args.box[0]), np.full(d, args.box[1]))
+    box = src.box if args.box is None else (np.full(d, args.box[0]), np.full(d, args.box[1]))
+    periodic = True if args.periodic else src.periodic
     if args.graph == "delaunay" and d not in (2, 3):
         raise ValueError(
             f"{args.trajectory} holds {d}D walkers: Delaunay observables need 2 or 3 dimensions; give --graph knn."
@@ -109,10 +107,10 @@ def run_trajectory(args) -> dict:
     interrupted = False
     try:
         history = jaxgeom.analyze_trajectory(
-            args.trajectory,
+            src,
             landscape=landscape,
             box=box,
-            periodic=True if args.periodic else None,
+            periodic=periodic,
             params=params,
             every=args.every,
             start=start,
@@ -132,7 +130,8 @@ def run_trajectory(args) -> dict:
         "landscape": landscape,
         "params": params,
         "box": box,
-        "n_frames": n_frames,
+        "periodic": periodic,
+        "n_frames": src.n_frames,
         "interrupted": interrupted,
         "seconds_total": time.perf_counter() - start_time,
     }
@@ -190,7 +189,7 @@ def trajectory_table(result: dict, args) -> str:
     return "\n".join(rows)
 
 
-def write_trajectory_outputs(result: dict, args) -> dict:
+def write_trajectory_outputs(result: dict, args, src: _Source) -> dict:
     out, h = args.out, result["history"]
     out.mkdir(parents=True, exist_ok=True)
     series = observable_series(h)
@@ -241,36 +240,31 @@ def write_trajectory_outputs(result: dict, args) -> dict:
             time_label="time (of the recorded frames)",
         )
     )
-    written["swarm"] = str(write_swarm(result, args, out / "swarm.png"))
+    written["swarm"] = str(write_swarm(result, args, src, out / "swarm.png"))
     return written
 
 
-def write_swarm(result: dict, args, path: Path) -> Path:
+def write_swarm(result: dict, args, src: _Source, path: Path) -> Path:
     """swarm.png of `--snapshots` frames spread over those analysed, coloured by the Ricci scalar
     of the Hessian metric with a landscape, else by the recorded fitness, else by the cells'
     volumes (k-NN: the distance to the k-th neighbour), log10."""
     h, landscape = result["history"], result["landscape"]
     frames = h["frame"]
     pick = np.unique(np.round(np.linspace(0, len(frames) - 1, min(args.snapshots, len(frames)))).astype(int))
-    src = _Source(args.trajectory)
-    try:
-        box = result["box"] if result["box"] is not None else src.box
-        periodic = bool(args.periodic or (src.periodic and result["box"] is None))
-        snapshots = [
-            _snapshot(
-                src.frame(int(frames[i])),
-                int(frames[i]),
-                int(h["step"][i]),
-                landscape,
-                result["params"],
-                box,
-                periodic,
-                args,
-            )
-            for i in pick
-        ]
-    finally:
-        src.close()
+    box = result["box"]
+    snapshots = [
+        _snapshot(
+            src.frame(int(frames[i])),
+            int(frames[i]),
+            int(h["step"][i]),
+            landscape,
+            result["params"],
+            box,
+            result["periodic"],
+            args,
+        )
+        for i in pick
+    ]
     colour = snapshots[0].pop("colour")
     for snap in snapshots[1:]:
         snap.pop("colour")
@@ -330,8 +324,21 @@ def _snapshot(frame: dict, t: int, step: int, landscape, params, box, periodic, 
 
 
 def trajectory_main(args) -> int:
+    """The trajectory is opened once: read for the analysis, then for swarm.png's frames."""
     try:
-        result = run_trajectory(args)
+        src = _Source(args.trajectory)
+    except (ValueError, TypeError, OSError, ImportError) as err:
+        print(f"jaxgeom analyze: error: {err}", file=sys.stderr)
+        return 2
+    try:
+        return _report(args, src)
+    finally:
+        src.close()
+
+
+def _report(args, src: _Source) -> int:
+    try:
+        result = run_trajectory(args, src)
     except (ValueError, TypeError, OSError, ImportError) as err:
         print(f"jaxgeom analyze: error: {err}", file=sys.stderr)
         return 2
@@ -340,7 +347,7 @@ def trajectory_main(args) -> int:
         return INTERRUPTED
     print(trajectory_table(result, args))
     if args.out is not None:
-        for name, path in write_trajectory_outputs(result, args).items():
+        for name, path in write_trajectory_outputs(result, args, src).items():
             print(f"wrote {name}: {path}")
     if result["interrupted"]:
         print(

@@ -325,7 +325,8 @@ def analyze_trajectory(
     params = SwarmParams() if params is None else params
     if not isinstance(params, SwarmParams):
         raise TypeError("`params` must be a jaxgeom.SwarmParams.")
-    src = _Source(source)
+    owned = not isinstance(source, _Source)  # the command line passes the trajectory it opened
+    src = _Source(source) if owned else source
     try:
         return _analyze(
             src,
@@ -350,7 +351,8 @@ def analyze_trajectory(
             progress,
         )
     finally:
-        src.close()
+        if owned:
+            src.close()
 
 
 def _analyze(
