@@ -77,6 +77,19 @@ def rng():
     return np.random.default_rng(12345)
 
 
+@pytest.fixture
+def own_messages():
+    """jaxgeom's own refusals of ill-typed arguments, as a user sees them: the test run checks
+    every annotation at runtime (jaxtyping's hook, pyproject addopts), which would refuse such
+    an argument first, with its own message."""
+    import jaxtyping
+
+    before = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", before)
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
     """Drop each module's compiled programs when it ends. XLA's CPU code lives in ~3 memory

@@ -391,7 +391,7 @@ VOL = np.linspace(0.5, 1.5, N)
         (lambda t: jaxgeom.batch_mesh([jax.devices()[0]] * 2), ValueError, r"`devices` lists a device more than once"),
     ],
 )
-def test_unchecked_arguments_of_issue_32(tess, call, error, message):
+def test_unchecked_arguments_of_issue_32(tess, call, error, message, own_messages):
     with pytest.raises(error, match=message):
         call(tess)
 
@@ -468,7 +468,7 @@ def swarm():
         ),
     ],
 )
-def test_unchecked_swarm_arguments_of_issue_32(swarm, call, error, message):
+def test_unchecked_swarm_arguments_of_issue_32(swarm, call, error, message, own_messages):
     with pytest.raises(error, match=message):
         call(swarm)
 

@@ -32,7 +32,7 @@ def check_progress(progress) -> None:
     raise TypeError(f"`progress` must be {PROGRESS_CHOICES}; got {progress!r}.")
 
 
-def open_bar(progress, total: int, desc: str, unit: str = "step"):
+def open_bar(progress, total: int | None, desc: str, unit: str = "step"):
     """(bar, owned): a new bar for `progress` True or "auto" (shown only when `interactive()`),
     the caller's bar itself (not owned: several calls advance one bar), or (None, False).
     The owner closes it with `close_bar`."""

@@ -31,6 +31,8 @@ divergence checks in `_divergence` and the initial state in `_swarm_init`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -94,7 +96,7 @@ def simulate(
     *,
     n_steps: int,
     rebuild_every: int = 1,
-    observe: tuple[str, ...] = OBSERVABLES,
+    observe: str | Sequence[str] = OBSERVABLES,
     rebuild: str = "host",
     spectral_gap_every: int = 0,
     progress=False,

@@ -106,7 +106,7 @@ def test_knn_k_out_of_range(rng, k):
         jaxgeom.knn_graph(rng.random((20, 3)), k)
 
 
-def test_knn_k_must_be_int(rng):
+def test_knn_k_must_be_int(rng, own_messages):
     with pytest.raises(TypeError, match="`k` must be a Python int"):
         jaxgeom.knn_graph(rng.random((20, 3)), 3.0)
 

@@ -275,7 +275,7 @@ def _not_traceable(x):
         (dict(chunk=0), ValueError, "chunk"),
     ],
 )
-def test_bad_input_is_refused_with_a_clear_message(kwargs, error, match):
+def test_bad_input_is_refused_with_a_clear_message(kwargs, error, match, own_messages):
     args = dict(metric=fisher(0.1), points=points(2, 2)) | kwargs
     metric, pts = args.pop("metric"), args.pop("points")
     with pytest.raises(error, match=match):

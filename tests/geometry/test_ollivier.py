@@ -56,7 +56,8 @@ def test_transport_gradient_is_the_plan_and_the_duals(rng):
     cost, a, b = rng.random((m, m)), rng.random(m), rng.random(m)
     a, b = a / a.sum(), b / b.sum()
     same = jnp.zeros((m, m), bool)
-    grad_c = jax.grad(lambda c: transport_cost(c, a, b, same)[0])(jnp.asarray(cost))
+    ja, jb = jnp.asarray(a), jnp.asarray(b)
+    grad_c = jax.grad(lambda c: transport_cost(c, ja, jb, same)[0])(jnp.asarray(cost))
     step = 1e-6
     for i, j in [(0, 0), (1, 3), (4, 2)]:
         e = np.zeros((m, m))
@@ -65,7 +66,7 @@ def test_transport_gradient_is_the_plan_and_the_duals(rng):
         np.testing.assert_allclose(grad_c[i, j], fd, atol=1e-6)
     direction = rng.standard_normal(m)
     direction -= direction.mean()  # keeps the total mass
-    grad_a = jax.grad(lambda p: transport_cost(cost, p, b, same)[0])(jnp.asarray(a))
+    grad_a = jax.grad(lambda p: transport_cost(jnp.asarray(cost), p, jb, same)[0])(ja)
     fd = (_linprog_w1(cost, a + step * direction, b) - _linprog_w1(cost, a - step * direction, b)) / (2 * step)
     np.testing.assert_allclose(grad_a @ direction, fd, rtol=1e-5, atol=1e-8)
 

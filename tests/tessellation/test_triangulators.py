@@ -359,7 +359,7 @@ def test_auto_takes_the_fastest_installed(monkeypatch):
     assert resolve_triangulator("auto", 2) == "cupy" and resolve_triangulator("auto", 3) == "shull"
 
 
-def test_bad_triangulators_are_refused(rng, monkeypatch):
+def test_bad_triangulators_are_refused(rng, monkeypatch, own_messages):
     x = rng.random((50, 3))
     with pytest.raises(ValueError, match="unknown triangulator 'triangle'; valid values are 'auto', 'qhull'"):
         jaxgeom.delaunay(x, triangulator="triangle")
