@@ -123,29 +123,63 @@ def hull_faces(tess: Tessellation, proper=None):
     return proper[:, None] & (raw | covered)
 
 
-def neighbor_slots(tess: Tessellation, rows, targets, shifts):
-    """The slot of `targets` (with periodic `shifts` relative to `rows`) in `rows`' neighbour
-    rows, and whether it is there (a zero-measure contact is not a neighbour)."""
-    nbrs = tess.neighbors[rows]  # (..., K)
-    match = nbrs == targets[..., None]
-    if tess.neighbor_shifts is not None:
-        match = match & jnp.all(tess.neighbor_shifts[rows] == shifts[..., None, :], axis=-1)
-    return jnp.argmax(match, axis=-1).astype(jnp.int32), jnp.any(match, axis=-1)
+SHIFT_CODES = 5  # a relative periodic shift's components lie in -2..2 (images one box away, seen from either end)
+
+
+def _row_keys(neighbors, shifts):
+    """int32 keys of neighbour `neighbors` at relative periodic `shifts` (or None): the index,
+    and on a torus the image, in one number (padding N sorts last)."""
+    if shifts is None:
+        return neighbors
+    code = jnp.zeros(neighbors.shape, jnp.int32)
+    for axis in range(shifts.shape[-1]):
+        code = code * SHIFT_CODES + (shifts[..., axis].astype(jnp.int32) + SHIFT_CODES // 2)
+    return neighbors * SHIFT_CODES ** shifts.shape[-1] + code
 
 
 def _slot_index(tess: Tessellation, ends, shifts):
     """(2 E,) the flat slot (row * K + slot) of every edge `ends` (..., 2) seen from its first
     end, then from its second; N * K where the other end is not a neighbour (a zero-measure
-    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None."""
+    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None.
+
+    Each row's keys (`_row_keys`) are sorted once and every edge finds its slot by a binary
+    search of its row: log2 K gathers per edge instead of comparing it with all K."""
     n, k = tess.neighbors.shape
+    row_keys = _row_keys(tess.neighbors, tess.neighbor_shifts)
+    slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (n, k))
+    sorted_keys, sorted_slots = jax.lax.sort((row_keys, slots), dimension=1, num_keys=1)
+    sorted_keys, sorted_slots = sorted_keys.ravel(), sorted_slots.ravel()
     index = []
     for side in (0, 1):
-        rows, targets = ends[..., side], ends[..., 1 - side]
-        rel_shift = None if shifts is None else shifts[..., 1 - side, :] - shifts[..., side, :]
-        safe_rows = jnp.minimum(rows, n - 1)
-        slot, found = neighbor_slots(tess, safe_rows, targets, rel_shift)
-        index.append(jnp.where(found & (rows < n), safe_rows * k + slot, n * k).ravel())
+        rows, targets = ends[..., side].ravel(), ends[..., 1 - side].ravel()
+        rel = None if shifts is None else (shifts[..., 1 - side, :] - shifts[..., side, :]).reshape(-1, tess.dim)
+        wanted = _row_keys(targets, rel)
+        base = jnp.minimum(rows, n - 1) * k
+        lower, upper = jnp.zeros_like(base), jnp.full_like(base, k)
+        for _ in range(k.bit_length()):  # the first place whose key is >= the wanted one
+            middle = (lower + upper) // 2
+            below = sorted_keys[base + jnp.minimum(middle, k - 1)] < wanted
+            lower, upper = jnp.where(below, middle + 1, lower), jnp.where(below, upper, middle)
+        at = base + jnp.minimum(lower, k - 1)
+        found = (sorted_keys[at] == wanted) & (rows < n) & (targets < n)
+        index.append(jnp.where(found, base + sorted_slots[at], n * k))
     return jnp.concatenate(index)
+
+
+EDGES_3D = tuple((a, b) for a in range(4) for b in range(a + 1, 4))  # a simplex's 6 edges
+# each flag's edge (EDGE_ENDS) among EDGES_3D, and whether its ends are in the other order
+FLAG_EDGE = jnp.asarray([EDGES_3D.index(tuple(sorted(e))) for e in EDGE_ENDS.reshape(-1, 2).tolist()], jnp.int32)
+FLAG_REVERSED = jnp.asarray([e[0] > e[1] for e in EDGE_ENDS.reshape(-1, 2).tolist()], bool)
+
+
+def _flag_slot_index(tess: Tessellation):
+    """`_slot_index` of every flag's edge (S, 4, 3 in EDGE_ENDS order), looked up once per
+    simplex edge (6, not 12 flags)."""
+    pairs = jnp.asarray(EDGES_3D, jnp.int32)
+    shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
+    index = _slot_index(tess, tess.simplices[:, pairs], shifts).reshape(2, -1, 6)
+    forward, backward = index[:, :, FLAG_EDGE], index[::-1][:, :, FLAG_EDGE]  # (2, S, 12)
+    return jnp.where(FLAG_REVERSED, backward, forward).ravel()
 
 
 def _sum_into_slots(values, index, n: int, k: int):
@@ -202,8 +236,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
         inside = mask[:, None] & ~outside
     keep = jnp.broadcast_to(inside if boxed else mask[:, None], pieces.shape)[:, :, None]
     ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
-    shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, EDGE_ENDS]
-    index = _slot_index(tess, ends, shifts)
+    index = _flag_slot_index(tess)
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
     areas = _sum_into_slots(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
@@ -309,44 +342,74 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
 # size are one vertex: a thin simplex's centre carries rounding of ~1/its flatness (measured:
 # up to ~1e-13 of the cell on a cubic lattice), far below a 1e-9 jitter's split vertices
 MERGE_ULPS = 4096
-VERTEX_CHUNK = 256  # cells per chunk of the distinct-vertex count (bounds its cap^2 comparisons)
+VERTEX_CHUNK = 256  # cells per chunk of the pairwise count (cells whose window did not suffice)
+VERTEX_WINDOW = 4  # each centre is compared with the next this many along the projection
+# weights of the projection that orders a cell's centres: irrational ratios, so a lattice's
+# distinct vertices (equal in some coordinates) do not tie
+PROJECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
 
 
 def _vertex_counts(tess: Tessellation, offsets, proper):
-    """(N,) the distinct Voronoi vertices of every cell, -1 where a walker has more incident
-    simplices than the table holds. A vertex is the circumcentre of an incident simplex where
-    `proper` holds ((S,), or (S, 4) per walker of the simplex: not flat, and in a box counted
-    there, `_counted_in_box`; `offsets` (S, 4, 3): circumcentre minus each vertex, images applied), and
-    co-spherical walkers (a lattice's) share one among several simplices: centres closer than
-    rounding of the cell's size count once. The incident simplices of a walker are at most
-    2 deg - 4 (its link is a triangulated sphere); the table holds 2 K + 8."""
+    """(N,) the distinct Voronoi vertices of every cell. A vertex is the circumcentre of an
+    incident simplex where `proper` holds ((S,), or (S, 4) per walker of the simplex: not flat,
+    and in a box counted there, `_counted_in_box`; `offsets` (S, 4, 3): circumcentre minus each
+    vertex, images applied), and co-spherical walkers (a lattice's) share one among several
+    simplices: a centre within rounding of the cell's size (Chebyshev, MERGE_ULPS) of an earlier
+    one (in simplex order) is not counted again.
+
+    Every (cell, centre) is sorted by cell and a projection of the centre, so two close centres
+    of a cell lie within VERTEX_WINDOW places of each other unless more than that many
+    projections crowd within the tolerance; those few cells (none in uniform samples) are
+    compared pair by pair (`_pairwise_counts`), -1 where a walker has more incident simplices
+    than that table holds (2 K + 8)."""
     n, k = tess.neighbors.shape
-    cap = 2 * k + 8
-    cells = jnp.where(proper if proper.ndim == 2 else proper[:, None], tess.simplices, n).ravel()
-    order = jnp.argsort(cells, stable=True)
-    sorted_cells = cells[order]
-    slot = jnp.arange(cells.shape[0], dtype=jnp.int32) - jnp.searchsorted(sorted_cells, sorted_cells).astype(jnp.int32)
     d = offsets.shape[-1]
-    table = jnp.full((n + 1, cap, d), jnp.nan, offsets.dtype)
-    table = table.at[sorted_cells, slot].set(offsets.reshape(-1, d)[order], mode="drop")[:n]
-    overflow = jax.ops.segment_max((slot >= cap).astype(jnp.int32), sorted_cells, num_segments=n + 1)[:n] > 0
-    eps = jnp.finfo(offsets.dtype).eps
-    n_chunks = -(-n // VERTEX_CHUNK)
-    padded = jnp.concatenate([table, jnp.full((n_chunks * VERTEX_CHUNK - n, cap, d), jnp.nan, table.dtype)])
+    cells = jnp.where(proper if proper.ndim == 2 else proper[:, None], tess.simplices, n).ravel()
+    flat = offsets.reshape(-1, d)
+    valid = cells < n
+    extent = jnp.where(valid, jnp.max(jnp.abs(flat), axis=-1), 0.0)
+    tolerance = MERGE_ULPS * jnp.finfo(offsets.dtype).eps * jax.ops.segment_max(extent, cells, num_segments=n + 1)
+    weights = jnp.asarray(PROJECTION[:d], offsets.dtype)
+    projection = jnp.where(valid, flat @ weights, 0.0)
+    entry = jnp.arange(cells.shape[0], dtype=jnp.int32)
+    cells, projection, entry = jax.lax.sort((cells, projection, entry), num_keys=2)
+    rows = flat[entry]
+    limit = tolerance[cells]
+    repeated = jnp.zeros(cells.shape, bool)
+    for w in range(1, VERTEX_WINDOW + 1):
+        close = (cells[w:] == cells[:-w]) & (jnp.max(jnp.abs(rows[w:] - rows[:-w]), axis=-1) <= limit[:-w])
+        later = entry[w:] > entry[:-w]  # the one further on in simplex order is the repeat
+        none = jnp.zeros(w, bool)
+        repeated = repeated | jnp.concatenate([none, close & later]) | jnp.concatenate([close & ~later, none])
+    counted = (cells < n) & ~repeated
+    counts = jax.ops.segment_sum(counted.astype(jnp.int32), cells, num_segments=n + 1)[:n]
+    w = VERTEX_WINDOW
+    crowded = (cells[w:] == cells[:-w]) & (projection[w:] - projection[:-w] <= limit[:-w] * float(sum(PROJECTION)))
+    flagged = jnp.zeros(n + 1, bool).at[cells[:-w]].max(crowded)[:n]
+    incident = jax.ops.segment_sum(jnp.ones(cells.shape, jnp.int32), cells, num_segments=n + 1)
+    rows_at, pairwise = _pairwise_counts(cells, rows, entry, limit, incident, flagged, cap=2 * k + 8)
+    return counts.at[rows_at].set(pairwise, mode="drop")
 
-    def count(rows):
-        valid = jnp.isfinite(rows[..., 0])
-        size = jnp.max(jnp.where(valid, jnp.max(jnp.abs(rows), axis=-1), 0.0), axis=1)
-        close = (
-            jnp.max(jnp.abs(rows[:, :, None, :] - rows[:, None, :, :]), axis=-1)
-            <= (MERGE_ULPS * eps * size)[:, None, None]
-        )
-        earlier = jnp.tril(jnp.ones((cap, cap), bool), -1)
-        repeated = jnp.any(close & earlier & valid[:, None, :], axis=2)
-        return jnp.sum(valid & ~repeated, axis=1, dtype=jnp.int32)
 
-    counts = jax.lax.map(count, padded.reshape(n_chunks, VERTEX_CHUNK, cap, d)).ravel()[:n]
-    return jnp.where(overflow, -1, counts)
+def _pairwise_counts(cells, rows, entry, limit, incident, flagged, *, cap: int):
+    """(rows, counts): the `flagged` cells' distinct centres compared pair by pair, from the
+    sorted (cell, centre) entries of `_vertex_counts` (`incident` (N + 1,) per cell), chunk by
+    chunk, -1 where a cell has more than `cap` entries."""
+    n = flagged.shape[0]
+    starts = jnp.searchsorted(cells, jnp.arange(n + 1, dtype=cells.dtype)).astype(jnp.int32)
+
+    def count(ids):
+        at = starts[ids][:, None] + jnp.arange(cap, dtype=jnp.int32)[None, :]
+        inside = jnp.arange(cap, dtype=jnp.int32)[None, :] < incident[ids][:, None]
+        at = jnp.where(inside, at, 0)
+        centres, order = rows[at], jnp.where(inside, entry[at], -1)
+        close = jnp.max(jnp.abs(centres[:, :, None, :] - centres[:, None, :, :]), axis=-1) <= limit[at][:, :, None]
+        earlier = order[:, None, :] < order[:, :, None]
+        repeated = jnp.any(close & earlier & inside[:, None, :], axis=2)
+        distinct = jnp.sum(inside & ~repeated, axis=1, dtype=jnp.int32)
+        return jnp.where(incident[ids] > cap, -1, distinct)
+
+    return map_flagged_rows(flagged, VERTEX_CHUNK, count, lambda ids: jnp.zeros(ids.shape, jnp.int32))
 
 
 # --- 2D ----------------------------------------------------------------------------------
