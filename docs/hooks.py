@@ -2,6 +2,7 @@
 command line page from the argparse parsers, so neither can drift from its source."""
 
 import contextlib
+import html as htmllib
 import io
 import re
 from pathlib import Path
@@ -66,3 +67,18 @@ def on_page_markdown(markdown: str, page, **kwargs) -> str:
         blocks = [f"## jaxgeom {c}\n\n```text\n{_help(c)}```\n" for c in ("simulate", "analyze", "tune")]
         markdown = markdown.replace(CLI_MARKER, intro + "\n" + "\n".join(blocks))
     return markdown
+
+
+ARITHMATEX = re.compile(r'<(span|div) class="arithmatex">\s*\\[(\[](.*?)\\[)\]]\s*</\1>', re.DOTALL)
+
+
+def on_page_content(html: str, page, **kwargs) -> str:
+    """Formulas as MathML (latex2mathml), which browsers render natively: no MathJax or KaTeX
+    script, and nothing fetched from a CDN to build or to read the site."""
+    from latex2mathml.converter import convert
+
+    def mathml(m):
+        display = "block" if m.group(1) == "div" else "inline"
+        return convert(htmllib.unescape(m.group(2)).strip(), display=display)
+
+    return ARITHMATEX.sub(mathml, html)

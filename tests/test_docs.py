@@ -83,6 +83,11 @@ def test_the_site_builds_strictly_and_search_finds_the_kernels(tmp_path):
     assert found("#jaxgeom.delaunay", "periodic")
     for page in ("cli/", "notebooks/08_trajectories/", "bench/"):
         assert any(d["location"].startswith(page) for d in docs), page
+    # formulas are MathML in the pages (docs/hooks.py), none left as TeX for a script to render
+    pages = {p: p.read_text() for p in site.rglob("*.html")}
+    assert not [p for p, text in pages.items() if 'class="arithmatex"' in text]
+    curvature = pages[site / "api" / "curvature" / "index.html"]
+    assert curvature.count('display="block"') >= 2 and "<mfrac>" in curvature
 
 
 def docs_code_blocks() -> list[tuple[str, str]]:
