@@ -119,15 +119,15 @@ def run(state, params, n_steps, rebuild_every, observe, rebuild="host", repeats=
         per_step.append(seconds / n_steps)
         in_run.append(clock.seconds / n_steps)
         alone.append(qhull_alone(final.positions) * clock.calls / n_steps)
-    rest_alone = [(t - q) / q for t, q in zip(per_step, alone)]
-    rest_in_run = [(t - q) / q for t, q in zip(per_step, in_run)]
+    rest_alone = [(t - q) / q for t, q in zip(per_step, alone, strict=True)]
+    rest_in_run = [(t - q) / q for t, q in zip(per_step, in_run, strict=True)]
     median = lambda values: float(np.median(values))  # noqa: E731
     return {
         "steps_per_second": 1.0 / median(per_step),
         "seconds_per_step": median(per_step),
         "qhull_seconds_per_step_in_run": median(in_run),
         "qhull_alone_seconds_per_step": median(alone),
-        "qhull_share": median([q / t for t, q in zip(per_step, in_run)]),
+        "qhull_share": median([q / t for t, q in zip(per_step, in_run, strict=True)]),
         "rest_over_qhull": median(rest_alone),
         "rest_over_qhull_in_run": median(rest_in_run),
         "runs": {"seconds_per_step": per_step, "rest_over_qhull": rest_alone, "rest_over_qhull_in_run": rest_in_run},
@@ -254,7 +254,7 @@ def rebuild_modes(sizes, steps, modes, budget: float) -> list:
     """Each (size, mode) in a child process under what is left of `budget` seconds; a child
     that runs out is reported as timed out, not dropped."""
     rows, deadline = [], time.perf_counter() + budget
-    for n, n_steps in zip(sizes, steps):
+    for n, n_steps in zip(sizes, steps, strict=True):
         for mode in modes:
             left = deadline - time.perf_counter()
             if left <= 1.0:
@@ -492,7 +492,7 @@ def main() -> None:
             "jax": jax.__version__,
             "dtype": "float32",
         },
-        "throughput": [throughput(n, s) for n, s in zip(args.sizes, args.steps)],
+        "throughput": [throughput(n, s) for n, s in zip(args.sizes, args.steps, strict=True)],
         "rebuild_strategy": rebuild_strategy(args.sizes[0], args.steps[0]),
         "viscous_force": force_versus_numpy(args.force_n),
     }

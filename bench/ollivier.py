@@ -169,7 +169,7 @@ def grc_curvature(tess, weighted, proc=2):
     graph = nx.Graph()
     graph.add_nodes_from(range(len(x)))
     rows, cols = np.nonzero(nbrs < len(x))
-    for i, j in zip(rows.tolist(), nbrs[rows, cols].tolist()):
+    for i, j in zip(rows.tolist(), nbrs[rows, cols].tolist(), strict=True):
         graph.add_edge(i, j, **({"weight": float(np.linalg.norm(x[i] - x[j]))} if weighted else {}))
     start = time.perf_counter()
     orc = OllivierRicci(graph, alpha=0.5, method="OTD", proc=proc, verbose="ERROR")
@@ -198,7 +198,9 @@ def max_difference(orc, graph):
     nbrs, kappa = np.asarray(orc.neighbors), np.asarray(orc.edge_curvature)
     rows, cols = np.nonzero(nbrs < len(nbrs))
     ours = kappa[rows, cols]
-    theirs = np.array([graph[i][j]["ricciCurvature"] for i, j in zip(rows.tolist(), nbrs[rows, cols].tolist())])
+    theirs = np.array(
+        [graph[i][j]["ricciCurvature"] for i, j in zip(rows.tolist(), nbrs[rows, cols].tolist(), strict=True)]
+    )
     return float(np.max(np.abs(ours - theirs))), int(len(rows) // 2)
 
 

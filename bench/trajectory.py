@@ -94,7 +94,7 @@ def kernels_alone(frames, graphs, parents, fn, observe) -> float:
     n, params = frames.shape[1], jaxgeom.SwarmParams()
     state = prepare_scutoid_trace(_first_state(frames[0], graphs[0], DTYPE), observe)
     start, out = time.perf_counter(), []
-    for t, (x, tess) in enumerate(zip(frames, graphs)):
+    for t, (x, tess) in enumerate(zip(frames, graphs, strict=True)):
         xj = jnp.asarray(x)
         state = eqx.tree_at(lambda s: s.tess, state, eqx.tree_at(lambda g: g.points, tess, xj))
         values = None if fn is not None else jnp.zeros(n, DTYPE)  # a landscape is evaluated in the program

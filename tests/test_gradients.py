@@ -86,7 +86,7 @@ def test_small_eigh_matches_lapack_with_repeated_spectra_and_exact_zeros(rng, d)
         ours = projectors(values[k], vectors[k], 1e-9)
         ref = projectors(ref_values[k], ref_vectors[k], 1e-9)
         assert len(ours) == len(ref)
-        for (_, p), (_, p_ref) in zip(ours, ref):  # the eigenvalues: compared above
+        for (_, p), (_, p_ref) in zip(ours, ref, strict=True):  # the eigenvalues: compared above
             np.testing.assert_allclose(p, p_ref, atol=1e-9)
 
 
@@ -369,7 +369,7 @@ def test_kernel_gradients_in_float32_match_float64(name):
     """float32 central differences cannot resolve these; the float64 gradient can."""
     g32 = kernel_gradients(*kernel_loss(name, "delaunay", 3, "clip", "indefinite", np.float32))
     g64 = kernel_gradients(*kernel_loss(name, "delaunay", 3, "clip", "indefinite"))
-    for a, b in zip(g32, g64):
+    for a, b in zip(g32, g64, strict=True):
         assert a.dtype == np.float32
         np.testing.assert_allclose(a, b, rtol=1e-2, atol=1e-2 * np.abs(b).max())
 

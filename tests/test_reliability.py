@@ -253,7 +253,10 @@ def test_periodic_lattices_are_exact(d, m, offset):
     tess = jaxgeom.delaunay(x, box=(0.0, float(m)), periodic=True)
     np.testing.assert_allclose(np.asarray(jaxgeom.voronoi_volumes(tess)), 1.0, rtol=1e-12)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
-    rows = [{(int(j), tuple(s.tolist())) for j, s in zip(nb, sh) if j < len(x)} for nb, sh in zip(nbrs, shifts)]
+    rows = [
+        {(int(j), tuple(s.tolist())) for j, s in zip(nb, sh, strict=True) if j < len(x)}
+        for nb, sh in zip(nbrs, shifts, strict=True)
+    ]
     assert rows == face_neighbors(x, m)
 
 

@@ -294,7 +294,7 @@ def test_swarm_panels_show_every_walker_then_the_largest_cluster_then_the_distri
     (x0, x1), (y0, y1) = zoomed[0].get_xlim(), zoomed[0].get_ylim()
     assert max(x1 - x0, y1 - y0) <= 0.25 * frame + 1e-9, "a uniform swarm: a window, not the whole frame"
     biggest = centres[np.argmax(weights)]
-    for ax, walkers in zip(zoomed[1:], later):
+    for ax, walkers in zip(zoomed[1:], later, strict=True):
         cluster = walkers[np.all(np.abs(walkers - biggest) < 0.5, axis=1)]
         (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
         inside = (cluster[:, 0] >= x0) & (cluster[:, 0] <= x1) & (cluster[:, 1] >= y0) & (cluster[:, 1] <= y1)

@@ -184,7 +184,7 @@ class Function:
         for pointer, size, line, block in self.accesses:
             counters = sorted(self.depends(pointer) | self.guard_counters(block))
             for corner in itertools.product(*(self.loops[n] for n in counters)):
-                env = dict(zip(counters, corner))
+                env = dict(zip(counters, corner, strict=True))
                 where = self.value(pointer, env)
                 if not isinstance(where, tuple) or not self.reached(block, env):
                     continue

@@ -40,10 +40,12 @@ def halfspace_cells(x, neighbors, box=None):
             except Exception:  # noqa: BLE001 - collinear: zero area
                 return 0.0
 
-        faces = {j: measure(x[j] - x[i], c) for j, (_, c) in zip([j for j in neighbors[i] if j < n], planes)}
+        faces = {
+            j: measure(x[j] - x[i], c) for j, (_, c) in zip([j for j in neighbors[i] if j < n], planes, strict=True)
+        }
         centre = v.mean(0)
         pieces = [abs(np.linalg.det(v[s] - centre)) for s in hull.simplices]
-        moment = sum(w * (centre + v[s].sum(0)) / (d + 1) for w, s in zip(pieces, hull.simplices))
+        moment = sum(w * (centre + v[s].sum(0)) / (d + 1) for w, s in zip(pieces, hull.simplices, strict=True))
         cells.append((faces, [measure(a, c) for a, c in walls], hull.volume, moment / sum(pieces), len(v)))
     return cells
 
@@ -111,7 +113,9 @@ def test_boxed_cells_of_clustered_walkers_equal_scipy():
     edge cubed they were, and the hull's faces around them went wrong by up to 1e4x)."""
     rng = np.random.default_rng(12345)
     scales = np.array([1e-4, 1e-3, 1e-2, 1e-1, 1.0]) * 100 ** (1 / 3)
-    x = np.concatenate([c + s * rng.random((100, 3)) for c, s in zip(rng.uniform(-50, 50, (5, 3)), scales)])
+    x = np.concatenate(
+        [c + s * rng.random((100, 3)) for c, s in zip(rng.uniform(-50, 50, (5, 3)), scales, strict=True)]
+    )
     box = (x.min(axis=0) - 1.0, x.max(axis=0) + 1.0)
     tess = jaxgeom.delaunay(x, box=box)
     volumes = np.asarray(jaxgeom.voronoi_volumes(tess))
@@ -211,14 +215,14 @@ def test_facet_areas_are_freuds_voronoi_neighbour_weights(rng, d):
     ours = {
         (int(i), int(j)): float(a)
         for i, row, arow in zip(
-            range(len(x)), np.asarray(tess.neighbors), np.asarray(jaxgeom.voronoi_facets(tess).areas)
+            range(len(x)), np.asarray(tess.neighbors), np.asarray(jaxgeom.voronoi_facets(tess).areas), strict=True
         )
-        for j, a in zip(row, arow)
+        for j, a in zip(row, arow, strict=True)
         if j < len(x)
     }
     theirs = {
         (int(i), int(j)): float(w)
-        for i, j, w in zip(nlist.query_point_indices, nlist.point_indices, nlist.weights)
+        for i, j, w in zip(nlist.query_point_indices, nlist.point_indices, nlist.weights, strict=True)
         if w > 1e-12
     }
     assert set(theirs) <= set(ours)

@@ -39,7 +39,7 @@ def dense(op, n):
     """Dense K and M from the per-simplex operators (test reference sizes only)."""
     k = np.zeros((n, n))
     simplices, stiffness = np.asarray(op.simplices), np.asarray(op.stiffness)
-    for s, local in zip(simplices, stiffness):
+    for s, local in zip(simplices, stiffness, strict=True):
         if s[0] < n:
             k[np.ix_(s, s)] += local
     return k, np.asarray(op.mass)

@@ -47,7 +47,7 @@ def test_transport_matches_linear_programming(rng):
     cost[same] = 0.0
     w1, ok = solve(jnp.asarray(cost), jnp.asarray(a), jnp.asarray(b), jnp.asarray(same))
     assert np.all(ok)
-    ref = [_linprog_w1(c, p, q) for c, p, q in zip(cost, a, b)]
+    ref = [_linprog_w1(c, p, q) for c, p, q in zip(cost, a, b, strict=True)]
     np.testing.assert_allclose(w1, ref, rtol=1e-7, atol=1e-9)  # HiGHS stops at ~1e-9
 
 
@@ -314,8 +314,9 @@ def test_periodic_knn_graph_equals_the_graph_of_explicit_images(rng):
         na, nb = np.asarray(a.neighbors)[:n], np.asarray(b.neighbors)[:n]
         ka, kb = np.asarray(a.edge_curvature)[:n], np.asarray(b.edge_curvature)[:n]
         for i in range(n):
-            mine = dict(zip(na[i][na[i] < n].tolist(), ka[i][na[i] < n]))
-            theirs = {walker[j]: v for j, v in zip(nb[i][nb[i] < len(images)].tolist(), kb[i])}
+            mine = dict(zip(na[i][na[i] < n].tolist(), ka[i][na[i] < n], strict=True))
+            kept = nb[i] < len(images)
+            theirs = {walker[j]: v for j, v in zip(nb[i][kept].tolist(), kb[i][kept], strict=True)}
             assert mine.keys() == theirs.keys()
             np.testing.assert_allclose([mine[j] for j in mine], [theirs[j] for j in mine], rtol=1e-10)
 

@@ -76,7 +76,7 @@ def one_flip(rng):
     tri = Delaunay(x0)
     edges = lambda t: {tuple(sorted(e)) for s in t.simplices for e in itertools.combinations(s, 2)}  # noqa: E731
     base = edges(tri)
-    for s, nbrs in zip(tri.simplices, tri.neighbors):
+    for s, nbrs in zip(tri.simplices, tri.neighbors, strict=True):
         for m in range(3):
             if nbrs[m] < 0:
                 continue

@@ -171,7 +171,7 @@ def exact_voronoi_area(x: np.ndarray, i: int, big: Fraction = Fraction(10**15)) 
                 out.append((u[0] + t * (v[0] - u[0]), u[1] + t * (v[1] - u[1])))
         poly = out
     assert all(abs(c) < big for u in poly for c in u), "the cell reaches the start square"
-    return sum(u[0] * v[1] - v[0] * u[1] for u, v in zip(poly, poly[1:] + poly[:1])) / 2
+    return sum(u[0] * v[1] - v[0] * u[1] for u, v in zip(poly, poly[1:] + poly[:1], strict=True)) / 2
 
 
 def near_line(noise: float, seed: int = 0) -> np.ndarray:

@@ -27,7 +27,7 @@ def swarm(seed):
 
 def same(a, b) -> bool:
     """Bitwise equal pytrees (NaN equal to NaN: the callback mode records NaN timings)."""
-    pairs = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))
+    pairs = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True)
     return all(np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True) for x, y in pairs)
 
 

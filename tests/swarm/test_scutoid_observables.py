@@ -35,7 +35,7 @@ def test_observables_equal_the_kernel_on_consecutive_graphs_with_the_clone_paren
         state, history = jaxgeom.simulate(V, state, params, n_steps=1, observe=SCUTOIDS)
         states.append(state)
         fractions.append([float(history[name][-1]) for name in SCUTOIDS])
-    for before, after, seen in zip(states[:-1], states[1:], fractions):
+    for before, after, seen in zip(states[:-1], states[1:], fractions, strict=True):
         parents = np.asarray(after.scutoid_trace.parents)
         cloned = np.asarray(after.cloned)
         assert cloned.sum() > 0 and (parents[~cloned] == np.flatnonzero(~cloned)).all()

@@ -28,7 +28,7 @@ def run():
         state, h = jaxgeom.simulate(rastrigin, state, PARAMS, n_steps=1, observe=RECORDED)
         for name in RECORDED:
             history[name].append(float(h[name][0]))
-    x, v, f, p = map(np.stack, zip(*frames))
+    x, v, f, p = map(np.stack, zip(*frames, strict=True))
     assert (p != np.arange(150)).any()  # the run cloned
     return x, v, f, p, {name: np.asarray(values) for name, values in history.items()}
 
@@ -291,7 +291,7 @@ def test_the_command_line_reports_a_saved_run_as_its_own_history(saved_run, tmp_
     # the spectral gap every 3 analysed frames, each the gap of its own frame's graph
     assert saved["spectral_gap"]["frame"] == [0, 3, 6]
     with jaxgeom.H5MDTrajectory(path) as h5:
-        for frame, gap in zip(saved["spectral_gap"]["frame"], saved["spectral_gap"]["value"]):
+        for frame, gap in zip(saved["spectral_gap"]["frame"], saved["spectral_gap"]["value"], strict=True):
             alone = jaxgeom.spectral_gap(jaxgeom.delaunay(h5.frame(frame)["positions"]), k=2)[1]
             np.testing.assert_allclose(gap, float(alone), rtol=1e-6)
     # the observables' H5MD file, read by an independent reader

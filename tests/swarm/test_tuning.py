@@ -282,7 +282,9 @@ def error_problem(tuned=("nu", "eps_sigma"), targets=("velocity_variance", "mean
     common = dict(n_steps=4, params=params, tuned=tuned, n_seeds=4, rebuild_every=4)
     record = jaxgeom.simulation_loss(V, state, "match", targets={name: 1.0 for name in targets}, key=99, **common)
     values = np.asarray(record.seed_moments(record.to_theta())).mean(axis=0)
-    return jaxgeom.simulation_loss(V, state, "match", targets=dict(zip(targets, values.tolist())), **common)
+    return jaxgeom.simulation_loss(
+        V, state, "match", targets=dict(zip(targets, values.tolist(), strict=True)), **common
+    )
 
 
 def test_standard_errors_are_the_sandwich_of_the_seed_spread():

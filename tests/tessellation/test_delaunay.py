@@ -87,7 +87,7 @@ def test_periodic_neighbors_match_tiled_scipy(rng, d, n):
     x = lower + rng.random((n, d)) * (upper - lower)
     tess = jaxgeom.delaunay(x, box=(lower, upper), periodic=True)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
-    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < n} for i in range(n)]
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i], strict=True) if j < n} for i in range(n)]
     assert ours == periodic_neighbor_sets(x, lower, upper)
     assert np.all(np.asarray(tess.tier) == 2) and not np.asarray(tess.hull).any()
 
@@ -98,7 +98,7 @@ def test_periodic_small_elongated_box_uses_stored_shifts(rng):
     x = lower + rng.random((9, 2)) * (upper - lower)
     tess = jaxgeom.delaunay(x, box=(lower, upper), periodic=True)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
-    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < 9} for i in range(9)]
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i], strict=True) if j < 9} for i in range(9)]
     assert ours == periodic_neighbor_sets(x, lower, upper, layers=3)
     dx = np.asarray(jaxgeom.neighbor_displacements(tess))[np.asarray(tess.neighbor_mask)]
     assert np.any(np.abs(dx[:, 1]) > 0.2), "some edge is longer than half the box"
@@ -169,7 +169,7 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     x = rng.random((n, d))
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
-    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i]) if j < n} for i in range(n)]
+    ours = [{(int(j), tuple(s.tolist())) for j, s in zip(nbrs[i], shifts[i], strict=True) if j < n} for i in range(n)]
     assert ours == periodic_neighbor_sets(x, np.zeros(d), np.ones(d), layers=1)
     assert len(calls) > 2, "more than one slab, and at least one retry"
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9

@@ -305,7 +305,7 @@ def incircle(a, b, c, d) -> Fraction:
 
 
 def locally_delaunay_everywhere(x, simplices, adjacency) -> bool:
-    for t, (tri, across) in enumerate(zip(simplices, adjacency)):
+    for t, (tri, across) in enumerate(zip(simplices, adjacency, strict=True)):
         for other in across:
             if other > t:
                 opposite = next(v for v in simplices[other] if v not in tri)

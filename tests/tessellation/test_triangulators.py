@@ -36,7 +36,9 @@ def simplex_set(tess) -> set:
     if tess.simplex_shifts is None:
         return {tuple(sorted(r)) for r in s.tolist()}
     shifts = np.asarray(tess.simplex_shifts)[np.asarray(tess.simplex_mask)]
-    return {tuple(sorted(zip(r.tolist(), map(tuple, sh.tolist())))) for r, sh in zip(s, shifts)}
+    return {
+        tuple(sorted(zip(r.tolist(), map(tuple, sh.tolist()), strict=True))) for r, sh in zip(s, shifts, strict=True)
+    }
 
 
 def neighbor_sets(tess) -> list:
@@ -45,14 +47,17 @@ def neighbor_sets(tess) -> list:
     if tess.neighbor_shifts is None:
         return [set(r[r < n].tolist()) for r in nbrs]
     shifts = np.asarray(tess.neighbor_shifts)
-    return [{(int(j), tuple(s.tolist())) for j, s in zip(r, sh) if j < n} for r, sh in zip(nbrs, shifts)]
+    return [
+        {(int(j), tuple(s.tolist())) for j, s in zip(r, sh, strict=True) if j < n}
+        for r, sh in zip(nbrs, shifts, strict=True)
+    ]
 
 
 def clustered(rng, n: int, d: int) -> np.ndarray:
     """Five clusters whose walker spacings span 1e-4 .. 1 (1e4 x)."""
     scales = np.array([1e-4, 1e-3, 1e-2, 1e-1, 1.0]) * (n / 5) ** (1 / d)
     centers = rng.uniform(-50, 50, (5, d))
-    return np.concatenate([c + s * rng.random((n // 5, d)) for c, s in zip(centers, scales)])
+    return np.concatenate([c + s * rng.random((n // 5, d)) for c, s in zip(centers, scales, strict=True)])
 
 
 def swarm_after_cloning(d: int) -> np.ndarray:
@@ -80,7 +85,7 @@ def exact_det(m: list) -> Fraction:
 
 
 def exact_lifted_det(p: np.ndarray, q: np.ndarray) -> Fraction:
-    rows = [[Fraction(float(a)) - Fraction(float(b)) for a, b in zip(v, q)] for v in p]
+    rows = [[Fraction(float(a)) - Fraction(float(b)) for a, b in zip(v, q, strict=True)] for v in p]
     return exact_det([r + [sum(c * c for c in r)] for r in rows])
 
 
@@ -102,7 +107,7 @@ def exact_delaunay_violations(x: np.ndarray, simplices: np.ndarray) -> int:
     sure = int((value[~unsure] > 0).sum())
     return sure + sum(
         exact_lifted_det(x[simplices[t]], x[w]) * sign > 0
-        for t, w, sign in zip(t_idx[unsure], w_idx[unsure], inside_sign[unsure])
+        for t, w, sign in zip(t_idx[unsure], w_idx[unsure], inside_sign[unsure], strict=True)
     )
 
 
@@ -166,8 +171,8 @@ def test_lattices_keep_exact_volumes_and_positive_measure_neighbours(name, d, pe
     # Co-spherical cells split either way: contacts between two hull walkers are all kept (the
     # rule of Tessellation.neighbors), so only the other walkers' neighbours are unique.
     inside = ~np.asarray(ref.hull)
-    assert [s for s, keep in zip(neighbor_sets(ours), inside) if keep] == [
-        s for s, keep in zip(neighbor_sets(ref), inside) if keep
+    assert [s for s, keep in zip(neighbor_sets(ours), inside, strict=True) if keep] == [
+        s for s, keep in zip(neighbor_sets(ref), inside, strict=True) if keep
     ]
     volumes = np.asarray(jaxgeom.voronoi_volumes(ours))
     # Every cell is a cube of side 1/side, the boxed hull cells included (their clipping once
@@ -192,7 +197,7 @@ def test_cdt_drops_its_zero_area_triangles_along_a_collinear_hull_side():
         ours = jaxgeom.delaunay(z, triangulator="cdt")
     ref = jaxgeom.delaunay(z, triangulator="qhull")
     hull = np.asarray(ours.hull) | np.asarray(ref.hull)
-    for k, (a, b) in enumerate(zip(neighbor_sets(ours), neighbor_sets(ref))):
+    for k, (a, b) in enumerate(zip(neighbor_sets(ours), neighbor_sets(ref), strict=True)):
         assert all(hull[m] and hull[k] for m in a ^ b), k
     np.testing.assert_allclose(
         np.asarray(jaxgeom.voronoi_volumes(ours)), np.asarray(jaxgeom.voronoi_volumes(ref)), rtol=1e-9, equal_nan=True
