@@ -435,6 +435,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="rounds of --against")
     parser.add_argument("--one", nargs=3, metavar=("N", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if len(args.steps) != len(args.sizes):  # each size its own step count (zip once dropped the extra sizes)
+        parser.error(f"--steps gives {len(args.steps)} counts for {len(args.sizes)} --sizes; give one per size")
     if args.one:
         print(json.dumps(one_mode(int(args.one[0]), args.one[1], int(args.one[2]), repeats=2)), flush=True)
         return
