@@ -419,7 +419,7 @@ def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
     slabs, leaving a gap at the seam."""
     corners = np.asarray(x, np.float64)[raw.simplices] + raw.simplex_shifts * np.asarray(lengths, np.float64)
     edges = corners[:, 1:] - corners[:, :1]
-    total = np.sum(np.abs(np.linalg.det(edges))) / math.factorial(x.shape[1])
+    total = np.sum(np.abs(_determinants(edges))) / math.factorial(x.shape[1])
     box_volume = float(np.prod(np.asarray(lengths, np.float64)))
     return bool(abs(total - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
@@ -508,12 +508,42 @@ def _circumballs_empty(p: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi
     return bool(np.all(dist >= radius * (1.0 - 1e-10)))
 
 
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise u x v of (S, 3) arrays, by components (np.cross costs 2x more)."""
+    return np.stack(
+        [
+            u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1],
+            u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+            u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0],
+        ],
+        axis=1,
+    )
+
+
+def _determinants(e: np.ndarray) -> np.ndarray:
+    """det of each (d, d) block of e (S, d, d); in 3D the triple product (numpy's batched LU
+    costs 8x more there)."""
+    if e.shape[1:] != (3, 3):
+        return np.linalg.det(e)
+    return np.sum(e[:, 0] * _cross(e[:, 1], e[:, 2]), axis=1)
+
+
 def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2."""
+    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2
+    (in 3D by Cramer's rule: u = (|a|^2 b x c + |b|^2 c x a + |c|^2 a x b) / (2 a . b x c))."""
     e = p[:, 1:] - p[:, :1]
-    flat = np.abs(np.linalg.det(e)) <= 1e-12 * np.einsum("sij,sij->s", e, e) ** (e.shape[1] / 2)
-    e[flat] = np.eye(e.shape[1])
-    offset = np.linalg.solve(e, 0.5 * np.einsum("sij,sij->si", e, e)[..., None])[..., 0]
+    squares = np.einsum("sij,sij->si", e, e)
+    if e.shape[1:] == (3, 3):
+        a, b, c = e[:, 0], e[:, 1], e[:, 2]
+        bc = _cross(b, c)
+        det = np.sum(a * bc, axis=1)
+        flat = np.abs(det) <= 1e-12 * np.sum(squares, axis=1) ** 1.5
+        weighted = squares[:, :1] * bc + squares[:, 1:2] * _cross(c, a) + squares[:, 2:] * _cross(a, b)
+        offset = weighted / (2.0 * np.where(flat, 1.0, det))[:, None]
+    else:
+        flat = np.abs(np.linalg.det(e)) <= 1e-12 * np.sum(squares, axis=1) ** (e.shape[1] / 2)
+        e[flat] = np.eye(e.shape[1])
+        offset = np.linalg.solve(e, 0.5 * squares[..., None])[..., 0]
     radius = np.where(flat, np.inf, np.linalg.norm(offset, axis=1))
     return p[:, 0] + offset, radius
 
