@@ -102,25 +102,60 @@ def _face_keys(tess: Tessellation):
     return jnp.stack([jnp.where(valid, k, n) for k in keys], axis=-1).reshape(-1, len(keys))
 
 
+HULL_SHARE = 16  # the hull's candidate faces are sorted alone when at most 1/16 of all faces
+
+
 def hull_faces(tess: Tessellation, proper=None):
     """(S, 4) whether each simplex face lies on the hull: the only simplex with its key
     (`_face_keys`) in a sort of all of them. With `proper` (S,) (the simplices that are not
     flat), a flat simplex lying on the hull (co-planar hull walkers, a lattice's) is dropped:
-    its faces are not on the hull, and those of the proper simplices it covers are."""
+    its faces are not on the hull, and those of the proper simplices it covers are.
+
+    Only faces of three hull walkers (`tess.hull`, the vertices of the faces with one simplex)
+    can be either, so when they are few (a uniform sample: a few hundred) they are sorted
+    alone; otherwise (a lattice's flat outer layer) all faces are."""
     keys = _face_keys(tess)
+    total = keys.shape[0]
+    walker_on_hull = jnp.concatenate([tess.hull, jnp.zeros(1, bool)])
+    candidate = jnp.all(walker_on_hull[keys[:, :3]], axis=1)
+    size = max(64, total // HULL_SHARE)
+    ids = jnp.nonzero(candidate, size=size, fill_value=total)[0].astype(jnp.int32)
+    some = jnp.where((ids < total)[:, None], keys[jnp.minimum(ids, total - 1)], tess.n_points)
+    alone, partner = jax.lax.cond(
+        jnp.sum(candidate, dtype=jnp.int32) <= size,
+        lambda: _scatter_back(_unpaired(some, tess.n_points), ids, total),
+        lambda: _unpaired(keys, tess.n_points),
+    )
+    raw = alone.reshape(-1, 4)
+    if proper is None:
+        return raw
+    partner = partner.reshape(-1, 4)
+    flat_on_hull = ~proper & tess.simplex_mask & jnp.any(raw, axis=1)
+    covered = (partner >= 0) & flat_on_hull[jnp.maximum(partner, 0) // 4]
+    return proper[:, None] & (raw | covered)
+
+
+def _unpaired(keys, n: int):
+    """(alone, partner) of face keys (F, m) (padding: first key n): whether each is the only one
+    with its key, and the other face with its key (-1 if none)."""
     order = jnp.lexsort(tuple(keys[:, k] for k in reversed(range(keys.shape[1]))))
     sorted_keys = keys[order]
     same = jnp.all(sorted_keys[1:] == sorted_keys[:-1], axis=1)
     after, before = jnp.concatenate([same, jnp.zeros(1, bool)]), jnp.concatenate([jnp.zeros(1, bool), same])
-    alone = ~(after | before) & (sorted_keys[:, 0] < tess.n_points)
-    raw = jnp.zeros(alone.shape, bool).at[order].set(alone).reshape(-1, 4)
-    if proper is None:
-        return raw
+    alone = ~(after | before) & (sorted_keys[:, 0] < n)
     partner_sorted = jnp.where(after, jnp.roll(order, -1), jnp.where(before, jnp.roll(order, 1), -1))
-    partner = jnp.zeros_like(order).at[order].set(partner_sorted).reshape(-1, 4)
-    flat_on_hull = ~proper & tess.simplex_mask & jnp.any(raw, axis=1)
-    covered = (partner >= 0) & flat_on_hull[jnp.maximum(partner, 0) // 4]
-    return proper[:, None] & (raw | covered)
+    unsort = lambda a, fill: jnp.full(a.shape, fill, a.dtype).at[order].set(a)  # noqa: E731
+    return unsort(alone, False), unsort(partner_sorted.astype(jnp.int32), -1)
+
+
+def _scatter_back(found, ids, total: int):
+    """`_unpaired` of the faces `ids` (padding: total) as arrays over all `total` faces."""
+    alone, partner = found
+    partner = jnp.where(partner >= 0, ids[jnp.maximum(partner, 0)], -1)
+    return (
+        jnp.zeros(total, bool).at[ids].set(alone, mode="drop"),
+        jnp.full(total, -1, jnp.int32).at[ids].set(partner, mode="drop"),
+    )
 
 
 SHIFT_CODES = 5  # a relative periodic shift's components lie in -2..2 (images one box away, seen from either end)

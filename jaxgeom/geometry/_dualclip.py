@@ -71,11 +71,12 @@ def circumcentre_3d(p):
     products = jnp.prod(jnp.sqrt(jnp.sum(edges * edges, axis=-1)), axis=-1)
     best = jnp.argmin(products)
     e = edges[best]
-    det = jnp.linalg.det(e)
+    # Cramer's rule for e u = |e|^2 / 2 (rows e_k): u = sum_k |e_k|^2 e_k+1 x e_k+2 / (2 det e)
+    crossed = jnp.cross(e[jnp.asarray([1, 2, 0])], e[jnp.asarray([2, 0, 1])])
+    det = e[0] @ crossed[0]
     bound = jnp.finfo(p.dtype).eps * products[best]
     ok = jnp.abs(det) > 10.0 * bound
-    rhs = 0.5 * jnp.sum(e * e, axis=1)
-    centre = jnp.linalg.solve(jnp.where(ok, e, jnp.eye(3, dtype=p.dtype)), rhs)
+    centre = jnp.sum(e * e, axis=1) @ crossed / (2.0 * jnp.where(ok, det, 1.0))
     return jnp.where(ok, p[best] + centre, p[0]), ok, jnp.abs(det) > FLAT_ULPS * bound
 
 
