@@ -156,3 +156,21 @@ def test_the_readme_names_every_module_by_a_path_that_exists():
             assert f"`{path.name}`" in text or f"`{path.parent.name}/{path.name}`" in text, (
                 f"README's Architecture does not place {path.relative_to(PACKAGE)}"
             )
+
+
+def test_the_test_run_checks_jaxgeoms_annotations_at_runtime(request):
+    """README, Contributing: the tests check every annotation of jaxgeom at runtime (pyproject's
+    addopts install jaxtyping's hook with beartype). A shape that contradicts an annotation
+    fails; a run without the hook (bench/gpu_check.sh's `-o addopts=""`) skips this check."""
+    import jax.numpy as jnp
+    import jaxtyping
+
+    pyproject = (PACKAGE.parent / "pyproject.toml").read_text()
+    assert re.search(r'^addopts = """[^"]*--jaxtyping-packages=jaxgeom,beartype', pyproject, flags=re.M)
+    if not request.config.getoption("--jaxtyping-packages", default=None):
+        pytest.skip("this run was started without pyproject's addopts")
+    from jaxgeom.geometry._transport import transport_cost
+
+    square, vector = jnp.ones((3, 3)), jnp.ones(3)
+    with pytest.raises(jaxtyping.TypeCheckError, match="transport_cost"):
+        transport_cost(square, jnp.ones(4), vector, square > 0)  # (M,) masses of another M
