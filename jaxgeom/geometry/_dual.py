@@ -85,22 +85,13 @@ EDGE_ENDS = jnp.asarray(
 
 
 def _face_keys(tess: Tessellation):
-    """(4S, m) int32 keys identifying each simplex face (sorted vertex ids, and on a torus the
-    images of the second and third relative to the first); padding faces get key N."""
-    n = tess.n_points
+    """(4S, 3) int32 keys identifying each simplex face of an open or boxed graph (its sorted
+    vertex ids; `hull_faces` is not asked on a torus, which has no hull); padding faces get key N."""
     ids = tess.simplices[:, FACE_VERTS]  # (S, 4, 3)
     a, b, c = ids[..., 0], ids[..., 1], ids[..., 2]
     low, high = jnp.minimum(jnp.minimum(a, b), c), jnp.maximum(jnp.maximum(a, b), c)
-    keys = [low, a + b + c - low - high, high]  # sorted by min and max (argsort: 20x the time)
-    if tess.simplex_shifts is not None:
-        order = jnp.argsort(ids, axis=-1)
-        shifts = tess.simplex_shifts[:, FACE_VERTS].astype(jnp.int32)  # (S, 4, 3, d)
-        shifts = jnp.take_along_axis(shifts, order[..., None], axis=-2)
-        rel = shifts[..., 1:, :] - shifts[..., :1, :] + 1  # in {0, 1, 2} (images of a neighbour)
-        code = rel[..., 0] * 9 + rel[..., 1] * 3 + rel[..., 2]  # (S, 4, 2)
-        keys += [code[..., 0], code[..., 1]]
-    valid = jnp.broadcast_to(tess.simplex_mask[:, None], ids.shape[:2])
-    return jnp.stack([jnp.where(valid, k, n) for k in keys], axis=-1).reshape(-1, len(keys))
+    keys = jnp.stack([low, a + b + c - low - high, high], axis=-1)  # sorted (argsort: 20x the time)
+    return jnp.where(tess.simplex_mask[:, None, None], keys, tess.n_points).reshape(-1, 3)
 
 
 HULL_SHARE = 16  # the hull's candidate faces are sorted alone when at most 1/16 of all faces
@@ -118,7 +109,7 @@ def hull_faces(tess: Tessellation, proper=None):
     keys = _face_keys(tess)
     total = keys.shape[0]
     walker_on_hull = jnp.concatenate([tess.hull, jnp.zeros(1, bool)])
-    candidate = jnp.all(walker_on_hull[keys[:, :3]], axis=1)
+    candidate = jnp.all(walker_on_hull[keys], axis=1)
     size = max(64, total // HULL_SHARE)
     ids = jnp.nonzero(candidate, size=size, fill_value=total)[0].astype(jnp.int32)
     some = jnp.where((ids < total)[:, None], keys[jnp.minimum(ids, total - 1)], tess.n_points)
