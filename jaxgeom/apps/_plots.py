@@ -56,7 +56,6 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     the per-walker errors.
     """
     _check_estimation_result(result)
-    plt = pyplot()
     comparison = result.get("comparison", result)
     truth = result.get("true_hessian")
     points, valid = comparison["points"], comparison["valid"]
@@ -64,7 +63,7 @@ def plot_estimation_quality(result: dict, path, *, dpi: int = 100) -> Path:
     reference = np.asarray(truth) if truth is not None else np.asarray(comparison["hessian_geometric"])
     label = "exact" if truth is not None else "geometric"
     error = relative_error(h_fd, reference)
-    fig, axes = plt.subplots(2, 2, figsize=(11, 9))
+    fig, axes = subplots(2, 2, figsize=(11, 9))
     e_fd = np.asarray(comparison["eigenvalues_fd"])[valid]
     e_ref = (
         np.linalg.eigvalsh(reference[valid])
@@ -218,25 +217,23 @@ def _error_by_neighbour_count(points, values, reference, valid):
     return ks, medians
 
 
-def pyplot():
-    """matplotlib.pyplot on the non-interactive Agg backend."""
-    import matplotlib
+def subplots(rows: int, cols: int, *, figsize, layout=None, **kwargs):
+    """A figure and its axes, made without pyplot: no backend is chosen or changed (a notebook
+    keeps its inline figures) and nothing is left open in pyplot's list of figures."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(rows, cols, **kwargs)
 
 
 def save_figure(fig, path, dpi: int = 100, layout: bool = True) -> Path:
-    """Lay out (unless the figure has its own layout engine: `layout=False`), write (creating
-    the folder) and close a figure; returns the path."""
+    """Lay out (unless the figure has its own layout engine: `layout=False`), and write (creating
+    the folder) a figure; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if layout:
         fig.tight_layout()
     fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
     return path
 
 
@@ -329,7 +326,6 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str,
     0); the figure says so. `colour` = (label, description): the snapshots carry their own
     per-walker "values" (a recorded trajectory's fitness or cell volumes), on a linear scale;
     `fitness` None: no contours."""
-    plt = pyplot()
     from matplotlib.patches import Rectangle
     from matplotlib.ticker import MaxNLocator
 
@@ -342,7 +338,7 @@ def plot_swarm_snapshots(fitness, snapshots: list, box, path, colour: tuple[str,
     norm = _shared_ricci_norm(snapshots) if has_ricci else _value_norm(colours[1:] or colours)
     cmap = "coolwarm" if has_ricci else "viridis"
     n = len(snapshots)
-    fig, axes = plt.subplots(
+    fig, axes = subplots(
         3,
         n,
         figsize=(3.7 * n + 1.2, 11.0),
@@ -502,11 +498,10 @@ def plot_observables(
     are listed; NaN entries (the expansion at step 0) are skipped, the line joins the rest.
     `gap_rounding` (bool per gap) marks the gaps below float64 resolution, drawn as x at 0.
     `gap_times`: the gaps' times (default: their steps x the series' time step)."""
-    plt = pyplot()
     names, constant, undefined = observable_panels(series, gaps)
     cols = 3
     rows = max(-(-len(names) // cols), 1)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 2.9 * rows + 0.6), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(4.5 * cols, 2.9 * rows + 0.6), squeeze=False)
     t = np.asarray(series["time"])
     dt = t[1] - t[0] if len(t) > 1 else 1.0
     gap_times = np.asarray(gap_steps) * dt if gap_times is None else np.asarray(gap_times)

@@ -22,7 +22,7 @@ import numpy as np
 import jaxgeom
 
 from ..apps._landscapes import LANDSCAPES, sample_boltzmann
-from ..apps._plots import pyplot, relative_error, save_figure
+from ..apps._plots import relative_error, save_figure, subplots
 from ..geometry._metric_curvature import DEFAULT_PROBES, EXACT_HESSIAN_MAX_DIM
 from ..geometry._spectral import bulk_spectral_gap, gap_rounding_level
 from ..swarm._observables import riemannian_log_weights, weighted_mean_from_logs
@@ -446,7 +446,7 @@ def write_maps(a: Analysis, path: Path) -> None:
     coordinates; the title says so beyond 2D), with labelled axes and colour bars. Where the
     Ricci scalar is 0 at every walker (the Euclidean metric is flat) its panel gives way to
     the cells' volumes, and the title says why."""
-    fig, axes = pyplot().subplots(1, 2, figsize=(12, 5.5))
+    fig, axes = subplots(1, 2, figsize=(12, 5.5))
     pts = a.points
     metric = a.args.metric + (f" of {a.args.landscape}" if a.args.metric == "hessian" else "")
     ricci = a.cache["ricci"]

@@ -321,10 +321,9 @@ def _sparse_log_ticks(ax) -> None:
 
 
 def plot_tuning(result, truth, grid, path) -> Path:
-    from ..apps._plots import pyplot
+    from ..apps._plots import subplots
 
-    plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig, axes = subplots(1, 2, figsize=(11, 4.5))
     losses = [it["loss"] for it in result.iterations]
     axes[0].semilogy([it["iteration"] for it in result.iterations], np.maximum(losses, 1e-300), "o-")
     axes[0].set(xlabel="iteration", ylabel="loss", title=f"{result.solver}: {result.message}")
@@ -356,5 +355,4 @@ def plot_tuning(result, truth, grid, path) -> Path:
         axes[1].legend(loc="best")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return Path(path)

@@ -183,6 +183,23 @@ def test_plot_estimation_quality_writes_four_panels(tmp_path, rng):
     assert jaxgeom.plot_estimation_quality(comparison, tmp_path / "cmp.png").stat().st_size > 20_000
 
 
+def test_plotting_leaves_the_users_matplotlib_alone(tmp_path):
+    """A notebook's inline backend stays (it once was switched to Agg, and the notebook's own
+    figures after the call were not shown), and no figure is left open in pyplot."""
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    before = matplotlib.get_backend()
+    plt.switch_backend("svg")  # a backend of the user's, distinct from Agg
+    try:
+        result = jaxgeom.validate_on_synthetic_function("rosenbrock", n_walkers=200)
+        jaxgeom.plot_estimation_quality(result, tmp_path / "quality.png")
+        assert matplotlib.get_backend() == "svg"
+        assert plt.get_fignums() == []
+    finally:
+        plt.switch_backend(before)
+
+
 def test_periodic_two_ring_uses_stored_image_shifts(rng):
     """A periodic quadratic-in-image field: every walker's fit (2-ring ones included) is exact."""
     x = rng.random((600, 2))
