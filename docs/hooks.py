@@ -1,10 +1,15 @@
-"""mkdocs hooks: pages made of the README's sections (its links rewritten for the site), and the
-command line page from the argparse parsers, so neither can drift from its source."""
+"""mkdocs hooks: pages made of the README's sections (its links rewritten for the site), the
+command line page from the argparse parsers, so neither can drift from its source, and the
+notebooks' pages from the copies the notebook tier executed."""
 
 import contextlib
 import html as htmllib
 import io
+import json
+import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).parents[1]
@@ -82,3 +87,67 @@ def on_page_content(html: str, page, **kwargs) -> str:
         return convert(htmllib.unescape(m.group(2)).strip(), display=display)
 
     return ARITHMATEX.sub(mathml, html)
+
+
+# The notebook tier (`pytest -m notebooks`, tests/apps/test_notebooks.py) writes the notebooks it
+# executed here; the site shows their outputs, so the build never executes a notebook itself.
+EXECUTED = "JAXGEOM_EXECUTED_NOTEBOOKS"
+NO_OUTPUTS = (
+    '!!! note "Shown without outputs"\n'
+    "    This build of the site had no executed copy of the notebook. Run "
+    "`JAXGEOM_EXECUTED_NOTEBOOKS=build/notebooks pytest -m notebooks`, then build with the same "
+    "variable set, to show its outputs and figures."
+)
+
+
+def cell_sources(notebook: dict) -> list[tuple[str, str]]:
+    """(type, source) of every cell: what an executed copy must share with the committed one."""
+    return [(c["cell_type"], "".join(c["source"])) for c in notebook["cells"]]
+
+
+def executed_copy(name: str, committed: dict) -> dict | None:
+    """The notebook tier's executed copy of notebooks/`name`, refused when its cells differ from
+    the committed notebook's (it was executed before the notebook changed)."""
+    folder = os.environ.get(EXECUTED)
+    if not folder:
+        return None
+    path = Path(folder) / name
+    if not path.is_file():
+        raise FileNotFoundError(f"{EXECUTED}={folder} has no executed {name}: run pytest -m notebooks with it set")
+    executed = json.loads(path.read_text())
+    if cell_sources(executed) != cell_sources(committed):
+        raise ValueError(f"{path} is stale (its cells differ from notebooks/{name}): run pytest -m notebooks again")
+    return executed
+
+
+STAGING: list[Path] = []
+
+
+def on_post_build(config, **kwargs):
+    while STAGING:
+        shutil.rmtree(STAGING.pop())
+
+
+def on_files(files, config, **kwargs):
+    """Each notebook page reads its executed copy, or the committed notebook under a note that
+    says why no output is shown."""
+    STAGING.append(Path(tempfile.mkdtemp(prefix="jaxgeom-docs-")))
+    staging = STAGING[-1] / "notebooks"  # mkdocs-jupyter's include pattern matches notebooks/*.ipynb
+    staging.mkdir()
+    for file in files:
+        if not (file.src_uri.startswith("notebooks/") and file.src_uri.endswith(".ipynb")):
+            continue
+        committed = json.loads(Path(file.abs_src_path).read_text())
+        try:
+            shown = executed_copy(Path(file.src_uri).name, committed)
+        except (FileNotFoundError, ValueError) as error:
+            from mkdocs.exceptions import PluginError
+
+            raise PluginError(str(error)) from error  # mkdocs prints the message, no traceback
+        if shown is None:
+            note = {"cell_type": "markdown", "metadata": {}, "source": NO_OUTPUTS}
+            shown = dict(committed, cells=[committed["cells"][0], note, *committed["cells"][1:]])
+        target = staging / Path(file.src_uri).name
+        target.write_text(json.dumps(shown))
+        file.abs_src_path = str(target)
+    return files

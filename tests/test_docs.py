@@ -4,6 +4,7 @@ build itself (mkdocs build --strict) and its search index need the docs extra: m
 
 import importlib.util
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -88,6 +89,32 @@ def test_the_site_builds_strictly_and_search_finds_the_kernels(tmp_path):
     assert not [p for p, text in pages.items() if 'class="arithmatex"' in text]
     curvature = pages[site / "api" / "curvature" / "index.html"]
     assert curvature.count('display="block"') >= 2 and "<mfrac>" in curvature
+    # the docstrings' formulas too: ricci_scalar's entry states R_i as MathML
+    entry = curvature[curvature.index('id="jaxgeom.ricci_scalar"') :]
+    assert "<math" in entry[: entry.index("Source code")]
+    # the notebooks' pages show what the notebook tier executed (docs/hooks.py), or say they do not
+    for notebook in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        page = pages[site / "notebooks" / notebook.stem / "index.html"]
+        if os.environ.get("JAXGEOM_EXECUTED_NOTEBOOKS"):
+            assert "data:image/png;base64" in page and "Shown without outputs" not in page, notebook.name
+        else:
+            assert "Shown without outputs" in page, notebook.name
+
+
+def test_the_site_refuses_a_stale_executed_notebook(tmp_path, monkeypatch):
+    """An executed copy whose cells differ from the committed notebook's is refused, so the site
+    cannot show outputs of code it no longer holds."""
+    committed = json.loads((ROOT / "notebooks" / "01_tessellation.ipynb").read_text())
+    monkeypatch.setenv("JAXGEOM_EXECUTED_NOTEBOOKS", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="pytest -m notebooks"):
+        hooks().executed_copy("01_tessellation.ipynb", committed)
+    edited = json.loads(json.dumps(committed))
+    edited["cells"][-1]["source"] = ["print('changed')"]
+    (tmp_path / "01_tessellation.ipynb").write_text(json.dumps(edited))
+    with pytest.raises(ValueError, match="stale"):
+        hooks().executed_copy("01_tessellation.ipynb", committed)
+    (tmp_path / "01_tessellation.ipynb").write_text(json.dumps(committed))
+    assert hooks().executed_copy("01_tessellation.ipynb", committed) == committed
 
 
 def docs_code_blocks() -> list[tuple[str, str]]:

@@ -81,7 +81,7 @@ def vertex_distance_variance(tess: Tessellation) -> Float[Array, " N"]:
 
 
 def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> Float[Array, " N"]:
-    """Discrete expansion theta_i = (V_i(t+dt) - V_i(t)) / (V_i(t) dt), the
+    r"""Discrete expansion $\theta_i = \dfrac{V_i(t + dt) - V_i(t)}{V_i(t) \, dt}$, the
     discrete Raychaudhuri expansion (the divergence of the flow for a smooth flow).
 
     **Arguments:**
@@ -94,7 +94,7 @@ def raychaudhuri_expansion(volumes_before, volumes_after, dt, *, valid=None) -> 
 
     **Returns:**
 
-    (N,) theta, NaN where undefined. Under x -> s x, theta = (s^d - 1) / dt exactly.
+    (N,) theta, NaN where undefined. Under $x \to s x$, $\theta = (s^d - 1) / dt$ exactly.
     """
     check_positive(dt, "dt")
     before = walker_values(volumes_before, "volumes_before", nonnegative=True)

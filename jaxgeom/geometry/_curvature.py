@@ -168,7 +168,9 @@ def _per_hinge(tess: Tessellation, per_simplex):
 @warns_on_defective_metric
 @eqx.filter_jit
 def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
-    """Regge deficit angles 2 pi - sum of hinge angles, with metric edge lengths.
+    r"""Regge deficit angles $\delta_h = 2\pi - \sum_{\sigma \ni h} \theta_{\sigma h}$, the hinge
+    angles $\theta_{\sigma h}$ of the simplices $\sigma$ around hinge $h$ measured with metric edge
+    lengths.
 
     Hinges on the convex hull carry no deficit (0). A hinge is interior when its
     Euclidean angles close up to 2 pi (they sum to at most pi on the hull).
@@ -188,10 +190,10 @@ def deficit_angles(tess: Tessellation, *, metric=None, mode: str = "full"):
 @warns_on_defective_metric
 @eqx.filter_jit
 def ricci_scalar(tess: Tessellation, *, metric=None, mode: str = "full", volumes=None) -> Float[Array, " N"]:
-    """Regge Ricci scalar R_i = (2/(d-1)) sum_{h contains i} delta_h |h| / V_i.
+    r"""Regge Ricci scalar $R_i = \frac{2}{d-1} \sum_{h \ni i} \delta_h \, |h| \, / \, V_i$.
 
-    The scalar curvature: R = d (d - 1) K on a space of constant sectional curvature K
-    (R = 2 delta_i / V_i in 2D).
+    The scalar curvature: $R = d (d - 1) K$ on a space of constant sectional curvature $K$
+    ($R_i = 2 \delta_i / V_i$ in 2D).
 
     V_i is the Riemannian cell volume `riemannian_volumes(tess, metric)`. The deficit
     of an interior hinge h is a sum over the simplices around it of theta_ref - theta_g,

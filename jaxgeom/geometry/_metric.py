@@ -394,7 +394,8 @@ def hessian_parts(metric) -> HessianParts | None:
 
 
 def hessian_metric(fitness: Callable, eps_sigma, *, floor: str = "clip") -> Callable:
-    """The Hessian metric g(x) = floor(H(x)) + eps_Sigma I of a fitness V.
+    r"""The Hessian metric $g(x) = \operatorname{floor}(H(x)) + \epsilon_\Sigma I$ of a fitness $V$,
+    $H = \nabla^2 V$.
 
     **Arguments:**
 

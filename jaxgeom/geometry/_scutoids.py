@@ -49,7 +49,7 @@ class ScutoidFractions(NamedTuple):
 
 
 class Scutoids(eqx.Module):
-    """What `scutoids` returns, per walker i (all (N,)).
+    r"""What `scutoids` returns, per walker i (all (N,)).
 
     **Fields:**
 
@@ -58,7 +58,9 @@ class Scutoids(eqx.Module):
     - `kind`: int8, `PRISM` (0), `SIMPLE` (1) or `COMPLEX` (2) (module docstring).
     - `parent`: int32 clone parent (i where the walker did not clone).
     - `bottom_volume`, `top_volume`: the two cells' volumes (NaN where unbounded);
-      `spacetime_volume`: the frustum's (d+1)-volume (NaN where either cell is unbounded).
+      `spacetime_volume`: the frustum's (d+1)-volume (NaN where either cell is unbounded),
+      $V_{ST} = \frac{dt}{d + 1} \sum_{k=0}^{d} V_b^{k/d} \, V_t^{(d-k)/d}$ for the bottom
+      and top volumes $V_b$, $V_t$.
     - `hull`: the bottom or the top cell is on the convex hull (unbounded without a box): its
       neighbour changes include the hull's own; `interior`: both cells are tier 2.
     """

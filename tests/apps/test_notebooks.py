@@ -2,6 +2,8 @@
 
 Executing all eight takes ~5 minutes on 2 cores, beyond the default run's budget, so those tests
 carry the `notebooks` marker: `pytest -m notebooks` runs them (CI does, after the suite). The
+With JAXGEOM_EXECUTED_NOTEBOOKS set to a folder, the executed notebooks are written
+there, outputs and figures included, for the documentation site to show (docs/hooks.py). The
 default run checks what needs no kernel: each notebook is valid, committed without outputs, saves
 the figures it names, and those figures are committed, small, and linked from the README.
 """
@@ -73,6 +75,9 @@ def test_notebook_runs_and_writes_its_figures(path, tmp_path):
         nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}
     )
     client.execute(env=kernel_environment(tmp_path))  # raises CellExecutionError on any failing cell
+    if executed := os.environ.get("JAXGEOM_EXECUTED_NOTEBOOKS"):  # the site shows these (docs/hooks.py)
+        Path(executed).mkdir(parents=True, exist_ok=True)
+        nbformat.write(nb, Path(executed) / path.name)
     for name in figures_named(path):
         assert (tmp_path / name).stat().st_size > 10_000, name
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]
