@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
+from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dot, dual_centres, unit_vector
 
 
 def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
@@ -45,19 +46,19 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
         a, b, c = (p[v] for v in face)
         c_t, tri_ok = face_centres[o], face_ok[o]
         normal, _ = unit_vector(jnp.cross(b - a, c - a))
-        normal = jnp.where(normal @ (p[o] - a) < 0, -normal, normal)
+        normal = jnp.where(dot(normal, p[o] - a) < 0, -normal, normal)
         normals.append(normal)
-        piece = jnp.where(ok & tri_ok, (centre - c_t) @ normal, 0.0)
+        piece = jnp.where(ok & tri_ok, dot(centre - c_t, normal), 0.0)
         pieces.append(piece)
         h_row, v_row, ma_row, mb_row = [], [], [], []
         for e in range(3):  # edge opposite the face's e-th vertex: (face[e+1], face[e+2])
             x, y, k = p[face[(e + 1) % 3]], p[face[(e + 2) % 3]], p[face[e]]
             edge = y - x
             direction, _ = unit_vector(edge)
-            across = (k - x) - ((k - x) @ direction) * direction
+            across = (k - x) - dot(k - x, direction) * direction
             w, _ = unit_vector(across)
             middle = 0.5 * (x + y)
-            height = (c_t - middle) @ w
+            height = dot(c_t - middle, w)
             volume = jnp.sqrt(jnp.sum(edge * edge)) * height * piece / 12.0
             h_row.append(height)
             v_row.append(volume)
@@ -174,7 +175,12 @@ def _slot_index(tess: Tessellation, ends, shifts):
     n, k = tess.neighbors.shape
     row_keys = _row_keys(tess.neighbors, tess.neighbor_shifts)
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (n, k))
-    sorted_keys, sorted_slots = jax.lax.sort((row_keys, slots), dimension=1, num_keys=1)
+    # `delaunay`'s rows come sorted; a graph whose rows were edited is sorted here
+    sorted_keys, sorted_slots = jax.lax.cond(
+        jnp.all(row_keys[:, 1:] >= row_keys[:, :-1]),
+        lambda: (row_keys, slots),
+        lambda: jax.lax.sort((row_keys, slots), dimension=1, num_keys=1),
+    )
     sorted_keys, sorted_slots = sorted_keys.ravel(), sorted_slots.ravel()
     index = []
     for side in (0, 1):
@@ -215,17 +221,27 @@ def _sum_into_slots(values, index, n: int, k: int):
     return jax.ops.segment_sum(both, index, num_segments=n * k + 1)[:-1].reshape(n, k)
 
 
-def _sum_at_ends(ends, values, moment_a, moment_b, n: int):
-    """Per walker: the sum of `values` (..., one per edge, counted at both ends) and of the
-    moments about the first and the second end, (N,) and (N, d)."""
-    ids = jnp.concatenate([ends[..., 0].ravel(), ends[..., 1].ravel()])
-    both = jnp.concatenate([values.ravel(), values.ravel()])
-    d = moment_a.shape[-1]
-    moments = jnp.concatenate([moment_a.reshape(-1, d), moment_b.reshape(-1, d)])
-    moments = jnp.where(both[:, None] != 0, moments, 0.0)
+def _sum_at_ends(simplices, local_ends, values, moment_a, moment_b, n: int):
+    """Per walker: the sum of `values` (S, ...), one per edge `local_ends` (..., 2) of each
+    simplex (its vertices' positions in the row), counted at both ends, and of the moments
+    (S, ..., d) about the first and the second end: (N,) and (N, d). Each simplex sums its
+    edges at its own vertices first, so the scatter takes one entry per simplex vertex (4 in
+    3D, not 24)."""
+    s, m, d = values.shape[0], simplices.shape[1], moment_a.shape[-1]
+    pairs = np.asarray(local_ends).reshape(-1, 2)  # static: the same for every simplex
+    values = values.reshape(s, -1)
+    keep = (values != 0)[..., None]
+    moment_a = jnp.where(keep, moment_a.reshape(s, -1, d), 0.0)
+    moment_b = jnp.where(keep, moment_b.reshape(s, -1, d), 0.0)
+    firsts = [[f for f, pair in enumerate(pairs.tolist()) if pair[0] == v] for v in range(m)]
+    seconds = [[f for f, pair in enumerate(pairs.tolist()) if pair[1] == v] for v in range(m)]
+    at = lambda a, flags: sum(a[:, f] for f in flags)  # noqa: E731  # sums of static slices fuse into one loop
+    totals = jnp.stack([at(values, firsts[v]) + at(values, seconds[v]) for v in range(m)], axis=1)
+    moments = jnp.stack([at(moment_a, firsts[v]) + at(moment_b, seconds[v]) for v in range(m)], axis=1)
+    ids = simplices.ravel()
     return (
-        jax.ops.segment_sum(both, ids, num_segments=n + 1)[:n],
-        jax.ops.segment_sum(moments, ids, num_segments=n + 1)[:n],
+        jax.ops.segment_sum(totals.ravel(), ids, num_segments=n + 1)[:n],
+        jax.ops.segment_sum(moments.reshape(-1, d), ids, num_segments=n + 1)[:n],
     )
 
 
@@ -267,7 +283,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
     areas = _sum_into_slots(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
-    cell_volume, moments = _sum_at_ends(ends, jnp.where(keep, volumes, 0.0), moment_a, moment_b, n)
+    cell_volume, moments = _sum_at_ends(tess.simplices, EDGE_ENDS, jnp.where(keep, volumes, 0.0), moment_a, moment_b, n)
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
@@ -311,13 +327,15 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends,
     `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex."""
     n, k = tess.neighbors.shape
     n_flags = tess.simplices.shape[0] * 12
-    # each hull edge's two hull triangles: the sum of their outer normals, seen from each flag
-    outer = jnp.where(hull_face[..., None], -normals, 0.0)
-    outer = jnp.repeat(outer, 3, axis=1).reshape(-1, 3)  # per flag
-    normal_sums = jax.ops.segment_sum(jnp.concatenate([outer, outer]), index, num_segments=n * k + 1)
     flat_ends = ends.reshape(-1, 2)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
-        tess, centres, hull_face, outside, normal_sums[index[:n_flags]], index.reshape(2, n_flags), flat_ends.T
+        tess,
+        centres,
+        hull_face,
+        outside,
+        _hull_normal_sums(hull_face, normals, index, n * k),
+        index.reshape(2, n_flags),
+        flat_ends.T,
     )
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
@@ -327,6 +345,32 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends,
     cell_volume = cell_volume + volume_add + jnp.sum(distance * wall_area, axis=1) / 3.0
     moments = moments + moment_add + jnp.sum(distance[:, :, None] * wall_moment, axis=1) / 4.0
     return areas, cell_volume, moments, wall_area, wall_lengths.reshape(n, k, 6), (real, inner, corners)
+
+
+def _hull_normal_sums(hull_face, normals, index, slots: int):
+    """(slots + 1, 3) per neighbour slot the sum of the outer normals of the hull triangles at
+    its edge (a hull edge has two). The hull's faces are summed alone when they are few (a
+    uniform sample's: a few thousand of millions), otherwise all faces are."""
+    total = hull_face.size
+    outer = jnp.where(hull_face[..., None], -normals, 0.0).reshape(-1, 3)  # per face
+    n_flags = total * 3
+
+    def add(faces):  # faces (M,): the sum over their flags, each at the slot seen from both ends
+        real = faces < total
+        flags = (3 * jnp.minimum(faces, total - 1))[:, None] + jnp.arange(3, dtype=jnp.int32)  # (M, 3)
+        slot = jnp.concatenate([index[flags], index[n_flags + flags]])
+        slot = jnp.where(jnp.concatenate([real, real])[:, None], slot, slots)
+        values = jnp.broadcast_to(outer[jnp.minimum(faces, total - 1)][:, None, :], (len(faces), 3, 3))
+        values = jnp.concatenate([values, values])
+        return jnp.zeros((slots + 1, 3), outer.dtype).at[slot.ravel()].add(values.reshape(-1, 3))
+
+    size = max(64, total // HULL_SHARE)
+    ids = jnp.nonzero(hull_face.ravel(), size=size, fill_value=total)[0].astype(jnp.int32)
+    return jax.lax.cond(
+        jnp.sum(hull_face, dtype=jnp.int32) <= size,
+        lambda: add(ids),
+        lambda: add(jnp.arange(total, dtype=jnp.int32)),
+    )
 
 
 def _counted_in_box(tess: Tessellation, centres, wall_areas):
@@ -397,7 +441,7 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     extent = jnp.where(valid, jnp.max(jnp.abs(flat), axis=-1), 0.0)
     tolerance = MERGE_ULPS * jnp.finfo(offsets.dtype).eps * jax.ops.segment_max(extent, cells, num_segments=n + 1)
     weights = jnp.asarray(PROJECTION[:d], offsets.dtype)
-    projection = jnp.where(valid, flat @ weights, 0.0)
+    projection = jnp.where(valid, dot(flat, weights), 0.0)
     entry = jnp.arange(cells.shape[0], dtype=jnp.int32)
     cells, projection, entry = jax.lax.sort((cells, projection, entry), num_keys=2)
     rows = flat[entry]
@@ -463,9 +507,9 @@ def triangle_flags_2d(p):
     for a, b, k in EDGES_2D:
         edge = p[b] - p[a]
         direction, _ = unit_vector(edge)
-        w, _ = unit_vector((p[k] - p[a]) - ((p[k] - p[a]) @ direction) * direction)
+        w, _ = unit_vector((p[k] - p[a]) - dot(p[k] - p[a], direction) * direction)
         middle = 0.5 * (p[a] + p[b])
-        height = jnp.where(ok, (centre - middle) @ w, 0.0)
+        height = jnp.where(ok, dot(centre - middle, w), 0.0)
         area = jnp.sqrt(jnp.sum(edge * edge)) * height / 4.0
         heights.append(height)
         areas.append(area)
@@ -507,13 +551,15 @@ def dual_faces_2d(tess: Tessellation):
     verts = simplex_vertices(tess)  # (S, 3, 2)
     heights, areas, moment_a, moment_b, _, proper = jax.vmap(triangle_flags_2d)(verts - verts[:, :1])
     mask = tess.simplex_mask
-    pairs = jnp.asarray([[a, b] for a, b, _ in EDGES_2D], jnp.int32)
+    pairs = np.asarray([[a, b] for a, b, _ in EDGES_2D], np.int32)
     ends = tess.simplices[:, pairs]  # (S, 3, 2)
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
     faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), _slot_index(tess, ends, shifts), n, k)
     dx = neighbor_displacements(tess)
     unbounded = _unbounded_slots_2d(tess, dx) if tess.box is None else jnp.zeros((n, k), bool)
-    cell_area, moments = _sum_at_ends(ends, jnp.where(mask[:, None], areas, 0.0), moment_a, moment_b, n)
+    cell_area, moments = _sum_at_ends(
+        tess.simplices, pairs, jnp.where(mask[:, None], areas, 0.0), moment_a, moment_b, n
+    )
     # a polygon has as many vertices as edges: the faces of positive length
     r = jnp.sqrt(jnp.sum(jnp.square(dx), axis=-1))
     vertices = jnp.sum(faces > ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * r, axis=1, dtype=jnp.int32)

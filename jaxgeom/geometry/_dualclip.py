@@ -50,6 +50,12 @@ FLAG_ORDER = jnp.asarray(
 FLAT_ULPS = 256.0
 
 
+def dot(a, b):
+    """a . b over the last axis, as a product and a sum: under `vmap` a `@` of small vectors
+    becomes a batched dot_general, which XLA's CPU backend runs ~10x slower than a fused loop."""
+    return jnp.sum(a * b, axis=-1)
+
+
 def unit_vector(v):
     norm_sq = jnp.sum(v * v)
     ok = norm_sq > 0
@@ -73,10 +79,10 @@ def circumcentre_3d(p):
     e = edges[best]
     # Cramer's rule for e u = |e|^2 / 2 (rows e_k): u = sum_k |e_k|^2 e_k+1 x e_k+2 / (2 det e)
     crossed = jnp.cross(e[jnp.asarray([1, 2, 0])], e[jnp.asarray([2, 0, 1])])
-    det = e[0] @ crossed[0]
+    det = dot(e[0], crossed[0])
     bound = jnp.finfo(p.dtype).eps * products[best]
     ok = jnp.abs(det) > 10.0 * bound
-    centre = jnp.sum(e * e, axis=1) @ crossed / (2.0 * jnp.where(ok, det, 1.0))
+    centre = jnp.sum(jnp.sum(e * e, axis=1)[:, None] * crossed, axis=0) / (2.0 * jnp.where(ok, det, 1.0))
     return jnp.where(ok, p[best] + centre, p[0]), ok, jnp.abs(det) > FLAT_ULPS * bound
 
 
@@ -98,6 +104,15 @@ def triangle_circumcentre(a, b, c):
     return jnp.where(ok, p[best] + offset, a), ok
 
 
+def order_of_three(ids):
+    """`jnp.argsort(ids, axis=-1, stable=True)` of (..., 3) ids by comparisons (XLA's sort on
+    the CPU costs ~20x as much for rows of three): each entry's rank, ties by position."""
+    i, j = jnp.arange(3, dtype=jnp.int32)[:, None], jnp.arange(3, dtype=jnp.int32)[None, :]
+    before = (ids[..., None, :] < ids[..., :, None]) | ((ids[..., None, :] == ids[..., :, None]) & (j < i))
+    rank = jnp.sum(before, axis=-1, dtype=jnp.int32)  # (..., 3) a permutation of 0, 1, 2
+    return jnp.sum(jnp.where(rank[..., :, None] == j, i, 0), axis=-2, dtype=jnp.int32)
+
+
 def dual_centres(tess: Tessellation, verts):
     """The circumcentres of the simplices `verts` (S, 4, 3) and of their faces (S, 4, 3), in the
     frame of `verts`, each computed once: a face's two simplices, and every flag of a
@@ -107,8 +122,9 @@ def dual_centres(tess: Tessellation, verts):
     (S, 4)); a face's vertices are taken in the order of their walker ids."""
     centres, ok, counted = jax.vmap(circumcentre_3d)(verts)
     face_ids = tess.simplices[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3)
-    order = jnp.argsort(face_ids, axis=-1)
-    corners = jnp.take_along_axis(verts[:, jnp.asarray(FACES_3D, jnp.int32)], order[..., None], axis=-2)
+    corners = jnp.take_along_axis(
+        verts[:, jnp.asarray(FACES_3D, jnp.int32)], order_of_three(face_ids)[..., None], axis=-2
+    )
     face_centres, face_ok = jax.vmap(jax.vmap(triangle_circumcentre))(
         corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
     )
@@ -154,13 +170,18 @@ def polygon_measures(verts, count, on, axis):
     edges on it (2d,) and their first moments (2d, 3))."""
     idx = jnp.arange(verts.shape[0])
     a, b = verts[1:-1] - verts[0], verts[2:] - verts[0]
-    fan = jnp.where(idx[1:-1] + 1 < count, 0.5 * (jnp.cross(a, b) @ axis), 0.0)
+    fan = jnp.where(idx[1:-1] + 1 < count, 0.5 * dot(jnp.cross(a, b), axis), 0.0)
     moment = jnp.sum(fan[:, None] * (3.0 * verts[0] + a + b) / 3.0, axis=0)
     nxt = jnp.where(idx + 1 < count, idx + 1, 0)
     edge = verts[nxt] - verts
     length = jnp.where(idx < count, jnp.sqrt(jnp.sum(edge * edge, axis=-1)), 0.0)
     on_wall = jnp.where(on & on[nxt], length[:, None], 0.0)  # (P, 2d)
-    return jnp.sum(fan), moment, jnp.sum(on_wall, axis=0), on_wall.T @ (0.5 * (verts + verts[nxt]))
+    return (
+        jnp.sum(fan),
+        moment,
+        jnp.sum(on_wall, axis=0),
+        jnp.sum(on_wall[:, :, None] * (0.5 * (verts + verts[nxt]))[:, None, :], axis=0),
+    )
 
 
 def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
@@ -175,28 +196,28 @@ def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
     two wedges of a hull edge make its face's recession cone m + cone(u_1, u_2))."""
     centre, c_t, ok, tri_ok = centres
     normal, _ = unit_vector(jnp.cross(q[1] - q[0], q[2] - q[0]))
-    normal = jnp.where(normal @ (q[3] - q[0]) < 0, -normal, normal)
+    normal = jnp.where(dot(normal, q[3] - q[0]) < 0, -normal, normal)
     direction, _ = unit_vector(q[1] - q[0])
-    across = q[2] - (q[2] @ direction) * direction
+    across = q[2] - dot(q[2], direction) * direction
     w, _ = unit_vector(across)
     middle = 0.5 * q[1]
-    height = (c_t - middle) @ w
+    height = dot(c_t - middle, w)
     out = -normal
     diagonal = jnp.sqrt(jnp.sum((upper - lower) ** 2))
 
     def beyond_box(point, axis):  # a distance along `axis` from `point` that leaves the box
-        return jnp.maximum(jnp.sum(jnp.maximum(lower * axis, upper * axis)) - point @ axis, 0.0) + diagonal
+        return jnp.maximum(jnp.sum(jnp.maximum(lower * axis, upper * axis)) - dot(point, axis), 0.0) + diagonal
 
     reach = beyond_box(c_t, out)
     strip = jnp.stack([middle, c_t, c_t + reach * out, middle + reach * out])
     g, g_ok = unit_vector(toward)
     bisector, b_ok = unit_vector(g + out)
-    cos = jnp.where(b_ok, g @ bisector, 1.0)
+    cos = jnp.where(b_ok, dot(g, bisector), 1.0)
     far = beyond_box(middle, bisector) / jnp.maximum(cos, 0.5)
     wedge = jnp.stack([middle, middle + far * g, middle + far * out, middle + far * out])
     triangle = jnp.stack([middle, c_t, centre, centre])
     corners = jnp.where(kind == 1, strip, jnp.where(kind == 2, wedge, triangle))
-    piece = (centre - c_t) @ normal
+    piece = dot(centre - c_t, normal)
     sign = jnp.where(
         kind == 1,
         jnp.where(hull & tri_ok, jnp.sign(height), 0.0),
@@ -206,7 +227,7 @@ def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
             jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0),
         ),
     )
-    orient = jnp.sign(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]) @ direction)
+    orient = jnp.sign(dot(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]), direction))
     return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
 
 
@@ -233,7 +254,7 @@ def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
     per_end = []
     for end, outward in ((q[0], direction), (q[1], -direction)):
         # in wall j, the segment's outward direction is the face normal projected on the wall
-        u = outward - (walls @ outward)[:, None] * walls
+        u = outward - dot(walls, outward)[:, None] * walls
         u_norm = jnp.sqrt(jnp.sum(u * u, axis=-1))
         u = u / jnp.where(u_norm > 0, u_norm, 1.0)[:, None]
         h = jnp.sum((middles - end) * u, axis=-1)
@@ -247,8 +268,8 @@ def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
 def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots, ends):
     """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
     triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
-    wedges of the hull triangles (`hull_face` (S, 4); `toward` (S * 12, 3) per flag the sum of
-    the outer normals of the hull triangles at its edge). `slots` (2, S * 12): each flag's
+    wedges of the hull triangles (`hull_face` (S, 4); `toward` (N * K + 1, 3) per neighbour
+    slot the sum of the outer normals of the hull triangles at its edge). `slots` (2, S * 12): each flag's
     neighbour slot seen from either end (N * K where none), `ends` (2, S * 12) its walkers.
     `centres`: (the simplices' circumcentres (S, 3), their faces' (S, 4, 3), whether each is
     not flat (S,), (S, 4)), as `dual_centres` gives them.
@@ -313,7 +334,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
                 box[0] - origin,
                 box[1] - origin,
                 kind,
-                toward[flag],
+                toward[slots[0][flag]],
             ),
         )
 
