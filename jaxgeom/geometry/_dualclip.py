@@ -52,7 +52,8 @@ FLAT_ULPS = 256.0
 
 def dot(a, b):
     """a . b over the last axis, as a product and a sum: under `vmap` a `@` of small vectors
-    becomes a batched dot_general, which XLA's CPU backend runs ~10x slower than a fused loop."""
+    becomes a batched dot_general, a kernel of its own on XLA's CPU backend instead of part of
+    a fused loop (the clipped pieces' one took 0.55 s of `dual_faces_3d`'s 5.2 s at N = 1e5)."""
     return jnp.sum(a * b, axis=-1)
 
 
