@@ -26,9 +26,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base._simplex import dot
 from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dot, dual_centres, unit_vector
+from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
 
 
 def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
@@ -111,14 +112,12 @@ def hull_faces(tess: Tessellation, proper=None):
     total = keys.shape[0]
     walker_on_hull = jnp.concatenate([tess.hull, jnp.zeros(1, bool)])
     candidate = jnp.all(walker_on_hull[keys], axis=1)
-    size = max(64, total // HULL_SHARE)
-    ids = jnp.nonzero(candidate, size=size, fill_value=total)[0].astype(jnp.int32)
-    some = jnp.where((ids < total)[:, None], keys[jnp.minimum(ids, total - 1)], tess.n_points)
-    alone, partner = jax.lax.cond(
-        jnp.sum(candidate, dtype=jnp.int32) <= size,
-        lambda: _scatter_back(_unpaired(some, tess.n_points), ids, total),
-        lambda: _unpaired(keys, tess.n_points),
-    )
+
+    def few(ids):
+        some = jnp.where((ids < total)[:, None], keys[jnp.minimum(ids, total - 1)], tess.n_points)
+        return _scatter_back(_unpaired(some, tess.n_points), ids, total)
+
+    alone, partner = _few_or_all(candidate, few, lambda: _unpaired(keys, tess.n_points))
     raw = alone.reshape(-1, 4)
     if proper is None:
         return raw
@@ -126,6 +125,16 @@ def hull_faces(tess: Tessellation, proper=None):
     flat_on_hull = ~proper & tess.simplex_mask & jnp.any(raw, axis=1)
     covered = (partner >= 0) & flat_on_hull[jnp.maximum(partner, 0) // 4]
     return proper[:, None] & (raw | covered)
+
+
+def _few_or_all(marked, few, every):
+    """`few(ids)` of the `marked` (M,) entries' ids (padded with M) when they are at most
+    1/HULL_SHARE of them, else `every()`: the hull's faces are a few thousand of millions in a
+    uniform sample, and most of them on a lattice's flat outer layer."""
+    total = marked.size
+    size = max(64, total // HULL_SHARE)
+    ids = jnp.nonzero(marked.ravel(), size=size, fill_value=total)[0].astype(jnp.int32)
+    return jax.lax.cond(jnp.sum(marked, dtype=jnp.int32) <= size, lambda: few(ids), every)
 
 
 def _unpaired(keys, n: int):
@@ -349,8 +358,7 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends,
 
 def _hull_normal_sums(hull_face, normals, index, slots: int):
     """(slots + 1, 3) per neighbour slot the sum of the outer normals of the hull triangles at
-    its edge (a hull edge has two). The hull's faces are summed alone when they are few (a
-    uniform sample's: a few thousand of millions), otherwise all faces are."""
+    its edge (a hull edge has two), over the hull's faces alone when they are few (`_few_or_all`)."""
     total = hull_face.size
     outer = jnp.where(hull_face[..., None], -normals, 0.0).reshape(-1, 3)  # per face
     n_flags = total * 3
@@ -364,13 +372,7 @@ def _hull_normal_sums(hull_face, normals, index, slots: int):
         values = jnp.concatenate([values, values])
         return jnp.zeros((slots + 1, 3), outer.dtype).at[slot.ravel()].add(values.reshape(-1, 3))
 
-    size = max(64, total // HULL_SHARE)
-    ids = jnp.nonzero(hull_face.ravel(), size=size, fill_value=total)[0].astype(jnp.int32)
-    return jax.lax.cond(
-        jnp.sum(hull_face, dtype=jnp.int32) <= size,
-        lambda: add(ids),
-        lambda: add(jnp.arange(total, dtype=jnp.int32)),
-    )
+    return _few_or_all(hull_face, add, lambda: add(jnp.arange(total, dtype=jnp.int32)))
 
 
 def _counted_in_box(tess: Tessellation, centres, wall_areas):
