@@ -1,5 +1,6 @@
 """voronoi_facets against scipy's half-space intersection, the divergence theorem, and freud."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial import ConvexHull, HalfspaceIntersection
@@ -276,3 +277,62 @@ def test_facet_gradients_equal_central_differences(rng, kind, d):
         step = jnp.zeros_like(p).at[i, c].set(h)
         fd = (float(total(p + step)) - float(total(p - step))) / (2 * h)
         np.testing.assert_allclose(grad[i, c], fd, rtol=1e-5, atol=1e-7 * max(1.0, abs(fd)))
+
+
+def test_the_radix_order_sorts_by_cell_then_quantum_then_entry(rng):
+    """`_order_by_cell_and_projection` (one-operand radix passes) against numpy's lexsort, on
+    keys full of ties (few cells, projections from a handful of values) and at the sizes where
+    the passes' digit width changes."""
+    from jaxgeom.geometry._dual import _order_by_cell_and_projection
+
+    for m, n in [(7, 3), (1000, 20), (70_000, 5_000), (300_000, 40_000)]:
+        cells = rng.integers(0, n + 1, m).astype(np.int32)
+        reach = np.where(cells < n, rng.uniform(0.5, 2.0, n + 1)[cells], 0.0)
+        projection = rng.choice([-1.0, 0.0, 0.3, 1.0], m) * reach + rng.normal(0, 1e-3, m) * (rng.random(m) < 0.5)
+        projection = np.clip(projection, -reach, reach)
+        order, quanta, quantum = (np.asarray(a) for a in _order_by_cell_and_projection(cells, projection, reach, n))
+        np.testing.assert_array_equal(order, np.lexsort((np.arange(m), quanta, cells)))
+        same = cells[:, None] == cells[None, :100]  # quanta follow the projections within a cell
+        below = projection[:, None] < projection[None, :100]
+        assert not np.any(same & below & (quanta[:, None] > quanta[None, :100]))
+        np.testing.assert_allclose(quantum, 2 * np.where(reach > 0, reach, 1.0) / 2 ** round(np.log2(2 / quantum[0])))
+
+
+def test_vertex_counts_merge_every_close_centre_however_crowded(rng):
+    """`_vertex_counts` against a brute force: per cell, a centre within the tolerance (Chebyshev)
+    of an earlier one (entry order) is not counted. Clusters of equal centres (1e-15 apart) are
+    mixed with distinct centres whose projections crowd within the tolerance's quanta (they differ
+    across the projection only), so close pairs lie far apart in the sorted order and the window
+    alone would miss them; cells past the pairwise table (2 K + 8 entries) are -1."""
+    from jaxgeom.geometry._dual import MERGE_ULPS, PROJECTION, _vertex_counts
+
+    n, k, per_simplex = 40, 6, 4
+    s = 150
+    simplices = rng.integers(0, n, (s, per_simplex)).astype(np.int32)
+    base = rng.normal(size=(6, 3))
+    across = np.cross(PROJECTION, [0.0, 0.0, 1.0])  # projects to 0
+    pick = rng.integers(0, 6, (s, per_simplex))
+    offsets = base[pick] + rng.normal(0, 1e-15, (s, per_simplex, 3))
+    crowd = rng.random((s, per_simplex)) < 0.4
+    offsets[crowd] = base[0] + rng.integers(1, 30, crowd.sum())[:, None] * 1e-6 * across
+    proper = rng.random((s, per_simplex)) < 0.95
+    tess = jaxgeom.Tessellation(  # `_vertex_counts` reads the simplices and the capacity K alone
+        points=jnp.zeros((n, 3)),
+        neighbors=jnp.zeros((n, k), jnp.int32),
+        tier=jnp.zeros(n, jnp.int8),
+        hull=jnp.zeros(n, bool),
+        simplices=jnp.asarray(simplices),
+        neighbor_shifts=None,
+        simplex_shifts=None,
+        box=None,
+        overflow=jnp.asarray(False),
+    )
+    counts = np.asarray(_vertex_counts(tess, jnp.asarray(offsets), jnp.asarray(proper)))
+
+    cells, flat = np.where(proper, simplices, n).ravel(), offsets.reshape(-1, 3)
+    for i in range(n):
+        rows = flat[cells == i]
+        limit = MERGE_ULPS * np.finfo(float).eps * np.abs(rows).max()
+        distinct = sum(not any(np.abs(rows[b] - rows[a]).max() <= limit for a in range(b)) for b in range(len(rows)))
+        assert counts[i] == (distinct if len(rows) <= 2 * k + 8 else -1), (i, len(rows))
+    assert (counts == -1).any() and (counts > 0).any()
