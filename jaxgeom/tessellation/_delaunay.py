@@ -761,7 +761,12 @@ def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -
 
 def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0.0) -> np.ndarray:
     """(S,) bool: centres that another centre shares on a grid of 1e-9 mean spacings (or
-    `tolerance`, if coarser)."""
+    `tolerance`, if coarser); a centre that is not finite (a flat simplex's) counts as shared."""
+    finite = np.isfinite(center).all(axis=1)
+    if not finite.all():
+        shared = np.ones(len(center), bool)
+        shared[finite] = _shared_centers(center[finite], tess, tolerance)
+        return shared
     x = np.asarray(tess.points, np.float64)
     if tess.periodic:
         box = np.asarray(tess.box, np.float64)

@@ -271,3 +271,20 @@ def test_contact_filter_near_the_suspects_equals_the_global_one(rng, monkeypatch
     for i in range(8):
         cube = set(rows[i][rows[i] < 8])
         assert cube == {j for j in range(8) if np.sum(np.abs(corners[j] - corners[i]) > 0) == 1}, (i, cube)
+
+
+@pytest.mark.parametrize("periodic", [False, True])
+def test_flat_simplices_centres_count_as_shared_without_a_cast_warning(rng, periodic):
+    """A flat simplex's circumcentre is not finite: `_shared_centers` reports it shared (a
+    suspect) instead of casting NaN to an integer key (numpy's RuntimeWarning, seen on a jittered
+    cubic lattice), and still pairs the finite centres."""
+    import warnings
+
+    from jaxgeom.tessellation._delaunay import _shared_centers
+
+    tess = jaxgeom.delaunay(rng.random((30, 3)), box=(0.0, 1.0), periodic=periodic)
+    center = np.array([[0.2, 0.3, 0.4], [np.nan, 0.1, 0.1], [0.2, 0.3, 0.4], [np.inf, 0, 0], [0.7, 0.1, 0.5]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        shared = _shared_centers(center, tess)
+    np.testing.assert_array_equal(shared, [True, True, True, True, False])
