@@ -98,12 +98,49 @@ def cell_planes(tess: Tessellation, rows):
 def map_flagged_rows(flags, size: int, fn, empty):
     """(rows, outputs): `fn(ids)` over the walkers where `flags` holds, `size` per chunk (rows
     padded with N), stacked along the rows; chunks past their count give `empty(ids)` without
-    running `fn` (`lax.cond` inside `lax.map`), so the cost follows the flagged walkers."""
+    running `fn` (`lax.cond`, in groups: `map_live_chunks`), so the cost follows the flagged
+    walkers."""
     n = flags.shape[0]
     n_chunks = -(-n // size)
     rows = jnp.nonzero(flags, size=n_chunks * size, fill_value=n)[0].astype(jnp.int32)
-    out = jax.lax.map(lambda ids: jax.lax.cond(ids[0] < n, fn, empty, ids), rows.reshape(n_chunks, size))
+    out = map_live_chunks(fn, empty, rows.reshape(n_chunks, size), n)
     return rows, jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
+
+
+CHUNK_GROUPS = 16  # chunks are walked in this many groups, a group past the live ones skipped whole
+
+
+def _in_groups(chunks, fill: int):
+    """`chunks` (C, size) padded with `fill` to CHUNK_GROUPS groups: (groups, C', size)."""
+    n_chunks = chunks.shape[0]
+    groups = min(CHUNK_GROUPS, n_chunks)
+    per = -(-n_chunks // groups)
+    padded = jnp.pad(chunks, ((0, groups * per - n_chunks), (0, 0)), constant_values=fill)
+    return padded.reshape(groups, per, chunks.shape[1])
+
+
+def map_live_chunks(fn, empty, chunks, fill: int):
+    """`lax.map` of `fn` over `chunks` (C, size) of ids compacted to the front and padded with
+    `fill`, `empty(chunk)` for a chunk of padding. Every loop iteration has a cost of its own
+    (on a GPU a launch), so the chunks go in CHUNK_GROUPS groups and a group of padding is
+    skipped whole: a few live chunks cost about C / CHUNK_GROUPS iterations, not C (2D boxed
+    `voronoi_volumes` on the CPU: 11.5 -> 6.0 ms at N = 1e5, 96 -> 71 ms at 1e6)."""
+    one = lambda ids: jax.lax.cond(ids[0] < fill, fn, empty, ids)  # noqa: E731
+    group = lambda g: jax.lax.cond(g[0, 0] < fill, lambda: jax.lax.map(one, g), lambda: jax.vmap(empty)(g))  # noqa: E731
+    out = jax.lax.map(group, _in_groups(chunks, fill))
+    n_chunks = chunks.shape[0]
+    return jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:n_chunks], out)
+
+
+def scan_live_chunks(step, carry, chunks, fill: int):
+    """`carry` after `step(carry, chunk)` over `chunks` (C, size) of ids compacted to the front
+    and padded with `fill`, chunks of padding skipped (`map_live_chunks`' groups)."""
+    one = lambda c, ids: (jax.lax.cond(ids[0] < fill, step, lambda c, _: c, c, ids), None)  # noqa: E731
+    group = lambda c, g: (  # noqa: E731
+        jax.lax.cond(g[0, 0] < fill, lambda c: jax.lax.scan(one, c, g)[0], lambda c: c, c),
+        None,
+    )
+    return jax.lax.scan(group, carry, _in_groups(chunks, fill))[0]
 
 
 def clip_to_box(tess: Tessellation, volumes: Float[Array, " N"]) -> Float[Array, " N"]:

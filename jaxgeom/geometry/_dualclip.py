@@ -30,7 +30,7 @@ import jax.numpy as jnp
 
 from ..base._simplex import dot  # not `@`: under vmap that is a batched dot_general, 0.55 s of 5.2 s here at N = 1e5
 from ..tessellation._graph import Tessellation
-from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows
+from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows, scan_live_chunks
 
 FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces each)
 EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
@@ -347,12 +347,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
             wall_moments.at[walker].add(both(3)),
         )
 
-    def step(sums, face):
-        # chunks past the faces' count are skipped (the sums pass through in place)
-        return jax.lax.cond(face[0] < total, add, lambda sums, _: sums, sums, face), None
-
-    sums, _ = jax.lax.scan(step, sums, rows.reshape(n_chunks, FACE_CHUNK))
-    return sums
+    return scan_live_chunks(add, sums, rows.reshape(n_chunks, FACE_CHUNK), total)
 
 
 def _box_edges():

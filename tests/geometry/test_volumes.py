@@ -3,6 +3,7 @@ import re
 from fractions import Fraction
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import random_rotation, scipy_voronoi_volumes, tile
@@ -225,3 +226,34 @@ def test_boxed_lattice_cells_are_exact_at_the_wall(d, m, dtype):
     vol = np.asarray(jaxgeom.voronoi_volumes(tess))
     assert vol.dtype == dtype
     np.testing.assert_allclose(vol, m**-d, rtol=1e-12 if dtype == np.float64 else 1e-5)
+
+
+@pytest.mark.parametrize("flagged", [0, 1, 37, 300, 999, 1000])
+def test_flagged_rows_run_in_groups_of_chunks_as_in_one_loop(rng, flagged):
+    """`map_flagged_rows` and `scan_live_chunks` walk their chunks in groups and skip groups of
+    padding whole: the outputs equal a plain loop over the chunks, flagged rows anywhere (the
+    live chunks ending inside a group, at its end, in the last one, or none), and a gradient
+    flows through the groups' `cond`s."""
+    from jaxgeom.geometry._boxclip import map_flagged_rows, scan_live_chunks
+
+    n, size = 1000, 8  # 125 chunks: 16 groups of 8, the last padded
+    flags = np.zeros(n, bool)
+    flags[rng.choice(n, flagged, replace=False)] = True
+    values = jnp.asarray(rng.normal(size=n))
+    rows, out = map_flagged_rows(
+        jnp.asarray(flags), size, lambda ids: values[ids] * 2.0, lambda ids: jnp.full(ids.shape, -1.0)
+    )
+    live = np.flatnonzero(flags)
+    np.testing.assert_array_equal(np.asarray(rows)[: len(live)], live)
+    got = np.asarray(out)
+    np.testing.assert_array_equal(got[: len(live)], 2.0 * np.asarray(values)[live])
+    np.testing.assert_array_equal(got[-(-len(live) // size) * size :], -1.0)  # chunks of padding: `empty`
+
+    def total(v):
+        chunks = jnp.asarray(rows).reshape(-1, size)
+        return scan_live_chunks(
+            lambda c, ids: c + jnp.sum(jnp.where(ids < n, v[jnp.minimum(ids, n - 1)] ** 2, 0.0)), 0.0, chunks, n
+        )
+
+    np.testing.assert_allclose(total(values), np.sum(np.asarray(values)[live] ** 2), rtol=1e-12)
+    np.testing.assert_allclose(jax.grad(total)(values), 2 * np.asarray(values) * flags, rtol=1e-12)
