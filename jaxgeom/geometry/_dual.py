@@ -22,6 +22,8 @@ from their edges; vertex counts then add the clipped cells' vertices on the wall
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -210,18 +212,35 @@ def _slot_index(tess: Tessellation, ends, shifts):
 
 EDGES_3D = tuple((a, b) for a in range(4) for b in range(a + 1, 4))  # a simplex's 6 edges
 # each flag's edge (EDGE_ENDS) among EDGES_3D, and whether its ends are in the other order
-FLAG_EDGE = jnp.asarray([EDGES_3D.index(tuple(sorted(e))) for e in EDGE_ENDS.reshape(-1, 2).tolist()], jnp.int32)
+FLAG_EDGE = np.asarray([EDGES_3D.index(tuple(sorted(e))) for e in EDGE_ENDS.reshape(-1, 2).tolist()], np.int32)
 FLAG_REVERSED = jnp.asarray([e[0] > e[1] for e in EDGE_ENDS.reshape(-1, 2).tolist()], bool)
 
 
-def _flag_slot_index(tess: Tessellation):
-    """`_slot_index` of every flag's edge (S, 4, 3 in EDGE_ENDS order), looked up once per
-    simplex edge (6, not 12 flags)."""
+def edge_slot_index(tess: Tessellation):
+    """(2, S, 6) the flat slot (`_slot_index`) of every simplex edge (EDGES_3D order) seen from
+    its first end, then from its second."""
     pairs = jnp.asarray(EDGES_3D, jnp.int32)
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
-    index = _slot_index(tess, tess.simplices[:, pairs], shifts).reshape(2, -1, 6)
-    forward, backward = index[:, :, FLAG_EDGE], index[::-1][:, :, FLAG_EDGE]  # (2, S, 12)
-    return jnp.where(FLAG_REVERSED, backward, forward).ravel()
+    return _slot_index(tess, tess.simplices[:, pairs], shifts).reshape(2, -1, 6)
+
+
+def flag_slots(edge_index, flags):
+    """(2, M) the slot of each flag (flat ids, simplex * 12 + its place in EDGE_ENDS order) seen
+    from its edge's first end (EDGE_ENDS), then from its second, from `edge_slot_index`."""
+    simplex, within = flags // 12, flags % 12
+    edge, reversed_ = jnp.asarray(FLAG_EDGE)[within], FLAG_REVERSED[within]
+    forward, backward = edge_index[0, simplex, edge], edge_index[1, simplex, edge]
+    return jnp.stack([jnp.where(reversed_, backward, forward), jnp.where(reversed_, forward, backward)])
+
+
+# the two flags (places in EDGE_ENDS order) of each simplex edge (EDGES_3D order)
+EDGE_FLAGS = tuple(tuple(f for f in range(12) if FLAG_EDGE[f] == e) for e in range(6))
+
+
+def _per_edge(values, combine):
+    """(S, 6) the flag `values` (S, 4, 3) of each simplex edge's two flags, combined."""
+    flat = values.reshape(values.shape[0], 12)
+    return jnp.stack([combine(flat[:, a], flat[:, b]) for a, b in EDGE_FLAGS], axis=1)
 
 
 def _sum_into_slots(values, index, n: int, k: int):
@@ -287,10 +306,12 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
         outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)
         inside = mask[:, None] & ~outside
     keep = jnp.broadcast_to(inside if boxed else mask[:, None], pieces.shape)[:, :, None]
-    ends = tess.simplices[:, EDGE_ENDS]  # (S, 4, 3, 2)
-    index = _flag_slot_index(tess)
-    # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing)
-    areas = _sum_into_slots(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), index, n, k)
+    edge_index = edge_slot_index(tess)
+    # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing),
+    # summed over the edge's two flags first
+    areas = _sum_into_slots(
+        _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add), edge_index.ravel(), n, k
+    )
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
     cell_volume, moments = _sum_at_ends(tess.simplices, EDGE_ENDS, jnp.where(keep, volumes, 0.0), moment_a, moment_b, n)
     wall_areas = jnp.zeros((n, 6), areas.dtype)
@@ -301,19 +322,18 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             hull_face,
             normals,
             outside,
-            ends,
-            index,
+            edge_index,
             areas,
             cell_volume,
             moments,
         )
         unbounded = jnp.zeros((n, k), bool)
     else:
-        ray = jnp.broadcast_to(hull_face[:, :, None], heights.shape).astype(jnp.int32)
+        ray = _per_edge(jnp.broadcast_to(hull_face[:, :, None], heights.shape), jnp.logical_or).astype(jnp.int32)
         unbounded = (
-            jax.ops.segment_max(jnp.concatenate([ray.ravel(), ray.ravel()]), index, num_segments=n * k + 1)[
-                :-1
-            ].reshape(n, k)
+            jax.ops.segment_max(
+                jnp.concatenate([ray.ravel(), ray.ravel()]), edge_index.ravel(), num_segments=n * k + 1
+            )[:-1].reshape(n, k)
             > 0
         )
     vertices = jnp.zeros(n, jnp.int32)
@@ -329,22 +349,20 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
 
 
-def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends, index, areas, cell_volume, moments):
+def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_index, areas, cell_volume, moments):
     """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
     segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts).
-    `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex."""
+    `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex; `edge_index`
+    (2, S, 6): `edge_slot_index`."""
     n, k = tess.neighbors.shape
-    n_flags = tess.simplices.shape[0] * 12
-    flat_ends = ends.reshape(-1, 2)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
         tess,
         centres,
         hull_face,
         outside,
-        _hull_normal_sums(hull_face, normals, index, n * k),
-        index.reshape(2, n_flags),
-        flat_ends.T,
+        _hull_normal_sums(hull_face, normals, edge_index, n * k),
+        functools.partial(flag_slots, edge_index),
     )
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
@@ -356,17 +374,16 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, ends,
     return areas, cell_volume, moments, wall_area, wall_lengths.reshape(n, k, 6), (real, inner, corners)
 
 
-def _hull_normal_sums(hull_face, normals, index, slots: int):
+def _hull_normal_sums(hull_face, normals, edge_index, slots: int):
     """(slots + 1, 3) per neighbour slot the sum of the outer normals of the hull triangles at
     its edge (a hull edge has two), over the hull's faces alone when they are few (`_few_or_all`)."""
     total = hull_face.size
     outer = jnp.where(hull_face[..., None], -normals, 0.0).reshape(-1, 3)  # per face
-    n_flags = total * 3
 
     def add(faces):  # faces (M,): the sum over their flags, each at the slot seen from both ends
         real = faces < total
         flags = (3 * jnp.minimum(faces, total - 1))[:, None] + jnp.arange(3, dtype=jnp.int32)  # (M, 3)
-        slot = jnp.concatenate([index[flags], index[n_flags + flags]])
+        slot = flag_slots(edge_index, flags).reshape(2 * len(faces), 3)
         slot = jnp.where(jnp.concatenate([real, real])[:, None], slot, slots)
         values = jnp.broadcast_to(outer[jnp.minimum(faces, total - 1)][:, None, :], (len(faces), 3, 3))
         values = jnp.concatenate([values, values])

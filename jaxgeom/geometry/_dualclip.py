@@ -260,12 +260,13 @@ def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
     return area, sign * lengths, per_end
 
 
-def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots, ends):
+def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_of):
     """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
     triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
     wedges of the hull triangles (`hull_face` (S, 4); `toward` (N * K + 1, 3) per neighbour
-    slot the sum of the outer normals of the hull triangles at its edge). `slots` (2, S * 12): each flag's
-    neighbour slot seen from either end (N * K where none), `ends` (2, S * 12) its walkers.
+    slot the sum of the outer normals of the hull triangles at its edge). `slots_of(flags)`:
+    (2, M) the neighbour slots of flags (flat ids, simplex * 12 + place) seen from either end
+    (N * K where none).
     `centres`: (the simplices' circumcentres (S, 3), their faces' (S, 4, 3), whether each is
     not flat (S,), (S, 4)), as `dual_centres` gives them.
 
@@ -284,15 +285,12 @@ def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots,
         jnp.zeros((n + 1, 6), dtype),
         jnp.zeros((n + 1, 6, 3), dtype),
     )
-    slots, ends = (slots[0], slots[1]), (ends[0], ends[1])  # sliced once, not in every chunk
     for faces, kinds in ((outside, (0,)), (hull_face, (1, 2))):
-        sums = _sum_pieces(
-            tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots, ends
-        )
+        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots_of)
     return tuple(a[:-1] for a in sums)
 
 
-def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots, ends):
+def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots_of):
     """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds."""
     n, k = tess.neighbors.shape
     s_cap = tess.simplices.shape[0]
@@ -308,7 +306,8 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         flag = jnp.broadcast_to(flag, (len(face), len(kinds), 3)).ravel() % (s_cap * 12)
         kind = jnp.broadcast_to(jnp.asarray(kinds, jnp.int32)[None, :, None], (len(face), len(kinds), 3)).ravel()
         simplex, within = flag // 12, flag % 12
-        q = tess.points[tess.simplices[simplex[:, None], FLAG_ORDER[within]]]  # (M, 4, 3)
+        ids = tess.simplices[simplex[:, None], FLAG_ORDER[within]]  # (M, 4): the edge's ends first
+        q = tess.points[ids]  # (M, 4, 3)
         origin = q[:, 0]
         face = FLAG_ORDER[within, 3]
         flag_centres = (
@@ -317,8 +316,9 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
             centres[2][simplex],
             centres[3][simplex, face],
         )
-        slot = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([slots[0][flag], slots[1][flag]]), n * k)
-        walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ends[0][flag], ends[1][flag]]), n)
+        slots = slots_of(flag)
+        slot = jnp.where(jnp.concatenate([real, real]), slots.ravel(), n * k)
+        walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ids[:, 0], ids[:, 1]]), n)
         return (
             slot,
             walker,
@@ -329,7 +329,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
                 box[0] - origin,
                 box[1] - origin,
                 kind,
-                toward[slots[0][flag]],
+                toward[slots[0]],
             ),
         )
 
