@@ -4,10 +4,13 @@ For uniform walkers in the unit cube at each N: freud's periodic Voronoi (volume
 face areas of every neighbour pair), and jaxgeom's `delaunay` + `voronoi_facets` (periodic,
 boxed) and `delaunay` + clipped `voronoi_volumes` (boxed), with `delaunay` alone and bare
 Qhull (scipy) on the same walkers as the floors. Medians (min, max) of warm calls; ratios
-against freud at the same N. Writes bench/results/cells_3d.json.
+against freud at the same N. Writes bench/results/cells_3d_<dtype>.json, or
+cells_3d_<dtype>_<triangulator>.json for a triangulator other than Qhull ("shull", the `gpl`
+extra's: its bare call is then timed too).
 
 Run alone (2 cores: anything beside it skews the ratios):
     .venv/bin/python bench/cells_3d.py [--n 10000 100000] [--repeat 5] [--dtype float64]
+        [--triangulator qhull|shull]
 """
 
 from __future__ import annotations
@@ -24,10 +27,13 @@ import scipy.spatial
 from _timing import summary, timed
 
 
-def cases(x, dtype):
+def cases(x, dtype, triangulator: str):
     import freud
 
     import jaxgeom
+
+    def delaunay(points, **kwargs):
+        return jaxgeom.delaunay(points, triangulator=triangulator, **kwargs)
 
     box = freud.box.Box.cube(1.0)
     centred = (x - 0.5).astype(np.float64)
@@ -38,24 +44,28 @@ def cases(x, dtype):
         return voro.volumes, voro.nlist.weights
 
     xd = np.minimum(x.astype(dtype), np.nextafter(dtype.type(1), dtype.type(0)))  # float32 rounds 1 - 1e-9 up to 1
-    return {
+    fns = {
         "freud periodic (volumes + face areas)": freud_voronoi,
         "qhull alone (scipy)": lambda: scipy.spatial.Delaunay(x).simplices,
-        "delaunay open": lambda: jaxgeom.delaunay(xd).neighbors,
-        "delaunay periodic": lambda: jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True).neighbors,
+    }
+    if triangulator == "shull":
+        import shull
+
+        fns["shull alone"] = lambda: shull.Delaunay(np.ascontiguousarray(x, dtype=np.float64)).simplices
+    return fns | {
+        "delaunay open": lambda: delaunay(xd).neighbors,
+        "delaunay periodic": lambda: delaunay(xd, box=(0.0, 1.0), periodic=True).neighbors,
         "delaunay periodic + voronoi_facets": lambda: (
-            jaxgeom.voronoi_facets(jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True)).areas
+            jaxgeom.voronoi_facets(delaunay(xd, box=(0.0, 1.0), periodic=True)).areas
         ),
-        "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(jaxgeom.delaunay(xd, box=(0.0, 1.0))).areas,
-        "delaunay boxed + voronoi_volumes (clipped)": lambda: jaxgeom.voronoi_volumes(
-            jaxgeom.delaunay(xd, box=(0.0, 1.0))
-        ),
+        "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(delaunay(xd, box=(0.0, 1.0))).areas,
+        "delaunay boxed + voronoi_volumes (clipped)": lambda: jaxgeom.voronoi_volumes(delaunay(xd, box=(0.0, 1.0))),
     }
 
 
-def row(n: int, repeat: int, dtype) -> dict:
+def row(n: int, repeat: int, dtype, triangulator: str) -> dict:
     x = np.random.default_rng(n).random((n, 3))
-    fns = cases(x, dtype)
+    fns = cases(x, dtype, triangulator)
     for fn in fns.values():  # compile and warm
         timed(fn)
     times = {name: [] for name in fns}
@@ -66,6 +76,7 @@ def row(n: int, repeat: int, dtype) -> dict:
     return {
         "n": n,
         "dtype": str(np.dtype(dtype)),
+        "triangulator": triangulator,
         "seconds": {k: summary(v) for k, v in times.items()},
         "over_freud": {k: float(np.median(v)) / freud_median for k, v in times.items()},
     }
@@ -76,10 +87,11 @@ def main() -> None:
     parser.add_argument("--n", type=int, nargs="+", default=[10_000, 100_000])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    parser.add_argument("--triangulator", default="qhull", choices=["qhull", "shull"])
     args = parser.parse_args()
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    rows = [row(n, args.repeat, np.dtype(args.dtype)) for n in args.n]
+    rows = [row(n, args.repeat, np.dtype(args.dtype), args.triangulator) for n in args.n]
     for r in rows:
         print(f"N = {r['n']} ({r['dtype']})")
         for name, s in r["seconds"].items():
@@ -87,7 +99,8 @@ def main() -> None:
                 f"  {name:<46} {s['median']:8.3f} s ({s['min']:.3f}-{s['max']:.3f})  "
                 f"{r['over_freud'][name]:6.2f}x freud"
             )
-    out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}.json"
+    suffix = "" if args.triangulator == "qhull" else f"_{args.triangulator}"
+    out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}{suffix}.json"
     out.write_text(
         json.dumps(
             {
