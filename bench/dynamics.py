@@ -168,7 +168,8 @@ def rebuild_strategy(n: int, n_steps: int) -> dict:
 def timed_steps(state, params, n_steps, observe, rebuild, repeats=3) -> dict:
     """Seconds per step (rebuild every step): a first run (compilation included, timed apart),
     then `repeats` runs; median, min, max, the median time inside the triangulator per step,
-    and the fallbacks (host triangulator failures; device rebuilds not certified)."""
+    bare Qhull on the last run's final walkers (median of 5) and the step over it, and the
+    fallbacks (host triangulator failures; device rebuilds not certified)."""
     kwargs = dict(n_steps=n_steps, rebuild_every=1, observe=observe, rebuild=rebuild)
     per_step, inside, fallbacks, device_fallbacks = [], [], [], []
     for _ in range(1 + repeats):
@@ -181,8 +182,11 @@ def timed_steps(state, params, n_steps, observe, rebuild, repeats=3) -> dict:
         fallbacks.append(int(history["n_triangulator_fallbacks"]))
         device_fallbacks.append(int(history["n_fallbacks"]))
     timed = per_step[1:]
+    bare = qhull_alone(final.positions)
     return {
         "seconds_per_step": float(np.median(timed)),
+        "bare_qhull_seconds": bare,
+        "step_over_bare_qhull": float(np.median(timed)) / bare,
         "min": min(timed),
         "max": max(timed),
         "first_run_seconds": per_step[0] * n_steps,
@@ -214,6 +218,11 @@ def triangulator_matrix(triangulators, configs) -> list:
                     "config": label,
                     **{t: round(v, 2) for t, v in row["speedup_over_qhull"].items()},
                     **{f"{t}_ms": round(1e3 * row[t]["seconds_per_step"], 2) for t in triangulators if t in row},
+                    **{
+                        f"{t}_over_bare_qhull": round(row[t]["step_over_bare_qhull"], 2)
+                        for t in triangulators
+                        if t in row
+                    },
                 }
             )
         )
