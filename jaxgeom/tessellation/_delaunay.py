@@ -66,6 +66,7 @@ MAX_DELAUNAY_DIM = 4
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
+SLAB_SKINS = 2  # a slab is at least this many skins thick
 SKIN_ATTEMPTS = 12
 TIE_BREAKS = (1e-9, 1e-8, 1e-7)  # periodic symbolic perturbation, in mean spacings; the next if the box is not tiled
 
@@ -429,8 +430,11 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> RawGraph
     n, d = y.shape
     skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
-    # More slabs than cores still helps a little: Qhull is faster per point on smaller sets.
-    n_slabs = max(1, min(2 * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (4 * skin))))
+    # One slab per core, down to two skins thick: every slab adds its skin's images, so more
+    # slabs than cores, or thinner ones, cost more points than they save (bench/README.md, 3D
+    # periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs instead of
+    # one, N = 1e5 3.7 -> 3.2 s with two instead of four).
+    n_slabs = max(1, min(os.cpu_count() or 1, MAX_SLABS, int(lengths[axis] // (SLAB_SKINS * skin))))
     cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
     jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin, triangulator) for j in range(n_slabs)]
     if n_slabs == 1:

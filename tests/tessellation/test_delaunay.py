@@ -288,3 +288,24 @@ def test_flat_simplices_centres_count_as_shared_without_a_cast_warning(rng, peri
         warnings.simplefilter("error")
         shared = _shared_centers(center, tess)
     np.testing.assert_array_equal(shared, [True, True, True, True, False])
+
+
+def test_periodic_lattice_split_into_slabs_keeps_its_exact_cells(monkeypatch):
+    """Co-spherical walkers (an 8^3 cubic lattice) triangulated in several slabs: the slabs'
+    cubes are split alike (the symbolic tie-break), so every cell is its cube: volume 1/512, six
+    faces of area 1/64."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(dl, "SLAB_SKINS", 1)
+    calls = []
+    real_triangulate = dl.triangulate
+    monkeypatch.setattr(dl, "triangulate", lambda pts, name: calls.append(len(pts)) or real_triangulate(pts, name))
+    m = 8
+    g = (np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / m
+    facets = jaxgeom.voronoi_facets(jaxgeom.delaunay(g, box=(0.0, 1.0), periodic=True, triangulator="qhull"))
+    assert len(calls) >= 2, "several slabs"
+    np.testing.assert_allclose(np.asarray(facets.volumes), 1 / m**3, rtol=1e-10)
+    areas = np.sort(np.asarray(facets.areas), axis=1)
+    np.testing.assert_allclose(areas[:, -6:], 1 / m**2, rtol=1e-10)
+    np.testing.assert_allclose(areas[:, :-6], 0.0, atol=1e-10 / m**2)
