@@ -66,7 +66,9 @@ MAX_DELAUNAY_DIM = 4
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
-SLAB_SKINS = 2  # a slab is at least this many skins thick
+# (slabs per core, a slab's least thickness in skins), per dimension
+SLABS = {3: (1, 2)}
+SLABS_ELSE = (2, 4)
 SKIN_ATTEMPTS = 12
 TIE_BREAKS = (1e-9, 1e-8, 1e-7)  # periodic symbolic perturbation, in mean spacings; the next if the box is not tiled
 
@@ -430,11 +432,12 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> RawGraph
     n, d = y.shape
     skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
-    # One slab per core, down to two skins thick: every slab adds its skin's images, so more
-    # slabs than cores, or thinner ones, cost more points than they save (bench/README.md, 3D
-    # periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs instead of
-    # one, N = 1e5 3.7 -> 3.2 s with two instead of four).
-    n_slabs = max(1, min(os.cpu_count() or 1, MAX_SLABS, int(lengths[axis] // (SLAB_SKINS * skin))))
+    # Every slab adds its skin's images. In 3D one slab per core, down to two skins thick, is
+    # fastest (periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs
+    # instead of one, 1e5 3.7 -> 3.2 s with two instead of four); in 2D CDT still gains from two
+    # per core, four skins thick (1e5: 0.33 s against 0.36 s), bench/README.md.
+    per_core, skins = SLABS.get(d, SLABS_ELSE)
+    n_slabs = max(1, min(per_core * (os.cpu_count() or 1), MAX_SLABS, int(lengths[axis] // (skins * skin))))
     cuts = np.linspace(0.0, lengths[axis], n_slabs + 1)
     jobs = [(y, y0, lengths, axis, cuts[j], cuts[j + 1], skin, triangulator) for j in range(n_slabs)]
     if n_slabs == 1:

@@ -297,7 +297,7 @@ def test_periodic_lattice_split_into_slabs_keeps_its_exact_cells(monkeypatch):
     import jaxgeom.tessellation._delaunay as dl
 
     monkeypatch.setattr(dl.os, "cpu_count", lambda: 4)
-    monkeypatch.setattr(dl, "SLAB_SKINS", 1)
+    monkeypatch.setitem(dl.SLABS, 3, (1, 1))
     calls = []
     real_triangulate = dl.triangulate
     monkeypatch.setattr(dl, "triangulate", lambda pts, name: calls.append(len(pts)) or real_triangulate(pts, name))
