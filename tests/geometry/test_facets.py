@@ -295,7 +295,9 @@ def test_the_radix_order_sorts_by_cell_then_quantum_then_entry(rng):
         same = cells[:, None] == cells[None, :100]  # quanta follow the projections within a cell
         below = projection[:, None] < projection[None, :100]
         assert not np.any(same & below & (quanta[:, None] > quanta[None, :100]))
-        np.testing.assert_allclose(quantum, 2 * np.where(reach > 0, reach, 1.0) / 2 ** round(np.log2(2 / quantum[0])))
+        share = quantum / (2 * np.where(reach > 0, reach, 1.0))  # one quantum's share of its cell's range
+        np.testing.assert_allclose(share, share[0], rtol=1e-12)
+        assert np.log2(share[0]) == round(np.log2(share[0])) <= -10  # 2^-b, b >= QUANTUM_BITS[0]
 
 
 def test_vertex_counts_merge_every_close_centre_however_crowded(rng):
