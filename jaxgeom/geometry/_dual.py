@@ -477,10 +477,10 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     counts = jax.ops.segment_sum(counted.astype(jnp.int32), cells, num_segments=n + 1)[:n]
     # two centres within the tolerance have projections within sum(PROJECTION) times it, and
     # quanta within that over the quantum plus one (and one for rounding)
-    reach = (jnp.floor(limit * float(sum(PROJECTION)) / quantum[entry]) + 2).astype(jnp.int32)
+    apart = (jnp.floor(limit * float(sum(PROJECTION)) / quantum[entry]) + 2).astype(jnp.int32)
     w = VERTEX_WINDOW
     sorted_quanta = quanta[entry]
-    crowded = (cells[w:] == cells[:-w]) & (sorted_quanta[w:] - sorted_quanta[:-w] <= reach[:-w])
+    crowded = (cells[w:] == cells[:-w]) & (sorted_quanta[w:] - sorted_quanta[:-w] <= apart[:-w])
     flagged = jnp.zeros(n + 1, bool).at[cells[:-w]].max(crowded)[:n]
     incident = jax.ops.segment_sum(jnp.ones(cells.shape, jnp.int32), cells, num_segments=n + 1)
     rows_at, pairwise = _pairwise_counts(cells, rows, entry, limit, incident, flagged, cap=2 * k + 8)
