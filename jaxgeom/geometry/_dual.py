@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -176,13 +177,9 @@ def _row_keys(neighbors, shifts):
     return neighbors * SHIFT_CODES ** shifts.shape[-1] + code
 
 
-def _slot_index(tess: Tessellation, ends, shifts):
-    """(2 E,) the flat slot (row * K + slot) of every edge `ends` (..., 2) seen from its first
-    end, then from its second; N * K where the other end is not a neighbour (a zero-measure
-    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None.
-
-    Each row's keys (`_row_keys`) are sorted once and every edge finds its slot by a binary
-    search of its row: log2 K gathers per edge instead of comparing it with all K."""
+def _sorted_rows(tess: Tessellation):
+    """Every neighbour row's keys (`_row_keys`) in ascending order and the slot each came from,
+    flat (N K,), for `_find_slots`'s binary searches."""
     n, k = tess.neighbors.shape
     row_keys = _row_keys(tess.neighbors, tess.neighbor_shifts)
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (n, k))
@@ -192,11 +189,23 @@ def _slot_index(tess: Tessellation, ends, shifts):
         lambda: (row_keys, slots),
         lambda: jax.lax.sort((row_keys, slots), dimension=1, num_keys=1),
     )
-    sorted_keys, sorted_slots = sorted_keys.ravel(), sorted_slots.ravel()
+    return sorted_keys.ravel(), sorted_slots.ravel()
+
+
+def _find_slots(tess: Tessellation, rows, ends, shifts):
+    """(first, second), each (...,): the flat slot (row * K + slot) of every edge `ends` (..., 2)
+    seen from its first end and from its second; N * K where the other end is not a neighbour (a zero-measure
+    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None; `rows`:
+    `_sorted_rows(tess)`.
+
+    Every edge finds its slot by a binary search of its row's sorted keys: log2 K gathers per
+    edge instead of comparing it with all K."""
+    n, k = tess.neighbors.shape
+    sorted_keys, sorted_slots = rows
     index = []
     for side in (0, 1):
-        rows, targets = ends[..., side].ravel(), ends[..., 1 - side].ravel()
-        rel = None if shifts is None else (shifts[..., 1 - side, :] - shifts[..., side, :]).reshape(-1, tess.dim)
+        rows, targets = ends[..., side], ends[..., 1 - side]
+        rel = None if shifts is None else shifts[..., 1 - side, :] - shifts[..., side, :]
         wanted = _row_keys(targets, rel)
         base = jnp.minimum(rows, n - 1) * k
         lower, upper = jnp.zeros_like(base), jnp.full_like(base, k)
@@ -207,7 +216,7 @@ def _slot_index(tess: Tessellation, ends, shifts):
         at = base + jnp.minimum(lower, k - 1)
         found = (sorted_keys[at] == wanted) & (rows < n) & (targets < n)
         index.append(jnp.where(found, base + sorted_slots[at], n * k))
-    return jnp.concatenate(index)
+    return tuple(index)
 
 
 EDGES_3D = tuple((a, b) for a in range(4) for b in range(a + 1, 4))  # a simplex's 6 edges
@@ -216,12 +225,12 @@ FLAG_EDGE = np.asarray([EDGES_3D.index(tuple(sorted(e))) for e in EDGE_ENDS.resh
 FLAG_REVERSED = jnp.asarray([e[0] > e[1] for e in EDGE_ENDS.reshape(-1, 2).tolist()], bool)
 
 
-def edge_slot_index(tess: Tessellation):
-    """(2, S, 6) the flat slot (`_slot_index`) of every simplex edge (EDGES_3D order) seen from
-    its first end, then from its second."""
+def edge_slot_index(tess: Tessellation, rows):
+    """(first, second), each (S, 6): the flat slot (`_find_slots`) of every simplex edge
+    (EDGES_3D order) seen from its first end and from its second; `rows`: `_sorted_rows(tess)`."""
     pairs = jnp.asarray(EDGES_3D, jnp.int32)
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
-    return _slot_index(tess, tess.simplices[:, pairs], shifts).reshape(2, -1, 6)
+    return _find_slots(tess, rows, tess.simplices[:, pairs], shifts)
 
 
 def flag_slots(edge_index, flags):
@@ -229,7 +238,7 @@ def flag_slots(edge_index, flags):
     from its edge's first end (EDGE_ENDS), then from its second, from `edge_slot_index`."""
     simplex, within = flags // 12, flags % 12
     edge, reversed_ = jnp.asarray(FLAG_EDGE)[within], FLAG_REVERSED[within]
-    forward, backward = edge_index[0, simplex, edge], edge_index[1, simplex, edge]
+    forward, backward = edge_index[0][simplex, edge], edge_index[1][simplex, edge]
     return jnp.stack([jnp.where(reversed_, backward, forward), jnp.where(reversed_, forward, backward)])
 
 
@@ -244,18 +253,19 @@ def _per_edge(values, combine):
 
 
 def _sum_into_slots(values, index, n: int, k: int):
-    """(N, K) sums of `values` (the same for both ends of each edge) at `_slot_index`."""
-    both = jnp.concatenate([values.ravel(), values.ravel()])
-    return jax.ops.segment_sum(both, index, num_segments=n * k + 1)[:-1].reshape(n, k)
+    """(N, K) sums of `values` (the same for both ends of each edge) at `_find_slots`'s `index`
+    (two arrays of values' shape)."""
+    sums = jnp.zeros(n * k + 1, values.dtype)
+    for side in index:
+        sums = sums.at[side.ravel()].add(values.ravel())
+    return sums[:-1].reshape(n, k)
 
 
-def _sum_at_ends(simplices, local_ends, values, moment_a, moment_b, n: int):
-    """Per walker: the sum of `values` (S, ...), one per edge `local_ends` (..., 2) of each
-    simplex (its vertices' positions in the row), counted at both ends, and of the moments
-    (S, ..., d) about the first and the second end: (N,) and (N, d). Each simplex sums its
-    edges at its own vertices first, so the scatter takes one entry per simplex vertex (4 in
-    3D, not 24)."""
-    s, m, d = values.shape[0], simplices.shape[1], moment_a.shape[-1]
+def _sums_at_vertices(local_ends, values, moment_a, moment_b, m: int):
+    """Per simplex and vertex: the sum of `values` (S, ...), one per edge `local_ends` (..., 2)
+    of each simplex (its vertices' positions in the row), counted at both ends, and of the
+    moments (S, ..., d) about the first and the second end: (S, m) and (S, m, d)."""
+    s, d = values.shape[0], moment_a.shape[-1]
     pairs = np.asarray(local_ends).reshape(-1, 2)  # static: the same for every simplex
     values = values.reshape(s, -1)
     keep = (values != 0)[..., None]
@@ -266,11 +276,102 @@ def _sum_at_ends(simplices, local_ends, values, moment_a, moment_b, n: int):
     at = lambda a, flags: sum(a[:, f] for f in flags)  # noqa: E731  # sums of static slices fuse into one loop
     totals = jnp.stack([at(values, firsts[v]) + at(values, seconds[v]) for v in range(m)], axis=1)
     moments = jnp.stack([at(moment_a, firsts[v]) + at(moment_b, seconds[v]) for v in range(m)], axis=1)
+    return totals, moments
+
+
+def _scatter_at_vertices(simplices, totals, moments, n: int):
+    """(N,) and (N, d): the per-simplex-vertex `totals` (S, m) and `moments` (S, m, d) summed
+    per walker; the scatter takes one entry per simplex vertex (4 in 3D, not 24 flags)."""
     ids = simplices.ravel()
     return (
         jax.ops.segment_sum(totals.ravel(), ids, num_segments=n + 1)[:n],
-        jax.ops.segment_sum(moments.reshape(-1, d), ids, num_segments=n + 1)[:n],
+        jax.ops.segment_sum(moments.reshape(-1, moments.shape[-1]), ids, num_segments=n + 1)[:n],
     )
+
+
+def _sum_at_ends(simplices, local_ends, values, moment_a, moment_b, n: int):
+    """Per walker: `_sums_at_vertices` scattered to the simplices' walkers, (N,) and (N, d)."""
+    totals, moments = _sums_at_vertices(local_ends, values, moment_a, moment_b, simplices.shape[1])
+    return _scatter_at_vertices(simplices, totals, moments, n)
+
+
+# simplices per block of the 3D dual's per-simplex stage: its slot searches' rows stay in cache
+# (periodic `voronoi_facets`, float32: 1e5 1.20 -> 1.05 s and 1e6 16.4 -> 14.4 s from 2^15)
+SIMPLEX_BLOCK = 1 << 13
+
+
+def block_layout(s: int, most: int) -> tuple[int, int]:
+    """(blocks, size): the fewest blocks of at most `most` of `s` items, as even as they can be
+    (S on the capacity ladder then pads little: 73,728 in three blocks of 24,576)."""
+    blocks = -(-s // most)
+    return blocks, -(-s // blocks)
+
+
+def _in_blocks(tess: Tessellation, per_simplex):
+    """`per_simplex(sub)` (a dict of (S_b, ...) arrays of the simplices of `sub`, `tess` cut to
+    a block of them) over all simplices, at most SIMPLEX_BLOCK at a time (`lax.map`): its
+    temporaries, ~1.7 kB per simplex when unblocked (11 GiB at N = 1e6 in 3D), then take one
+    block's room."""
+    s = tess.simplices.shape[0]
+    if s <= SIMPLEX_BLOCK:
+        return per_simplex(tess)
+    blocks, size = block_layout(s, SIMPLEX_BLOCK)
+    pad = blocks * size - s
+    cut = (
+        lambda a, fill: jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), constant_values=fill).reshape(  # noqa: E731
+            blocks, size, *a.shape[1:]
+        )
+    )
+    simplices = cut(tess.simplices, tess.n_points)
+    shifts = None if tess.simplex_shifts is None else cut(tess.simplex_shifts, 0)
+
+    def block(parts):
+        ids, moved = parts
+        return per_simplex(
+            eqx.tree_at(lambda t: (t.simplices, t.simplex_shifts), tess, (ids, moved), is_leaf=lambda x: x is None)
+        )
+
+    out = jax.lax.map(block, (simplices, shifts))
+    return jax.tree.map(lambda a: a.reshape(blocks * size, *a.shape[2:])[:s], out)
+
+
+def _simplex_stage_3d(tess: Tessellation, rows):
+    """Per simplex, everything `dual_faces_3d` needs of its geometry (module docstring): the
+    areas its flags add to its 6 edges' faces (S, 6), the volumes and first moments its
+    orthoschemes add to its 4 walkers' cells (S, 4), (S, 4, 3), its circumcentre (S, 3), whether
+    it is not flat and counted as a vertex (S,); in a box also its faces' centres, their
+    flatness, unit normals towards the opposite vertex and whether their pieces reach a wall
+    (clipped by `_clip_to_box`, not summed here); and the neighbour slots of its edges
+    (`edge_slot_index`, `rows`: `_sorted_rows` of the whole graph). One block of `_in_blocks`."""
+    verts = simplex_vertices(tess)  # (S, 4, 3), images applied
+    centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
+    origin = verts[:, :1]
+    pieces, heights, volumes, moment_a, moment_b, normals = jax.vmap(simplex_flags_3d)(
+        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
+    )
+    mask = tess.simplex_mask
+    out = {"centres": centres, "ok": ok, "proper": proper, "edge_index": edge_slot_index(tess, rows)}
+    keep = mask[:, None]
+    if tess.box is not None and tess.simplex_shifts is None:
+        box = tess.box.astype(verts.dtype)
+        # pieces reaching a wall are clipped: those leaving the box, and those with a point on a
+        # wall (a walker on it), whose edges there bound the cell's wall face
+        margin = ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * jnp.max(jnp.abs(box))
+        reaches = lambda y: jnp.any((y <= box[0] + margin) | (y >= box[1] - margin), axis=-1)  # noqa: E731
+        centre_out = reaches(centres)
+        on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
+        outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)
+        keep = mask[:, None] & ~outside
+        out.update(face_centres=face_centres, face_ok=face_ok, normals=normals, outside=outside)
+    keep = jnp.broadcast_to(keep, pieces.shape)[:, :, None]
+    # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing),
+    # summed over the edge's two flags first
+    out["edge_areas"] = _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add)
+    # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
+    out["vertex_volumes"], out["vertex_moments"] = _sums_at_vertices(
+        EDGE_ENDS, jnp.where(keep, volumes, 0.0), moment_a, moment_b, 4
+    )
+    return out
 
 
 def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
@@ -281,47 +382,26 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     With a (non-periodic) box every cell is clipped to it (`_dualclip`); otherwise hull cells'
     volumes, moments and counts are meaningless (callers mask them with `tess.hull`)."""
     n, k = tess.neighbors.shape
-    verts = simplex_vertices(tess)  # (S, 4, 3), images applied
-    centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
-    origin = verts[:, :1]
-    pieces, heights, volumes, moment_a, moment_b, normals = jax.vmap(simplex_flags_3d)(
-        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
-    )
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
+    stage = _in_blocks(tess, functools.partial(_simplex_stage_3d, rows=_sorted_rows(tess)))
+    centres, proper = stage["centres"], stage["proper"]
     # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
     if tess.simplex_shifts is not None:
-        hull_face = jnp.zeros(pieces.shape, bool)
+        hull_face = jnp.zeros(tess.simplices.shape, bool)
     else:
         hull_face = hull_faces(tess, proper & mask if boxed else None)
-    inside = mask
-    if boxed:
-        box = tess.box.astype(verts.dtype)
-        # pieces reaching a wall are clipped: those leaving the box, and those with a point on a
-        # wall (a walker on it), whose edges there bound the cell's wall face
-        margin = ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * jnp.max(jnp.abs(box))
-        reaches = lambda y: jnp.any((y <= box[0] + margin) | (y >= box[1] - margin), axis=-1)  # noqa: E731
-        centre_out = reaches(centres)
-        on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
-        outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)
-        inside = mask[:, None] & ~outside
-    keep = jnp.broadcast_to(inside if boxed else mask[:, None], pieces.shape)[:, :, None]
-    edge_index = edge_slot_index(tess)
-    # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing),
-    # summed over the edge's two flags first
-    areas = _sum_into_slots(
-        _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add), edge_index.ravel(), n, k
-    )
-    # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
-    cell_volume, moments = _sum_at_ends(tess.simplices, EDGE_ENDS, jnp.where(keep, volumes, 0.0), moment_a, moment_b, n)
+    edge_index = stage["edge_index"]
+    areas = _sum_into_slots(stage["edge_areas"], edge_index, n, k)
+    cell_volume, moments = _scatter_at_vertices(tess.simplices, stage["vertex_volumes"], stage["vertex_moments"], n)
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
             tess,
-            (centres, face_centres, ok, face_ok),
+            (centres, stage["face_centres"], stage["ok"], stage["face_ok"]),
             hull_face,
-            normals,
-            outside,
+            stage["normals"],
+            stage["outside"],
             edge_index,
             areas,
             cell_volume,
@@ -329,19 +409,18 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
         )
         unbounded = jnp.zeros((n, k), bool)
     else:
-        ray = _per_edge(jnp.broadcast_to(hull_face[:, :, None], heights.shape), jnp.logical_or).astype(jnp.int32)
-        unbounded = (
-            jax.ops.segment_max(
-                jnp.concatenate([ray.ravel(), ray.ravel()]), edge_index.ravel(), num_segments=n * k + 1
-            )[:-1].reshape(n, k)
-            > 0
-        )
+        per_flag = jnp.broadcast_to(hull_face[:, :, None], (*hull_face.shape, 3))
+        ray = _per_edge(per_flag, jnp.logical_or).astype(jnp.int32)
+        unbounded = jnp.zeros(n * k + 1, jnp.int32)
+        for side in edge_index:
+            unbounded = unbounded.at[side.ravel()].max(ray.ravel())
+        unbounded = unbounded[:-1].reshape(n, k) > 0
     vertices = jnp.zeros(n, jnp.int32)
     if counts:
         counted = jnp.broadcast_to((mask & proper)[:, None], tess.simplices.shape)
         if boxed:
             counted = counted & _counted_in_box(tess, centres, wall_areas)
-        vertices = _vertex_counts(tess, centres[:, None, :] - verts, counted)
+        vertices = _vertex_counts(tess, centres[:, None, :] - simplex_vertices(tess), counted)
         if boxed:
             vertices = jnp.where(
                 vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths, edges)
@@ -354,7 +433,7 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
     segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts).
     `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex; `edge_index`
-    (2, S, 6): `edge_slot_index`."""
+    (first, second) (S, 6): `edge_slot_index`."""
     n, k = tess.neighbors.shape
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
         tess,
@@ -612,7 +691,8 @@ def dual_faces_2d(tess: Tessellation):
     pairs = np.asarray([[a, b] for a, b, _ in EDGES_2D], np.int32)
     ends = tess.simplices[:, pairs]  # (S, 3, 2)
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
-    faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), _slot_index(tess, ends, shifts), n, k)
+    index = _find_slots(tess, _sorted_rows(tess), ends, shifts)
+    faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), index, n, k)
     dx = neighbor_displacements(tess)
     unbounded = _unbounded_slots_2d(tess, dx) if tess.box is None else jnp.zeros((n, k), bool)
     cell_area, moments = _sum_at_ends(

@@ -338,3 +338,43 @@ def test_vertex_counts_merge_every_close_centre_however_crowded(rng):
         distinct = sum(not any(np.abs(rows[b] - rows[a]).max() <= limit for a in range(b)) for b in range(len(rows)))
         assert counts[i] == (distinct if len(rows) <= 2 * k + 8 else -1), (i, len(rows))
     assert (counts == -1).any() and (counts > 0).any()
+
+
+@pytest.mark.parametrize("kind", ["open", "boxed", "periodic"])
+def test_3d_dual_in_blocks_equals_it_in_one(rng, kind, monkeypatch):
+    """`_in_blocks` (the 3D dual's per-simplex stage SIMPLEX_BLOCK simplices at a time, the last
+    block padded) gives every output and (open, periodic) the gradient of the unblocked stage:
+    blocks of about 100 simplices whose count does not divide S, against one block of them all."""
+    import equinox as eqx
+    import jax
+
+    from jaxgeom.geometry import _dual
+
+    x = rng.random((120, 3))
+    box = None if kind == "open" else (0.0, 1.0)
+    tess = jaxgeom.delaunay(x, box=box, periodic=kind == "periodic")
+    s = tess.simplices.shape[0]
+    block = next(b for b in range(90, 130) if np.prod(_dual.block_layout(s, b)) > s)  # the last block padded
+    assert s > 2 * block
+
+    def run(points):
+        f = jaxgeom.voronoi_facets(eqx.tree_at(lambda t: t.points, tess, points))
+        finite = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)  # noqa: E731
+        total = jnp.sum(finite(f.areas) ** 2) + jnp.sum(finite(f.volumes)) + jnp.sum(finite(f.centroids) ** 2)
+        return total, f
+
+    outputs = {}
+    for size in (s, block):
+        monkeypatch.setattr(_dual, "SIMPLEX_BLOCK", size)
+        jax.clear_caches()
+        if kind == "boxed":  # the gradient's compilation through the clipped pieces takes ~40 s
+            outputs[size] = (run(jnp.asarray(x))[1], np.zeros(1))
+        else:
+            (_, facets), grad = jax.value_and_grad(run, has_aux=True)(jnp.asarray(x))
+            outputs[size] = (facets, np.asarray(grad))
+    (one, grad_one), (blocked, grad_blocked) = outputs[s], outputs[block]
+    for name in ("areas", "wall_areas", "volumes", "centroids", "n_vertices"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(blocked, name)), np.asarray(getattr(one, name)), rtol=1e-12, atol=1e-15
+        )
+    np.testing.assert_allclose(grad_blocked, grad_one, rtol=1e-10, atol=1e-12)
