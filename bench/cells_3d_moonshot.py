@@ -1,10 +1,11 @@
 """Issue 62's moonshot: 3D periodic `delaunay` + `voronoi_facets` at N = 1e6 against freud's
 periodic Voronoi, each in its own child process so that each one's peak memory (max RSS) is its
 own. Float32 walkers, uniform in the unit cube; two calls each, the second (warm) reported.
-Target: within 2x freud, under 8 GB. Writes bench/results/cells_3d_moonshot.json.
+Target: within 2x freud, under 8 GB. Writes bench/results/cells_3d_moonshot.json (Qhull) or,
+with `--triangulator shull` (the `gpl` extra), cells_3d_moonshot_shull.json.
 
 Run alone (2 cores; ~4 minutes at 1e6):
-    .venv/bin/python bench/cells_3d_moonshot.py [--n 1000000]
+    .venv/bin/python bench/cells_3d_moonshot.py [--n 1000000] [--triangulator shull]
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 
-def child(kind: str, n: int) -> dict:
+def child(kind: str, n: int, triangulator: str) -> dict:
     x = np.random.default_rng(n).random((n, 3))
     seconds = []
     if kind == "freud":
@@ -44,12 +45,12 @@ def child(kind: str, n: int) -> dict:
         graph = []
         for _ in range(2):
             start = time.perf_counter()
-            tess = jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True)
+            tess = jaxgeom.delaunay(xd, box=(0.0, 1.0), periodic=True, triangulator=triangulator)
             jax.block_until_ready(tess.neighbors)
             graph.append(time.perf_counter() - start)
             jax.block_until_ready(jaxgeom.voronoi_facets(tess).areas)
             seconds.append(time.perf_counter() - start)
-        parts = {"delaunay_seconds": graph[-1]}
+        parts = {"delaunay_seconds": graph[-1], "triangulator": triangulator}
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB (Linux)
     return {"kind": kind, "n": n, "seconds": seconds[-1], "first_call_seconds": seconds[0], "peak_gib": peak, **parts}
 
@@ -57,15 +58,19 @@ def child(kind: str, n: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--triangulator", choices=["qhull", "shull"], default="qhull")
     parser.add_argument("--child", choices=["freud", "jaxgeom"], help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(child(args.child, args.n)), flush=True)
+        print(json.dumps(child(args.child, args.n, args.triangulator)), flush=True)
         return
     rows = {}
     for kind in ("freud", "jaxgeom"):
         out = subprocess.run(
-            [sys.executable, __file__, "--child", kind, "--n", str(args.n)], capture_output=True, text=True, check=True
+            [sys.executable, __file__, "--child", kind, "--n", str(args.n), "--triangulator", args.triangulator],
+            capture_output=True,
+            text=True,
+            check=True,
         )
         rows[kind] = json.loads([line for line in out.stdout.splitlines() if line.startswith("{")][-1])
         print(json.dumps(rows[kind]), flush=True)
@@ -76,7 +81,8 @@ def main() -> None:
         "date": time.strftime("%Y-%m-%d"),
     }
     print(f"jaxgeom / freud: {result['over_freud']:.2f}x")
-    out = Path(__file__).parent / "results" / "cells_3d_moonshot.json"
+    name = "cells_3d_moonshot.json" if args.triangulator == "qhull" else f"cells_3d_moonshot_{args.triangulator}.json"
+    out = Path(__file__).parent / "results" / name
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out}")
 

@@ -13,6 +13,7 @@ which decides whether Qhull must be run again.
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import itertools
 import math
@@ -190,8 +191,31 @@ def build_delaunay(
         raw = _periodic_graph(x, box_arr, backend)
     else:
         raw = _plain_graph(x, backend)
+    if n >= TRIM_WALKERS:
+        _return_freed_memory()
     need = Capacity(len(raw.simplices), int(np.bincount(raw.nbr_rows, minlength=n).max()))
     return _assemble(x, raw, _fit_capacity(need, n, d, capacity), box_arr, periodic), raw.fallbacks
+
+
+# From this many walkers a build hands the memory its triangulator freed back to the system
+# (glibc's `malloc_trim`): Qhull's many small blocks, freed in its threads' arenas, otherwise
+# stay in the process (3D periodic, N = 1e6: 3.5 GiB held after the slabs, bench/README.md).
+TRIM_WALKERS = 100_000
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's `malloc_trim`, or None where the C library has none (macOS, musl)."""
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (AttributeError, OSError):
+        return None
+
+
+def _return_freed_memory() -> None:
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def _check_delaunay_dim(d: int) -> None:
@@ -420,9 +444,12 @@ def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
     """Whether the periodic simplices' volumes add up to the box's (to 1e-9): co-spherical walkers
     (an 8^3 cubic lattice) whose tie-break Qhull did not resolve were triangulated unalike in two
     slabs, leaving a gap at the seam."""
-    corners = np.asarray(x, np.float64)[raw.simplices] + raw.simplex_shifts * np.asarray(lengths, np.float64)
-    edges = corners[:, 1:] - corners[:, :1]
-    total = np.sum(np.abs(_determinants(edges))) / math.factorial(x.shape[1])
+    x, lengths = np.asarray(x, np.float64), np.asarray(lengths, np.float64)
+    total = 0.0
+    for rows in _host_chunks(len(raw.simplices)):
+        corners = x[raw.simplices[rows]] + raw.simplex_shifts[rows] * lengths
+        total += np.sum(np.abs(_determinants(corners[:, 1:] - corners[:, :1])))
+    total /= math.factorial(x.shape[1])
     box_volume = float(np.prod(np.asarray(lengths, np.float64)))
     return bool(abs(total - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
@@ -465,7 +492,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
         owned = ~shifts.any(axis=1) & (home >= start) & (home < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
-        if not owned[tri.convex_hull].any() and _circumballs_empty(ext[simp], y, lengths, lo, hi):
+        if not owned[tri.convex_hull].any() and _circumballs_empty(ext, simp, y, lengths, lo, hi):
             break
         skin *= SKIN_GROWTH
     else:
@@ -492,19 +519,31 @@ def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
     return np.concatenate(pts), np.concatenate(ids), np.concatenate(shifts)
 
 
-def _circumballs_empty(p: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi) -> bool:
-    """Whether no periodic image outside the region (lo, hi) lies strictly inside a circumball.
+HOST_CHUNK = 1 << 18  # simplices per chunk of the host checks (their float64 temporaries: ~50 MB)
+
+
+def _host_chunks(total: int):
+    """Slices of at most HOST_CHUNK rows covering `total`."""
+    return [slice(start, start + HOST_CHUNK) for start in range(0, total, HOST_CHUNK)]
+
+
+def _circumballs_empty(points: np.ndarray, simplices: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi) -> bool:
+    """Whether no periodic image outside the region (lo, hi) lies strictly inside the
+    circumball of a simplex (rows of `points`).
 
     Balls inside the region are empty by construction (Qhull saw every point
     there); the few that poke out are checked against the images just outside.
     """
-    center, radius = _circumballs(p)
-    if not np.isfinite(radius).all():
-        return False
-    poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
-    if not poke.any():
+    pokes = []
+    for rows in _host_chunks(len(simplices)):
+        center, radius = _circumballs(points[simplices[rows]])
+        if not np.isfinite(radius).all():
+            return False
+        poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
+        pokes.append((center[poke], radius[poke]))
+    center, radius = (np.concatenate(parts) for parts in zip(*pokes, strict=True))
+    if not len(radius):
         return True
-    center, radius = center[poke], radius[poke]
     reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
     reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
     outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
@@ -704,14 +743,17 @@ def _cospherical_suspects(tess: Tessellation, n_simplices: int, padded: Tessella
 
 
 LOCAL_CONTACTS = 0.25  # suspects' simplices up to this fraction of all: the contact test runs on them alone
+LOCAL_WALKERS = 1024  # the least walker capacity of that local test (fewer shapes to compile)
 
 
 def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarray) -> np.ndarray:
     """(N, K) host bool: `positive_measure_contacts` where a contact can be degenerate, True
     elsewhere. A degenerate contact is an edge of a suspect simplex, so both its ends are
     walkers of suspects, and every simplex around it holds one of them: the test runs on
-    those simplices alone (a few hundred at N = 1e5 uniform, where the test over all 672k took
-    3.4 s), on all of them when they are more than `LOCAL_CONTACTS` of the simplices (a lattice)."""
+    those simplices alone and their walkers, relabelled into a small graph (`_local_graph`;
+    a few hundred simplices at N = 1e5 uniform, where the test over all 672k took 3.4 s,
+    and at 1e6 the whole graph's (N K, 3, 3) sums took 2.4 GiB), on all of them when they are
+    more than `LOCAL_CONTACTS` of the simplices (a lattice)."""
     n = tess.n_points
     simplices = np.asarray(tess.simplices)
     near = np.zeros(n + 1, bool)
@@ -720,25 +762,61 @@ def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarra
     around = np.flatnonzero(near[simplices].any(axis=1))
     if len(around) > LOCAL_CONTACTS * len(simplices):
         return np.asarray(positive_measure_contacts(padded))[:n]
-    size = bucket_simplices(max(len(around), 64))
-    m = padded.n_points
-    sub_simplices = np.full((size, simplices.shape[1]), m, simplices.dtype)
-    sub_simplices[: len(around)] = np.where(simplices[around] == n, m, simplices[around])
-    sub_shifts = None
-    if tess.simplex_shifts is not None:
-        shifts = np.asarray(tess.simplex_shifts)
-        sub_shifts = np.zeros((size, *shifts.shape[1:]), shifts.dtype)
-        sub_shifts[: len(around)] = shifts[around]
-    sub = eqx.tree_at(
-        lambda t: (t.simplices, t.simplex_shifts),
-        padded,
-        (jnp.asarray(sub_simplices), None if sub_shifts is None else jnp.asarray(sub_shifts)),
-        is_leaf=lambda leaf: leaf is None,
-    )
-    keep = np.asarray(positive_measure_contacts(sub))[:n]
     neighbors = np.asarray(tess.neighbors)
+    local, walkers, slots = _local_graph(tess, around)
+    found = np.asarray(positive_measure_contacts(local))[: len(walkers)]
+    keep = np.ones(neighbors.shape, bool)
+    rows = np.broadcast_to(walkers[:, None], slots.shape)
+    real = slots < neighbors.shape[1]  # slots of neighbours outside the local graph: not tested
+    keep[rows[real], slots[real]] = found[real]
     candidate = near[:n, None] & near[neighbors]
     return np.where(candidate, keep, neighbors < n)
+
+
+def _local_graph(tess: Tessellation, around: np.ndarray):
+    """The simplices `around` (ids) and their walkers as a graph of their own: walkers
+    relabelled in ascending order (so rows stay sorted), padded to `bucket_walkers` (at least
+    LOCAL_WALKERS) with copies of the first in no simplex, their neighbour rows cut to the
+    walkers kept (the others become padding, moved to the rows' ends), simplices padded to
+    `bucket_simplices`. Returns (graph, walkers (W,) their ids in `tess`, slots (W, K) each
+    local slot's slot in `tess`, K where padding)."""
+    n, k = tess.neighbors.shape
+    simplices = np.asarray(tess.simplices)[around]
+    walkers = np.unique(simplices)
+    walkers = walkers[walkers < n]
+    m = bucket_walkers(max(len(walkers), LOCAL_WALKERS))
+    label = np.full(n + 1, m, np.int32)
+    label[walkers] = np.arange(len(walkers), dtype=np.int32)
+    rows = label[np.asarray(tess.neighbors)[walkers]]
+    order = np.argsort(rows == m, axis=1, kind="stable")  # kept neighbours first, in their order
+    rows = np.take_along_axis(rows, order, axis=1)
+    slots = np.where(rows < m, order, k)
+    grow = lambda a, fill: np.concatenate([a, np.full((m - len(a), *a.shape[1:]), fill, a.dtype)])  # noqa: E731
+    points = np.asarray(tess.points)
+    size = bucket_simplices(max(len(around), 64))
+    local_simplices = np.full((size, simplices.shape[1]), m, np.int32)
+    local_simplices[: len(around)] = label[simplices]
+    neighbor_shifts = simplex_shifts = None
+    if tess.simplex_shifts is not None:
+        moved = np.take_along_axis(np.asarray(tess.neighbor_shifts)[walkers], order[..., None], axis=1)
+        neighbor_shifts = jnp.asarray(grow(np.where((rows < m)[..., None], moved, 0), 0))
+        shifts = np.asarray(tess.simplex_shifts)
+        local_shifts = np.zeros((size, *shifts.shape[1:]), shifts.dtype)
+        local_shifts[: len(around)] = shifts[around]
+        simplex_shifts = jnp.asarray(local_shifts)
+    local = Tessellation(
+        points=jnp.asarray(np.concatenate([points[walkers], np.repeat(points[:1], m - len(walkers), axis=0)])),
+        neighbors=jnp.asarray(grow(rows, m)),
+        tier=jnp.asarray(np.full(m, 2, np.int8)),
+        hull=jnp.asarray(grow(np.asarray(tess.hull)[walkers], False)),
+        simplices=jnp.asarray(local_simplices),
+        neighbor_shifts=neighbor_shifts,
+        simplex_shifts=simplex_shifts,
+        box=tess.box,
+        overflow=jnp.asarray(False),
+        periodic=tess.periodic,
+    )
+    return local, walkers, slots
 
 
 def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -> Tessellation:
