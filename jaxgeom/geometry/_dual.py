@@ -468,7 +468,14 @@ def _hull_normal_sums(hull_face, normals, edge_index, slots: int):
         values = jnp.concatenate([values, values])
         return jnp.zeros((slots + 1, 3), outer.dtype).at[slot.ravel()].add(values.reshape(-1, 3))
 
-    return _few_or_all(hull_face, add, lambda: add(jnp.arange(total, dtype=jnp.int32)))
+    def every():  # all faces in their (S, 4) layout: each flag's slots are its edge's (no gather of ids)
+        values = jnp.broadcast_to(outer.reshape(*hull_face.shape, 1, 3), (*hull_face.shape, 3, 3)).reshape(-1, 3)
+        sums = jnp.zeros((slots + 1, 3), outer.dtype)
+        for side in edge_index:  # both ends of each edge get the normal: their order does not matter
+            sums = sums.at[side[:, FLAG_EDGE].ravel()].add(values)
+        return sums
+
+    return _few_or_all(hull_face, add, every)
 
 
 def _counted_in_box(tess: Tessellation, centres, wall_areas):

@@ -378,3 +378,23 @@ def test_3d_dual_in_blocks_equals_it_in_one(rng, kind, monkeypatch):
             np.asarray(getattr(blocked, name)), np.asarray(getattr(one, name)), rtol=1e-12, atol=1e-15
         )
     np.testing.assert_allclose(grad_blocked, grad_one, rtol=1e-10, atol=1e-12)
+
+
+def test_hull_sums_over_few_faces_equal_those_over_every_face(rng, monkeypatch):
+    """`_few_or_all` sums the hull's faces alone when they are few (a uniform sample) and walks
+    every face otherwise (a lattice's flat outer layer): both give the same boxed cells, forced
+    one way (HULL_SHARE = 1: always few) and the other (HULL_SHARE huge: never few)."""
+    import jax
+
+    from jaxgeom.geometry import _dual
+
+    tess = jaxgeom.delaunay(rng.random((150, 3)), box=(0.0, 1.0))
+    cells = {}
+    for share in (1, 10**9):
+        monkeypatch.setattr(_dual, "HULL_SHARE", share)
+        jax.clear_caches()
+        cells[share] = jaxgeom.voronoi_facets(tess)
+    for name in ("areas", "wall_areas", "volumes", "centroids", "n_vertices"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(cells[1], name)), np.asarray(getattr(cells[10**9], name)), rtol=1e-12, atol=1e-15
+        )
