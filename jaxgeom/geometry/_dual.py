@@ -194,9 +194,9 @@ def _sorted_rows(tess: Tessellation):
 
 def _find_slots(tess: Tessellation, rows, ends, shifts):
     """(first, second), each (...,): the flat slot (row * K + slot) of every edge `ends` (..., 2)
-    seen from its first end and from its second; N * K where the other end is not a neighbour (a zero-measure
-    contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or None; `rows`:
-    `_sorted_rows(tess)`.
+    seen from its first end and from its second; N * K where the other end is not a neighbour
+    (a zero-measure contact) or on padding. `shifts` (..., 2, d): the ends' periodic images, or
+    None; `rows`: `_sorted_rows(tess)`.
 
     Every edge finds its slot by a binary search of its row's sorted keys: log2 K gathers per
     edge instead of comparing it with all K."""
