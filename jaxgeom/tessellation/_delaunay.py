@@ -450,7 +450,7 @@ def _tiles_the_box(raw, x: np.ndarray, lengths: np.ndarray) -> bool:
         corners = x[raw.simplices[rows]] + raw.simplex_shifts[rows] * lengths
         total += np.sum(np.abs(_determinants(corners[:, 1:] - corners[:, :1])))
     total /= math.factorial(x.shape[1])
-    box_volume = float(np.prod(np.asarray(lengths, np.float64)))
+    box_volume = float(np.prod(lengths))
     return bool(abs(total - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
 
@@ -700,21 +700,29 @@ def _padded_walkers(tess: Tessellation) -> Tessellation:
     n = tess.n_points
     m = bucket_walkers(n)
     relabel = lambda a: np.where(a == n, m, a)  # noqa: E731  (the sentinel)
-    grow = lambda a, fill: np.concatenate([a, np.full((m - n, *a.shape[1:]), fill, a.dtype)])  # noqa: E731
-    points = np.asarray(tess.points)
     return eqx.tree_at(
         lambda t: (t.points, t.neighbors, t.tier, t.hull, t.simplices, t.neighbor_shifts),
         tess,
         (
-            jnp.asarray(np.concatenate([points, np.repeat(points[:1], m - n, axis=0)])),
-            jnp.asarray(grow(relabel(np.asarray(tess.neighbors)), m)),
-            jnp.asarray(grow(np.asarray(tess.tier), 2)),
-            jnp.asarray(grow(np.asarray(tess.hull), False)),
+            jnp.asarray(_padded_points(np.asarray(tess.points), m)),
+            jnp.asarray(_grow(relabel(np.asarray(tess.neighbors)), m, m)),
+            jnp.asarray(_grow(np.asarray(tess.tier), m, 2)),
+            jnp.asarray(_grow(np.asarray(tess.hull), m, False)),
             jnp.asarray(relabel(np.asarray(tess.simplices))),
-            None if tess.neighbor_shifts is None else jnp.asarray(grow(np.asarray(tess.neighbor_shifts), 0)),
+            None if tess.neighbor_shifts is None else jnp.asarray(_grow(np.asarray(tess.neighbor_shifts), m, 0)),
         ),
         is_leaf=lambda leaf: leaf is None,
     )
+
+
+def _grow(a: np.ndarray, m: int, fill) -> np.ndarray:
+    """`a` with rows of `fill` appended up to `m` rows."""
+    return np.concatenate([a, np.full((m - len(a), *a.shape[1:]), fill, a.dtype)])
+
+
+def _padded_points(points: np.ndarray, m: int) -> np.ndarray:
+    """`points` with copies of the first appended up to `m` rows (walkers in no simplex)."""
+    return np.concatenate([points, np.repeat(points[:1], m - len(points), axis=0)])
 
 
 def _cospherical_suspects(tess: Tessellation, n_simplices: int, padded: Tessellation) -> np.ndarray:
@@ -763,7 +771,7 @@ def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarra
     if len(around) > LOCAL_CONTACTS * len(simplices):
         return np.asarray(positive_measure_contacts(padded))[:n]
     neighbors = np.asarray(tess.neighbors)
-    local, walkers, slots = _local_graph(tess, around)
+    local, walkers, slots = _local_graph(tess, simplices, neighbors, around)
     found = np.asarray(positive_measure_contacts(local))[: len(walkers)]
     keep = np.ones(neighbors.shape, bool)
     rows = np.broadcast_to(walkers[:, None], slots.shape)
@@ -773,42 +781,36 @@ def _contacts_near(tess: Tessellation, padded: Tessellation, suspects: np.ndarra
     return np.where(candidate, keep, neighbors < n)
 
 
-def _local_graph(tess: Tessellation, around: np.ndarray):
-    """The simplices `around` (ids) and their walkers as a graph of their own: walkers
-    relabelled in ascending order (so rows stay sorted), padded to `bucket_walkers` (at least
-    LOCAL_WALKERS) with copies of the first in no simplex, their neighbour rows cut to the
-    walkers kept (the others become padding, moved to the rows' ends), simplices padded to
-    `bucket_simplices`. Returns (graph, walkers (W,) their ids in `tess`, slots (W, K) each
-    local slot's slot in `tess`, K where padding)."""
-    n, k = tess.neighbors.shape
-    simplices = np.asarray(tess.simplices)[around]
+def _local_graph(tess: Tessellation, simplices: np.ndarray, neighbors: np.ndarray, around: np.ndarray):
+    """The simplices `around` (ids) and their walkers as a graph of their own (`simplices`,
+    `neighbors`: `tess`'s on the host): walkers relabelled in ascending order (so rows stay
+    sorted), padded to `bucket_walkers` (at least LOCAL_WALKERS) with copies of the first in no
+    simplex, their neighbour rows cut to the walkers kept (`_kept_first`: the others become
+    padding at the rows' ends), simplices padded to `bucket_simplices`. Returns (graph, walkers
+    (W,) their ids in `tess`, slots (W, K) each local slot's slot in `tess`, K where padding)."""
+    n, k = neighbors.shape
+    simplices = simplices[around]
     walkers = np.unique(simplices)
     walkers = walkers[walkers < n]
     m = bucket_walkers(max(len(walkers), LOCAL_WALKERS))
     label = np.full(n + 1, m, np.int32)
     label[walkers] = np.arange(len(walkers), dtype=np.int32)
-    rows = label[np.asarray(tess.neighbors)[walkers]]
-    order = np.argsort(rows == m, axis=1, kind="stable")  # kept neighbours first, in their order
-    rows = np.take_along_axis(rows, order, axis=1)
+    rows = label[neighbors[walkers]]
+    shifts = None if tess.neighbor_shifts is None else np.asarray(tess.neighbor_shifts)[walkers]
+    rows, shifts, order = _kept_first(rows, shifts, rows < m, m)
     slots = np.where(rows < m, order, k)
-    grow = lambda a, fill: np.concatenate([a, np.full((m - len(a), *a.shape[1:]), fill, a.dtype)])  # noqa: E731
-    points = np.asarray(tess.points)
-    size = bucket_simplices(max(len(around), 64))
+    size = bucket_simplices(max(len(simplices), 64))
     local_simplices = np.full((size, simplices.shape[1]), m, np.int32)
-    local_simplices[: len(around)] = label[simplices]
+    local_simplices[: len(simplices)] = label[simplices]
     neighbor_shifts = simplex_shifts = None
-    if tess.simplex_shifts is not None:
-        moved = np.take_along_axis(np.asarray(tess.neighbor_shifts)[walkers], order[..., None], axis=1)
-        neighbor_shifts = jnp.asarray(grow(np.where((rows < m)[..., None], moved, 0), 0))
-        shifts = np.asarray(tess.simplex_shifts)
-        local_shifts = np.zeros((size, *shifts.shape[1:]), shifts.dtype)
-        local_shifts[: len(around)] = shifts[around]
-        simplex_shifts = jnp.asarray(local_shifts)
+    if shifts is not None:
+        neighbor_shifts = jnp.asarray(_grow(shifts, m, 0))
+        simplex_shifts = jnp.asarray(_grow(np.asarray(tess.simplex_shifts)[around], size, 0))
     local = Tessellation(
-        points=jnp.asarray(np.concatenate([points[walkers], np.repeat(points[:1], m - len(walkers), axis=0)])),
-        neighbors=jnp.asarray(grow(rows, m)),
+        points=jnp.asarray(_padded_points(np.asarray(tess.points)[walkers], m)),
+        neighbors=jnp.asarray(_grow(rows, m, m)),
         tier=jnp.asarray(np.full(m, 2, np.int8)),
-        hull=jnp.asarray(grow(np.asarray(tess.hull)[walkers], False)),
+        hull=jnp.asarray(_grow(np.asarray(tess.hull)[walkers], m, False)),
         simplices=jnp.asarray(local_simplices),
         neighbor_shifts=neighbor_shifts,
         simplex_shifts=simplex_shifts,
@@ -817,6 +819,18 @@ def _local_graph(tess: Tessellation, around: np.ndarray):
         periodic=tess.periodic,
     )
     return local, walkers, slots
+
+
+def _kept_first(nbrs: np.ndarray, shifts, keep: np.ndarray, fill: int):
+    """Each row of `nbrs` (host (R, K)) with its `keep` slots first, in their order, and the
+    others `fill` (shifts (R, K, d) or None moved alike, 0 there); and the order (R, K): the
+    slot each place came from."""
+    order = np.argsort(~keep, axis=1, kind="stable")
+    kept = np.take_along_axis(keep, order, axis=1)
+    nbrs = np.where(kept, np.take_along_axis(nbrs, order, axis=1), fill)
+    if shifts is not None:
+        shifts = np.where(kept[..., None], np.take_along_axis(shifts, order[..., None], axis=1), 0)
+    return nbrs, shifts, order
 
 
 def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -> Tessellation:
@@ -828,14 +842,10 @@ def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -
     if not rows.size:
         return tess
     nbrs = nbrs.copy()
-    order = np.argsort(~keep[rows], axis=1, kind="stable")  # kept slots first, in order
-    nbrs[rows] = np.where(
-        np.take_along_axis(keep[rows], order, axis=1), np.take_along_axis(nbrs[rows], order, axis=1), n
-    )
+    nbrs[rows], moved, _ = _kept_first(nbrs[rows], None if shifts is None else shifts[rows], keep[rows], n)
     if shifts is not None:
         shifts = shifts.copy()
-        moved = np.take_along_axis(shifts[rows], order[..., None], axis=1)
-        shifts[rows] = np.where((nbrs[rows] < n)[..., None], moved, 0)
+        shifts[rows] = moved
     return eqx.tree_at(
         lambda t: (t.neighbors, t.neighbor_shifts),
         tess,
