@@ -328,3 +328,26 @@ def test_large_builds_hand_the_triangulators_freed_memory_back(rng, monkeypatch)
     assert calls == [0, 0]
     monkeypatch.setattr(_delaunay, "_malloc_trim", lambda: None)
     assert jaxgeom.delaunay(x).simplices.shape[1] == 4
+
+
+@pytest.mark.parametrize("span", [1, 2, 100])
+def test_periodic_rows_sort_by_neighbour_then_image(rng, span):
+    """`_pad_neighbors` on a torus packs each slot's (neighbour, image) into one key: rows come
+    out sorted by neighbour index, a neighbour seen at several images ordered by its shift (as
+    the dual's row keys order them), padding last with no shift; wide shifts (large skins of
+    sparse samples) take 64-bit keys."""
+    from jaxgeom.tessellation._delaunay import RawGraph, _pad_neighbors
+
+    n, k, d = (200 if span == 100 else 40), 12, 3  # span 100: 8 bits per axis, 64-bit keys from n = 128
+    degree = rng.integers(1, k + 1, n)
+    rows = np.repeat(np.arange(n), degree)
+    cols = rng.integers(0, 6, rows.size)  # few distinct neighbours: many seen at several images
+    shifts = rng.integers(-span, span + 1, (rows.size, d)).astype(np.int8)
+    raw = RawGraph(np.zeros((0, d + 1), np.int32), None, rows, cols, shifts, np.zeros(n, bool))
+    nbrs, out = _pad_neighbors(raw, n, k)
+    assert nbrs.dtype == np.int32 and out.dtype == np.int8
+    for i in range(n):
+        mine = sorted((int(c), tuple(s.tolist())) for c, s in zip(cols[rows == i], shifts[rows == i], strict=True))
+        got = [(int(c), tuple(s.tolist())) for c, s in zip(nbrs[i], out[i], strict=True)]
+        assert got[: len(mine)] == mine
+        assert got[len(mine) :] == [(n, (0,) * d)] * (k - len(mine))
