@@ -518,7 +518,7 @@ def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
     pts, ids, shifts = [], [], []
     for s in itertools.product(range(-reach, reach + 1), repeat=d):
         img = y + np.asarray(s) * lengths
-        keep = np.flatnonzero(np.all((img > lo) & (img < hi), axis=1))
+        keep = np.flatnonzero(np.all((img > lo) & (img < hi), axis=1)).astype(np.int32)  # half the copies of int64
         pts.append(img[keep])
         ids.append(keep)
         shifts.append(np.broadcast_to(np.asarray(s, np.int8), (keep.size, d)))
@@ -702,11 +702,13 @@ def _assemble(x: np.ndarray, raw: RawGraph, cap: Capacity, box, periodic: bool) 
     )
     padded = _padded_walkers(tess)
     suspects = _cospherical_suspects(tess, len(raw.simplices), padded)
+    built = tess
     if suspects.size:
         tess = _drop_rows(tess, nbrs, nbr_shifts, _contacts_near(tess, padded, suspects))
-        padded = _padded_walkers(tess)
     if periodic:
         return tess
+    if tess is not built:  # rows lost a contact: the tiers see the graph without it
+        padded = _padded_walkers(tess)
     adjacency = None if raw.adjacency is None else jnp.asarray(_pad_adjacency(raw.adjacency, cap.simplices))
     tier = np.asarray(boundary_tiers(padded, adjacency))[:n]
     return eqx.tree_at(lambda t: t.tier, tess, jnp.asarray(tier))
