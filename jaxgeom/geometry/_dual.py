@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base._simplex import dot
-from ..tessellation._graph import Tessellation, neighbor_displacements, simplex_vertices
+from ..tessellation._graph import Tessellation, lower_bound_in_rows, neighbor_displacements, simplex_vertices
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
 from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
 
@@ -207,13 +207,9 @@ def _find_slots(tess: Tessellation, rows, ends, shifts):
         rows, targets = ends[..., side], ends[..., 1 - side]
         rel = None if shifts is None else shifts[..., 1 - side, :] - shifts[..., side, :]
         wanted = _row_keys(targets, rel)
-        base = jnp.minimum(rows, n - 1) * k
-        lower, upper = jnp.zeros_like(base), jnp.full_like(base, k)
-        for _ in range(k.bit_length()):  # the first place whose key is >= the wanted one
-            middle = (lower + upper) // 2
-            below = sorted_keys[base + jnp.minimum(middle, k - 1)] < wanted
-            lower, upper = jnp.where(below, middle + 1, lower), jnp.where(below, upper, middle)
-        at = base + jnp.minimum(lower, k - 1)
+        rows_in = jnp.minimum(rows, n - 1)
+        base = rows_in * k
+        at = base + jnp.minimum(lower_bound_in_rows(sorted_keys.reshape(n, k), rows_in, wanted), k - 1)
         found = (sorted_keys[at] == wanted) & (rows < n) & (targets < n)
         index.append(jnp.where(found, base + sorted_slots[at], n * k))
     return tuple(index)

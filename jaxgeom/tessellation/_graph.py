@@ -229,15 +229,21 @@ MAX_IMAGES_PER_NEIGHBOR = 8
 
 def lower_bound_in_rows(table, rows, values):
     """Binary search in rows sorted ascending: the first column k with
-    `table[rows, k] >= values` (K, the width, where there is none). One flat gather per step."""
+    `table[rows, k] >= values` (K, the width, where there is none), as the count of entries
+    below, by steps of halving powers of two with one value carried, one flat gather per step.
+    A loop keeps each step a fusion of its own (3D `voronoi_facets` at N = 1e5: 16% faster than
+    unrolled (lower, upper) halvings, which also fused worse into 2D's: 30% slower there)."""
     k_cap = table.shape[1]
     flat = table.ravel()
-    lo, hi = jnp.zeros_like(values), jnp.full_like(values, k_cap)
-    for _ in range(max(1, math.ceil(math.log2(k_cap))) + 1):
-        mid = (lo + hi) // 2
-        right = (mid < k_cap) & (flat[rows * k_cap + jnp.minimum(mid, k_cap - 1)] < values)
-        lo, hi = jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
-    return lo
+    base = rows * k_cap
+
+    def halve(i, below_count):
+        step = jnp.right_shift(1 << (k_cap.bit_length() - 1), i)
+        probe = below_count + (step - 1)
+        below = (probe < k_cap) & (flat[base + jnp.minimum(probe, k_cap - 1)] < values)
+        return jnp.where(below, below_count + step, below_count)
+
+    return jax.lax.fori_loop(0, k_cap.bit_length(), halve, jnp.zeros_like(values))
 
 
 def edge_slots(tess: Tessellation, src, dst, shift=None):
