@@ -3,8 +3,9 @@
 Sorts M random (cell, projection) entries as the 3D vertex counts need them: the (int32 cell,
 float projection, int32 entry) triple by two keys, as before; a packed uint32 key with the
 entry as payload; one uint32 operand alone (each radix pass of
-`jaxgeom.geometry._dual._order_by_cell_and_projection`); and that whole radix order. Medians of
-warm calls. Run alone:
+`jaxgeom.geometry._dual._order_by_cell_and_projection`); that operand by numpy through a callback
+(`jaxgeom.geometry._dual.sorted_values`, what the CPU backend runs) and by numpy alone; and the
+whole radix order. Medians of warm calls. Run alone:
     .venv/bin/python bench/xla_sorts.py [--m 2900000] [--n 100000]
 """
 
@@ -17,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from _timing import summary, timed
 
-from jaxgeom.geometry._dual import _order_by_cell_and_projection
+from jaxgeom.geometry._dual import _order_by_cell_and_projection, sorted_values
 
 
 def pack(cells, projection):
@@ -39,6 +40,7 @@ def main() -> None:
         "(cell, projection, entry), 2 keys": lambda c, p, e: jax.lax.sort((c, p, e), num_keys=2),
         "(packed uint32, entry), 1 key": lambda c, p, e: jax.lax.sort((pack(c, p), e), num_keys=1),
         "one uint32 operand": lambda c, p, e: jax.lax.sort(pack(c, p)),
+        "one uint32 operand, sorted_values": lambda c, p, e: sorted_values(pack(c, p)),
         "radix order (the vertex counts')": lambda c, p, e: _order_by_cell_and_projection(
             c, p, jnp.ones_like(p), args.n
         )[0],
@@ -49,6 +51,9 @@ def main() -> None:
         timed(call)
         s = summary([timed(call) for _ in range(args.repeat)])
         print(f"{name:<36} {s['median']:.3f} s ({s['min']:.3f}-{s['max']:.3f})")
+    packed = np.asarray(pack(cells, projection))
+    s = summary([timed(lambda: np.sort(packed)) for _ in range(args.repeat)])
+    print(f"{'one uint32 operand, numpy alone':<36} {s['median']:.3f} s ({s['min']:.3f}-{s['max']:.3f})")
 
 
 if __name__ == "__main__":

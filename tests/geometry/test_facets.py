@@ -279,6 +279,25 @@ def test_facet_gradients_equal_central_differences(rng, kind, d):
         np.testing.assert_allclose(grad[i, c], fd, rtol=1e-5, atol=1e-7 * max(1.0, abs(fd)))
 
 
+def test_sorted_values_equal_xlas_sort_under_jit_and_vmap(rng, monkeypatch):
+    """`sorted_values` (numpy's sort through a callback on the CPU backend) gives `lax.sort`'s
+    values, jitted and vmapped over a batch, for uint32 and int32; on another backend it is
+    `lax.sort` itself (no callback in the program)."""
+    import jax
+
+    from jaxgeom.geometry import _dual
+
+    for dtype in (np.uint32, np.int32):
+        batch = jnp.asarray(rng.integers(0, 2**31 - 1, (3, 5000)).astype(dtype))
+        want = jax.lax.sort(batch, dimension=1)
+        np.testing.assert_array_equal(jax.jit(jax.vmap(_dual.sorted_values))(batch), want)
+        np.testing.assert_array_equal(jax.jit(_dual.sorted_values)(batch[0]), want[0])
+    traced = lambda: str(jax.make_jaxpr(lambda v: _dual.sorted_values(v))(batch[0]))  # noqa: E731  (a new trace)
+    assert "callback" in traced()
+    monkeypatch.setattr(_dual.jax, "default_backend", lambda: "gpu")
+    assert "callback" not in traced()
+
+
 def test_the_radix_order_sorts_by_cell_then_quantum_then_entry(rng):
     """`_order_by_cell_and_projection` (one-operand radix passes) against numpy's lexsort, on
     keys full of ties (few cells, projections from a handful of values) and at the sizes where
