@@ -30,7 +30,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base._simplex import dot
-from ..tessellation._graph import Tessellation, lower_bound_in_rows, neighbor_displacements, simplex_vertices
+from ..tessellation._graph import (
+    Tessellation,
+    lower_bound_in_rows,
+    neighbor_distances,
+    simplex_vertices,
+    take_or_zero,
+)
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
 from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
 
@@ -672,19 +678,22 @@ def triangle_flags_2d(p):
 RAY_CHUNK = 64  # hull walkers per chunk of the ray test (chunks past their count are skipped)
 
 
-def _unbounded_slots_2d(tess: Tessellation, dx):
+def _unbounded_slots_2d(tess: Tessellation):
     """(N, K) the faces that are rays: a hull walker's two extreme neighbours, those with every
     other neighbour on one side of them (the outside lies beyond), share a ray with it. Only
-    the hull walkers are tested (`map_flagged_rows`): the cost follows them. `dx`: the
-    neighbour displacements (`neighbor_displacements`)."""
+    the hull walkers are tested (`map_flagged_rows`): the cost follows them (their neighbour
+    displacements too: the graph has no box, so no images)."""
     n, k = tess.neighbors.shape
 
     def extreme(ids):
         safe = jnp.minimum(ids, n - 1)
-        rows, mask = dx[safe], tess.neighbor_mask[safe]
+        mask = tess.neighbor_mask[safe]
+        rows = jnp.where(
+            mask[..., None], take_or_zero(tess.points, tess.neighbors[safe]) - tess.points[safe][:, None], 0.0
+        )
         cross = rows[:, :, None, 0] * rows[:, None, :, 1] - rows[:, :, None, 1] * rows[:, None, :, 0]
         scale = jnp.max(jnp.sum(rows * rows, axis=-1), axis=1)[:, None, None]
-        tol = ROUNDING_ULPS * jnp.finfo(dx.dtype).eps * scale
+        tol = ROUNDING_ULPS * jnp.finfo(rows.dtype).eps * scale
         others = mask[:, None, :]
         left = jnp.all(~others | (cross >= -tol), axis=2)
         right = jnp.all(~others | (cross <= tol), axis=2)
@@ -707,13 +716,12 @@ def dual_faces_2d(tess: Tessellation):
     shifts = None if tess.simplex_shifts is None else tess.simplex_shifts[:, pairs]
     index = _find_slots(tess, _sorted_rows(tess), ends, shifts)
     faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), index, n, k)
-    dx = neighbor_displacements(tess)
-    unbounded = _unbounded_slots_2d(tess, dx) if tess.box is None else jnp.zeros((n, k), bool)
+    unbounded = _unbounded_slots_2d(tess) if tess.box is None else jnp.zeros((n, k), bool)
     cell_area, moments = _sum_at_ends(
         tess.simplices, pairs, jnp.where(mask[:, None], areas, 0.0), moment_a, moment_b, n
     )
     # a polygon has as many vertices as edges: the faces of positive length
-    r = jnp.sqrt(jnp.sum(jnp.square(dx), axis=-1))
+    r = neighbor_distances(tess)
     vertices = jnp.sum(faces > ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * r, axis=1, dtype=jnp.int32)
     flat = jnp.repeat(mask & ~proper, 3).astype(jnp.int32)
     beside_flat = jax.ops.segment_max(flat, tess.simplices.ravel(), num_segments=n + 1)[:n] > 0
