@@ -185,17 +185,19 @@ def _row_keys(neighbors, shifts):
 
 def _sorted_rows(tess: Tessellation):
     """Every neighbour row's keys (`_row_keys`) in ascending order and the slot each came from,
-    flat (N K,), for `_find_slots`'s binary searches."""
+    flat (N K,), and whether the rows came sorted (each slot its own), for `_find_slots`'s
+    binary searches."""
     n, k = tess.neighbors.shape
     row_keys = _row_keys(tess.neighbors, tess.neighbor_shifts)
     slots = jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (n, k))
     # `delaunay`'s rows come sorted; a graph whose rows were edited is sorted here
+    came_sorted = jnp.all(row_keys[:, 1:] >= row_keys[:, :-1])
     sorted_keys, sorted_slots = jax.lax.cond(
-        jnp.all(row_keys[:, 1:] >= row_keys[:, :-1]),
+        came_sorted,
         lambda: (row_keys, slots),
         lambda: jax.lax.sort((row_keys, slots), dimension=1, num_keys=1),
     )
-    return sorted_keys.ravel(), sorted_slots.ravel()
+    return sorted_keys.ravel(), sorted_slots.ravel(), came_sorted
 
 
 def _find_slots(tess: Tessellation, rows, ends, shifts):
@@ -207,7 +209,7 @@ def _find_slots(tess: Tessellation, rows, ends, shifts):
     Every edge finds its slot by a binary search of its row's sorted keys: log2 K gathers per
     edge instead of comparing it with all K."""
     n, k = tess.neighbors.shape
-    sorted_keys, sorted_slots = rows
+    sorted_keys, sorted_slots, came_sorted = rows
     index = []
     for side in (0, 1):
         rows, targets = ends[..., side], ends[..., 1 - side]
@@ -217,7 +219,8 @@ def _find_slots(tess: Tessellation, rows, ends, shifts):
         base = rows_in * k
         at = base + jnp.minimum(lower_bound_in_rows(sorted_keys.reshape(n, k), rows_in, wanted), k - 1)
         found = (sorted_keys[at] == wanted) & (rows < n) & (targets < n)
-        index.append(jnp.where(found, base + sorted_slots[at], n * k))
+        slot = jax.lax.cond(came_sorted, lambda at=at, base=base: at - base, lambda at=at: sorted_slots[at])
+        index.append(jnp.where(found, base + slot, n * k))
     return tuple(index)
 
 

@@ -279,6 +279,26 @@ def test_facet_gradients_equal_central_differences(rng, kind, d):
         np.testing.assert_allclose(grad[i, c], fd, rtol=1e-5, atol=1e-7 * max(1.0, abs(fd)))
 
 
+@pytest.mark.parametrize("d, periodic", [(2, False), (3, True), (3, False)])
+def test_facets_of_rows_in_any_order_follow_their_slots(rng, d, periodic):
+    """`delaunay` hands the dual rows sorted by neighbour (its slot search then skips the slot
+    gather); a graph whose rows were shuffled (neighbours with their images) is sorted there
+    first: each face follows its neighbour's slot, and every cell is unchanged."""
+    import equinox as eqx
+
+    x = rng.random((300, d))
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=periodic) if periodic else jaxgeom.delaunay(x)
+    order = np.argsort(rng.random(tess.neighbors.shape), axis=1)
+    shuffled = eqx.tree_at(lambda t: t.neighbors, tess, jnp.take_along_axis(tess.neighbors, jnp.asarray(order), axis=1))
+    if periodic:
+        shifts = np.take_along_axis(np.asarray(tess.neighbor_shifts), order[..., None], axis=1)
+        shuffled = eqx.tree_at(lambda t: t.neighbor_shifts, shuffled, jnp.asarray(shifts))
+    before, after = jaxgeom.voronoi_facets(tess), jaxgeom.voronoi_facets(shuffled)
+    np.testing.assert_array_equal(np.take_along_axis(np.asarray(before.areas), order, axis=1), after.areas)
+    for name in ("volumes", "centroids", "n_vertices"):
+        np.testing.assert_allclose(getattr(after, name), getattr(before, name), rtol=1e-12, atol=1e-15)
+
+
 def test_sorted_values_equal_xlas_sort_under_jit_and_vmap(rng, monkeypatch):
     """`sorted_values` (numpy's sort through a callback on the CPU backend) gives `lax.sort`'s
     values, jitted and vmapped over a batch, for uint32 and int32; on another backend it is
