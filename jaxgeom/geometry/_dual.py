@@ -219,6 +219,7 @@ def _find_slots(tess: Tessellation, rows, ends, shifts):
         base = rows_in * k
         at = base + jnp.minimum(lower_bound_in_rows(sorted_keys.reshape(n, k), rows_in, wanted), k - 1)
         found = (sorted_keys[at] == wanted) & (rows < n) & (targets < n)
+        # rows that came sorted hold each slot in its own place: no gather of the slots
         slot = jax.lax.cond(came_sorted, lambda at=at, base=base: at - base, lambda at=at: sorted_slots[at])
         index.append(jnp.where(found, base + slot, n * k))
     return tuple(index)
@@ -588,7 +589,7 @@ def _order_by_cell_and_projection(cells, projection, reach, n: int):
     fits 32 bits; it is sorted by least-significant-digit radix passes, each a sort of one
     uint32 holding the key's next digit above the entry's current position (so ties keep their
     order: each pass is stable). One operand sorts ~9x faster than the (cell, projection,
-    entry) triple in XLA (bench/README.md), and on the CPU numpy sorts it another ~10x faster
+    entry) triple in XLA (bench/README.md), and on the CPU numpy sorts it another 5-9x faster
     (`sorted_values`); on a GPU one-operand sorts are CUB's radix sorts."""
     m = cells.shape[0]
     position_bits = max(1, (m - 1).bit_length())
@@ -613,9 +614,9 @@ def _order_by_cell_and_projection(cells, projection, reach, n: int):
 
 def sorted_values(values):
     """`jax.lax.sort` of one integer operand, on the CPU backend by numpy's (SIMD) sort through a
-    callback: the same values, 9-14x faster (uint32, 2.9M: 8 ms against 116 ms; 27M: 0.19 s
-    against 1.25 s with the callback's copies; `python bench/xla_sorts.py`). Elsewhere (CUDA:
-    CUB's radix sort) `lax.sort` itself."""
+    callback: the same values, 5-9x faster with the callback's copies (uint32, 2.9M: 0.012 s
+    against 0.110 s; 27M: 0.23 s against 1.25 s; `python bench/xla_sorts.py`). Elsewhere
+    (CUDA: CUB's radix sort) `lax.sort` itself."""
     if jax.default_backend() != "cpu":
         return jax.lax.sort(values)
     shape = jax.ShapeDtypeStruct(values.shape, values.dtype)
