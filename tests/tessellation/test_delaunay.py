@@ -59,10 +59,11 @@ def test_circumcentres_outside_the_hull_equal_scipys_point_location(rng, monkeyp
         monkeypatch.setattr(_delaunay, "hull_walk_batch", lambda s_count: batch)
     x = rng.normal(size=(300, d))
     tess = jaxgeom.delaunay(x, triangulator="qhull")
-    raw = _delaunay._plain_graph(x, "qhull")  # the same Qhull triangles, with their adjacency
-    s = len(raw.simplices)
-    np.testing.assert_array_equal(np.asarray(tess.simplices)[:s], raw.simplices)
-    adjacency = jnp.asarray(_delaunay._pad_adjacency(raw.adjacency, tess.simplices.shape[0]))
+    tri, perm, _ = _delaunay.triangulate(x, "qhull")  # the same Qhull triangles, with their adjacency
+    assert perm is None  # too few walkers to be sorted
+    s = len(tri.simplices)
+    np.testing.assert_array_equal(np.asarray(tess.simplices)[:s], tri.simplices)
+    adjacency = jnp.asarray(_delaunay._pad_adjacency(tri.neighbors, tess.simplices.shape[0]))
     centers = jax.vmap(simplex_circumcenter)(_delaunay.simplex_coords(tess))
     # called eagerly (not under a cached jit), so the patched batch size holds
     outside = np.asarray(_delaunay.circumcenters_outside_hull(tess, adjacency, centers))
@@ -175,14 +176,15 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
 
 
-def test_morton_sorted_path_maps_indices_back():
+@pytest.mark.parametrize("d", [2, 3])
+def test_morton_sorted_path_maps_indices_back(d):
     """Above MORTON_MIN_POINTS Qhull sees sorted points; results must be in the caller's order."""
     from scipy.spatial import ConvexHull, Delaunay
 
     from jaxgeom.tessellation._triangulators import MORTON_MIN_POINTS
 
     n = MORTON_MIN_POINTS + 5000
-    x = np.random.default_rng(3).random((n, 2))
+    x = np.random.default_rng(3).random((n, d))
     tess = jaxgeom.delaunay(x, triangulator="qhull")
     indptr, indices = Delaunay(x).vertex_neighbor_vertices
     ref = np.full(np.asarray(tess.neighbors).shape, n, np.int64)
@@ -193,6 +195,18 @@ def test_morton_sorted_path_maps_indices_back():
     hull[ConvexHull(x).vertices] = True
     np.testing.assert_array_equal(np.asarray(tess.hull), hull)
     assert int(tess.simplex_mask.sum()) == len(Delaunay(x).simplices)
+
+
+@pytest.mark.parametrize("n", [50, 50_000])
+def test_simplex_edges_are_the_pairs_of_each_simplex(rng, n):
+    """The host's neighbour pairs from the simplices against a set of all vertex pairs, with
+    walker ids whose pair keys need 64 bits (n = 5e4: n^2 > 2^31) and ids that do not."""
+    from jaxgeom.tessellation._delaunay import simplex_edges
+
+    simplices = np.stack([rng.choice(n, 4, replace=False) for _ in range(300)]).astype(np.int32)
+    src, dst = simplex_edges(simplices, n)
+    expected = sorted({(int(a), int(b)) for s in simplices for a in s for b in s if a != b})
+    assert list(zip(src.tolist(), dst.tolist(), strict=True)) == expected
 
 
 @pytest.mark.parametrize("offset", [1e3, 1e6])
@@ -332,11 +346,11 @@ def test_large_builds_hand_the_triangulators_freed_memory_back(rng, monkeypatch)
 
 @pytest.mark.parametrize("span", [1, 2, 100])
 def test_periodic_rows_sort_by_neighbour_then_image(rng, span):
-    """`_pad_neighbors` on a torus packs each slot's (neighbour, image) into one key: rows come
+    """`_pad_periodic_neighbors` packs each slot's (neighbour, image) into one key: rows come
     out sorted by neighbour index, a neighbour seen at several images ordered by its shift (as
     the dual's row keys order them), padding last with no shift; wide shifts (large skins of
     sparse samples) take 64-bit keys."""
-    from jaxgeom.tessellation._delaunay import RawGraph, _pad_neighbors
+    from jaxgeom.tessellation._delaunay import RawGraph, _pad_periodic_neighbors
 
     n, k, d = (200 if span == 100 else 40), 12, 3  # span 100: 8 bits per axis, 64-bit keys from n = 128
     degree = rng.integers(1, k + 1, n)
@@ -344,7 +358,7 @@ def test_periodic_rows_sort_by_neighbour_then_image(rng, span):
     cols = rng.integers(0, 6, rows.size)  # few distinct neighbours: many seen at several images
     shifts = rng.integers(-span, span + 1, (rows.size, d)).astype(np.int8)
     raw = RawGraph(np.zeros((0, d + 1), np.int32), None, rows, cols, shifts, np.zeros(n, bool))
-    nbrs, out = _pad_neighbors(raw, n, k)
+    nbrs, out = _pad_periodic_neighbors(raw, n, k)
     assert nbrs.dtype == np.int32 and out.dtype == np.int8
     for i in range(n):
         mine = sorted((int(c), tuple(s.tolist())) for c, s in zip(cols[rows == i], shifts[rows == i], strict=True))
