@@ -391,18 +391,6 @@ def _cut_to_walkers(points, triangles, box, neighbors, hull, tier, overflow, *, 
     )
 
 
-def _csr_rows(tri, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Directed Delaunay edges (src, dst) leaving the sorted points `rows`, grouped by src."""
-    indptr, indices = tri.vertex_neighbor_vertices
-    if len(rows) == len(indptr) - 1:
-        return np.repeat(rows, np.diff(indptr)), indices
-    counts = indptr[rows + 1] - indptr[rows]
-    src = np.repeat(rows, counts)
-    group_start = np.repeat(np.cumsum(counts) - counts, counts)
-    dst = indices[np.repeat(indptr[rows], counts) + np.arange(counts.sum()) - group_start]
-    return src, dst
-
-
 def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessellation, tuple[str, ...]]:
     """`build_delaunay` without a torus, d >= 3. The simplices' checks (circumcentres and flat
     simplices, then cells reaching out of the domain) run on the device while the host builds
@@ -477,19 +465,27 @@ def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
 
 def simplex_edges(simplices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Host: the directed Delaunay edges (src, dst) of `simplices` (walkers < n), each once,
-    sorted by src, then dst: every pair of vertices of a simplex, as one integer key per pair."""
-    dtype = np.int32 if n * n < 2**31 else np.int64
+    sorted by src, then dst: every pair of vertices of a simplex as one integer key, the lower
+    id in the high bits (32-bit keys up to n = 2^16, 64-bit above)."""
+    bits = max(1, int(n).bit_length())
+    dtype = np.uint32 if 2 * bits <= 32 else np.uint64
     s = simplices.astype(dtype, copy=False)
     a, b = np.triu_indices(s.shape[1], 1)
-    lo, hi = np.minimum(s[:, a], s[:, b]), np.maximum(s[:, a], s[:, b])
-    keys = (lo * dtype(n) + hi).ravel()
+    high, low = s[:, a], s[:, b]
+    keys = np.minimum(high, low)
+    np.maximum(high, low, out=low)
+    np.left_shift(keys, bits, out=keys)
+    np.bitwise_or(keys, low, out=keys)
+    keys = keys.ravel(order="K")  # a view: the columns' gathers come out column-major
     keys.sort()
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
-    lo, hi = np.divmod(keys, dtype(n))
-    directed = np.concatenate([keys, hi * dtype(n) + lo])
+    distinct = np.empty(keys.size, bool)
+    distinct[0] = True
+    np.not_equal(keys[1:], keys[:-1], out=distinct[1:])
+    keys = keys[distinct]
+    mask = dtype((1 << bits) - 1)
+    directed = np.concatenate([keys, ((keys & mask) << bits) | (keys >> bits)])
     directed.sort()
-    src, dst = np.divmod(directed, dtype(n))
-    return src, dst
+    return (directed >> bits).astype(np.int32), (directed & mask).astype(np.int32)
 
 
 def _longest_run(rows: np.ndarray, n: int) -> int:
@@ -598,9 +594,11 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         raise RuntimeError(
             "periodic Delaunay: the skin check failed after widening the skin; please report this input."
         )
+    src, dst = simplex_edges(simp, len(ext))  # every edge of an owned walker lies in `simp`
+    keep = owned[src]
+    src, dst = src[keep], dst[keep]
     canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
     simp = simp[owned[canonical]]
-    src, dst = _csr_rows(tri, np.flatnonzero(owned))
     volume = _volume_sum(y0, ids[simp], shifts[simp], lengths)
     return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume
 
