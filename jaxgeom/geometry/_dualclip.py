@@ -133,31 +133,47 @@ def wall_bounds(lower, upper):
     return axes, jnp.concatenate([upper, lower]), jnp.concatenate([jnp.ones(d), -jnp.ones(d)]).astype(lower.dtype)
 
 
-def clip_polygon(verts, count, lower, upper, tol):
+def clip_polygon(verts, count, lower, upper, tol, wall=None):
     """A convex polygon (`count` of the rows of `verts` (P, 3), in order) cut to the box
     [lower, upper]: (vertices (P + 6, 3), count, on (P + 6, 6): the vertex lies on wall j).
-    Each wall adds at most one vertex, so the buffer grows by one row per wall."""
+    Each wall adds at most one vertex, so the buffer grows by one row per wall. With `wall`
+    (an index, traced), the cut against that wall alone, (P + 1) rows: the same polygon where
+    every vertex lies inside the other walls by more than `tol` (`walls_reached`)."""
     d = verts.shape[-1]
     axes, bounds, signs = wall_bounds(lower, upper)
     on = jnp.abs(verts[:, axes] - bounds) <= tol
-    for j in range(2 * d):
-        k, size = j % d, verts.shape[0] + 1
-        idx = jnp.arange(size - 1)
-        s = signs[j] * (verts[:, k] - bounds[j])  # > 0 outside
-        valid = idx < count
-        nxt = jnp.where(idx + 1 < count, idx + 1, 0)
-        inside, inside_next = s <= 0, s[nxt] <= 0
-        cross = valid & (inside != inside_next)
-        t = s / jnp.where(cross, s - s[nxt], 1.0)
-        point = (verts + t[:, None] * (verts[nxt] - verts)).at[:, k].set(bounds[j])
-        keep = jnp.stack([valid & inside, cross], axis=1).reshape(-1)
-        candidates = jnp.stack([verts, point], axis=1).reshape(-1, d)
-        candidates_on = jnp.stack([on, (on & on[nxt]).at[:, j].set(True)], axis=1).reshape(-1, 2 * d)
-        position = jnp.where(keep, jnp.cumsum(keep) - 1, size)
-        verts = jnp.zeros((size, d), verts.dtype).at[position].set(candidates, mode="drop")
-        on = jnp.zeros((size, 2 * d), bool).at[position].set(candidates_on, mode="drop")
-        count = jnp.sum(keep)
+    for j in range(2 * d) if wall is None else (wall,):
+        verts, count, on = _clip_to_wall(verts, count, on, axes[j], bounds[j], signs[j], jnp.arange(2 * d) == j)
     return verts, count, on
+
+
+def _clip_to_wall(verts, count, on, k, bound, sign, is_wall):
+    """One Sutherland-Hodgman pass: the polygon cut by the wall x_k = `bound` (`sign` > 0: the
+    box lies below it), `is_wall` (2d,) marking the wall among the flags `on`."""
+    d, size = verts.shape[-1], verts.shape[0] + 1
+    idx = jnp.arange(size - 1)
+    s = sign * (verts[:, k] - bound)  # > 0 outside
+    valid = idx < count
+    nxt = jnp.where(idx + 1 < count, idx + 1, 0)
+    inside, inside_next = s <= 0, s[nxt] <= 0
+    cross = valid & (inside != inside_next)
+    t = s / jnp.where(cross, s - s[nxt], 1.0)
+    point = jnp.where(jnp.arange(d) == k, bound, verts + t[:, None] * (verts[nxt] - verts))
+    keep = jnp.stack([valid & inside, cross], axis=1).reshape(-1)
+    candidates = jnp.stack([verts, point], axis=1).reshape(-1, d)
+    candidates_on = jnp.stack([on, (on & on[nxt]) | is_wall], axis=1).reshape(-1, on.shape[-1])
+    position = jnp.where(keep, jnp.cumsum(keep) - 1, size)
+    verts = jnp.zeros((size, d), verts.dtype).at[position].set(candidates, mode="drop")
+    on = jnp.zeros((size, on.shape[-1]), bool).at[position].set(candidates_on, mode="drop")
+    return verts, jnp.sum(keep), on
+
+
+def walls_reached(verts, count, lower, upper, tol):
+    """(2d,) bool: the walls some vertex of the polygon lies beyond, on, or within `tol` of;
+    cutting by any other wall leaves it as it is (`clip_polygon`)."""
+    axes, bounds, signs = wall_bounds(lower, upper)
+    near = signs * (verts[:, axes] - bounds) > -tol  # (P, 2d)
+    return jnp.any(near & (jnp.arange(verts.shape[0]) < count)[:, None], axis=0)
 
 
 def polygon_measures(verts, count, on, axis):
@@ -226,14 +242,20 @@ def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
     return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
 
 
-def clipped_piece(q, centres, hull, lower, upper, kind, toward, size: int = 4):
-    """One flag's piece clipped to the box (frame of x = q[0], box relative to it): (signed area,
-    the walls' signed segment lengths (6,), and per end x, y: the volume and first moment of
-    the cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3)
-    (about that end) added by the segments)."""
-    sign, orient, polygon, count, direction = _flag_piece(q, centres, hull, lower, upper, kind, toward, size)
-    tol = ROUNDING_ULPS * jnp.finfo(q.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
-    clipped = clip_polygon(polygon, count, lower, upper, tol)
+def clip_tolerance(lower, upper):
+    """The rounding room of the walls, the box relative to a walker."""
+    return ROUNDING_ULPS * jnp.finfo(lower.dtype).eps * jnp.max(jnp.abs(jnp.stack([lower, upper])))
+
+
+def clipped_piece(q, piece, lower, upper, wall=None):
+    """One flag's piece (`_flag_piece`) clipped to the box (frame of x = q[0], box relative to
+    it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the walls' signed
+    segment lengths (6,), and per end x, y: the volume and first moment of the cone over the
+    piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
+    added by the segments)."""
+    sign, orient, polygon, count, direction = piece
+    tol = clip_tolerance(lower, upper)
+    clipped = clip_polygon(polygon, count, lower, upper, tol, wall)
     area, moment, lengths, length_moments = polygon_measures(*clipped, direction)  # type: ignore[call-arg]  # (verts, count, on)
     area, moment = sign * orient * area, sign * orient * moment
     axes, bounds, signs = wall_bounds(lower, upper)
@@ -297,8 +319,9 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
     box = tess.box.astype(tess.points.dtype)
     total = s_cap * 4
     n_chunks = -(-total // FACE_CHUNK)
-    rows = jnp.nonzero(faces.ravel(), size=n_chunks * FACE_CHUNK, fill_value=total)[0].astype(jnp.int32)
-    pieces = jax.vmap(functools.partial(clipped_piece, size=3 if kinds == (0,) else 4))
+    first = _near_one_wall(centres, box) if kinds == (0,) else jnp.ones_like(faces)
+    rows = _compacted(faces.ravel(), first.ravel(), n_chunks * FACE_CHUNK)
+    flag_pieces = jax.vmap(functools.partial(_flag_piece, size=3 if kinds == (0,) else 4))
 
     def chunk_inputs(face):  # inside the `cond`: a skipped chunk gathers nothing
         real = jnp.repeat(face < total, 3 * len(kinds))
@@ -335,7 +358,14 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
 
     def add(sums, face):
         slot, walker, args = chunk_inputs(face)
-        area, lengths, per_end = pieces(*args)
+        q, lower, upper = args[0], args[3], args[4]
+        piece = flag_pieces(*args)
+        reached = jax.vmap(walls_reached)(piece[2], piece[3], lower, upper, jax.vmap(clip_tolerance)(lower, upper))
+        area, lengths, per_end = jax.lax.cond(  # pieces that reach one wall each are cut by it alone
+            jnp.all(jnp.sum(reached, axis=1) <= 1),
+            lambda: jax.vmap(clipped_piece)(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
+            lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
+        )
         both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
         areas, walls, volumes, moments, wall_areas, wall_moments = sums
         return (
@@ -348,6 +378,28 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         )
 
     return scan_live_chunks(add, sums, rows.reshape(n_chunks, FACE_CHUNK), total)
+
+
+def _near_one_wall(centres, box):
+    """(S, 4) bool: faces whose simplex's and own circumcentres are near (`clip_tolerance` of
+    the box) or beyond one wall at most: their triangles mostly reach that wall alone."""
+    margin = clip_tolerance(box[0], box[1])
+    near = lambda y: jnp.concatenate([y >= box[1] - margin, y <= box[0] + margin], axis=-1)  # noqa: E731
+    return jnp.sum(near(centres[0])[:, None, :] | near(centres[1]), axis=-1) <= 1
+
+
+def _compacted(flags, first, size: int):
+    """The ids where `flags` (M,) holds, those where `first` holds before the others (each in
+    order), padded with M to `size`: chunks of pieces that reach one wall each, then the rest."""
+    total = flags.shape[0]
+    ahead, behind = flags & first, flags & ~first
+    n_ahead = jnp.sum(ahead, dtype=jnp.int32)
+    place = jnp.where(
+        ahead,
+        jnp.cumsum(ahead, dtype=jnp.int32) - 1,
+        jnp.where(behind, n_ahead + jnp.cumsum(behind, dtype=jnp.int32) - 1, size),
+    )
+    return jnp.full(size, total, jnp.int32).at[place].set(jnp.arange(total, dtype=jnp.int32), mode="drop")
 
 
 def _box_edges():

@@ -77,6 +77,70 @@ def test_facets_equal_scipy_half_space_intersection(rng, d, boxed):
     assert checked >= (n if boxed else n // 2)
 
 
+def test_boxed_3d_pieces_cut_by_their_one_wall_equal_scipy(rng, monkeypatch):
+    """Chunks of 4 faces, so that many hold only pieces that reach one wall each: those are cut
+    by that wall alone (counted as they run), and the cells still equal scipy's."""
+    import jax
+
+    from jaxgeom.geometry import _dualclip
+
+    one_wall_cuts = []
+    real_clip = _dualclip.clip_polygon
+
+    def counted_clip(verts, count, lower, upper, tol, wall=None):
+        if wall is not None:
+            jax.debug.callback(lambda: one_wall_cuts.append(1))
+        return real_clip(verts, count, lower, upper, tol, wall)
+
+    monkeypatch.setattr(_dualclip, "FACE_CHUNK", 4)
+    monkeypatch.setattr(_dualclip, "clip_polygon", counted_clip)
+    jax.clear_caches()
+    try:
+        x = rng.uniform(0.0, 1.0, (120, 3))
+        tess = jaxgeom.delaunay(x, box=(0.0, 1.0))
+        facets = jaxgeom.voronoi_facets(tess)
+        jax.block_until_ready(facets.areas)
+    finally:
+        jax.clear_caches()
+    assert len(one_wall_cuts) > 0
+    neighbors, n = np.asarray(tess.neighbors), len(x)
+    for i, (faces, wall_faces, volume, centroid, vertices) in enumerate(halfspace_cells(x, neighbors, tess_box(3))):
+        expected = [faces[j] if j < n else 0.0 for j in neighbors[i]]
+        np.testing.assert_allclose(np.asarray(facets.areas)[i], expected, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(facets.wall_areas)[i], wall_faces, atol=1e-10)
+        np.testing.assert_allclose(facets.volumes[i], volume, rtol=1e-10)
+        np.testing.assert_allclose(facets.centroids[i], centroid, atol=1e-10)
+        assert int(facets.n_vertices[i]) == vertices
+
+
+def tess_box(d):
+    return np.zeros(d), np.ones(d)
+
+
+def test_one_wall_cut_equals_the_cut_by_every_wall(rng):
+    """`clip_polygon` by the one wall a triangle reaches equals the cut by all six walls."""
+    import jax
+
+    from jaxgeom.geometry._dualclip import clip_polygon, clip_tolerance, walls_reached
+
+    lower, upper = jnp.asarray([-0.3, -0.5, -0.2]), jnp.asarray([0.7, 0.5, 0.8])
+    tol = clip_tolerance(lower, upper)
+    compared = 0
+    for _ in range(60):
+        triangle = jnp.asarray(rng.uniform(-0.25, 0.45, (3, 3)) + rng.normal(0, 0.2, 3))
+        reached = np.asarray(walls_reached(triangle, 3, lower, upper, tol))
+        if reached.sum() != 1:
+            continue
+        every = jax.jit(clip_polygon)(triangle, 3, lower, upper, tol)
+        one = jax.jit(clip_polygon)(triangle, 3, lower, upper, tol, int(np.argmax(reached)))
+        count = int(every[1])
+        assert int(one[1]) == count
+        np.testing.assert_allclose(np.asarray(one[0])[:count], np.asarray(every[0])[:count], atol=1e-15)
+        np.testing.assert_array_equal(np.asarray(one[2])[:count], np.asarray(every[2])[:count])
+        compared += 1
+    assert compared >= 10
+
+
 def test_boxed_cells_of_co_spherical_walkers_at_the_walls_equal_scipy():
     """3D cells clipped by the dual's pieces where degenerate configurations meet the walls:
     an FCC lattice with walkers on the walls (their cells' wall faces hold them; flat hull
