@@ -60,7 +60,14 @@ from ._graph import (
     take_or_zero,
 )
 from ._planar import fan_neighbors
-from ._triangulators import DEVICE_BACKENDS, FALLBACK, device_triangles, resolve_triangulator, triangulate
+from ._triangulators import (
+    DEVICE_BACKENDS,
+    FALLBACK,
+    device_triangles,
+    resolve_triangulator,
+    simplex_edges,
+    triangulate,
+)
 
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed.
@@ -460,31 +467,6 @@ def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
         periodic=False,
     )
     return graph, jnp.asarray(_pad_adjacency(adjacency, s_cap))
-
-
-def simplex_edges(simplices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Host: the directed Delaunay edges (src, dst) of `simplices` (walkers < n), each once,
-    sorted by src, then dst: every pair of vertices of a simplex as one integer key, the lower
-    id in the high bits (32-bit keys up to n = 2^16, 64-bit above)."""
-    bits = max(1, int(n).bit_length())
-    dtype = np.uint32 if 2 * bits <= 32 else np.uint64
-    s = simplices.astype(dtype, copy=False)
-    a, b = np.triu_indices(s.shape[1], 1)
-    high, low = s[:, a], s[:, b]
-    keys = np.minimum(high, low)
-    np.maximum(high, low, out=low)
-    np.left_shift(keys, bits, out=keys)
-    np.bitwise_or(keys, low, out=keys)
-    keys = keys.ravel(order="K")  # a view: the columns' gathers come out column-major
-    keys.sort()
-    distinct = np.empty(keys.size, bool)
-    distinct[0] = True
-    np.not_equal(keys[1:], keys[:-1], out=distinct[1:])
-    keys = keys[distinct]
-    mask = dtype((1 << bits) - 1)
-    directed = np.concatenate([keys, ((keys & mask) << bits) | (keys >> bits)])
-    directed.sort()
-    return (directed >> bits).astype(np.int32), (directed & mask).astype(np.int32)
 
 
 def _longest_run(rows: np.ndarray, n: int) -> int:

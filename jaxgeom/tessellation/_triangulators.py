@@ -17,7 +17,7 @@
   "cupy" first where JAX's default backend is a CUDA GPU and CuPy imports.
 
 Every backend returns scipy's layout (`simplices`, `neighbors` opposite each vertex, -1 on
-the hull, `convex_hull`, `vertex_neighbor_vertices`, `coplanar` = points left out). A
+the hull, `convex_hull`, `coplanar` = points left out). A
 result from a backend other than Qhull is checked cheaply (`check_triangulation`: indices,
 every walker used, positive orientation, symmetric adjacency, Euler's formula); a backend
 that raises or fails the check is replaced by Qhull for that call, and the caller is told
@@ -317,17 +317,6 @@ class _Triangulation:
         others = (corner[:, None] + np.arange(1, d1)) % d1
         return self.simplices[simplex[:, None], others]
 
-    @functools.cached_property
-    def vertex_neighbor_vertices(self) -> tuple[np.ndarray, np.ndarray]:
-        s = self.simplices
-        d1 = s.shape[1]
-        pairs = np.array([(a, b) for a in range(d1) for b in range(d1) if a != b])
-        src, dst = s[:, pairs[:, 0]].ravel(), s[:, pairs[:, 1]].ravel()
-        n = int(s.max()) + 1
-        code = np.unique(src.astype(np.int64) * n + dst)  # each directed edge once, grouped by src
-        src, dst = code // n, (code % n).astype(np.int32)
-        return np.r_[0, np.cumsum(np.bincount(src, minlength=n))].astype(np.int32), dst
-
 
 def _cdt(x: np.ndarray) -> _Triangulation:
     import pythoncdt
@@ -519,10 +508,41 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
     if d == 2 and len(s) != 2 * n - hull_faces - 2:
         return f"{len(s)} triangles where Euler's formula needs {2 * n - hull_faces - 2}"
     if d == 3:
-        edges = len(tri.vertex_neighbor_vertices[1]) // 2
+        edges = len(_pair_keys(s, n)[0])
         if n - edges + (4 * len(s) + hull_faces) // 2 - len(s) != 1:
             return "Euler's characteristic V - E + F - S is not 1"
     return None
+
+
+def simplex_edges(simplices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Host: the directed Delaunay edges (src, dst) of `simplices` (walkers < n), each once,
+    sorted by src, then dst (`_pair_keys`, each key then also reversed)."""
+    keys, bits = _pair_keys(simplices, n)
+    mask = keys.dtype.type((1 << bits) - 1)
+    directed = np.concatenate([keys, ((keys & mask) << bits) | (keys >> bits)])
+    directed.sort()
+    return (directed >> bits).astype(np.int32), (directed & mask).astype(np.int32)
+
+
+def _pair_keys(simplices: np.ndarray, n: int) -> tuple[np.ndarray, int]:
+    """(the edges of `simplices` as sorted distinct integer keys, the bits of an id in a key):
+    every pair of vertices of a simplex as one key, the lower id in the high bits (32-bit keys
+    up to n = 2^16, 64-bit above)."""
+    bits = max(1, int(n).bit_length())
+    dtype = np.uint32 if 2 * bits <= 32 else np.uint64
+    s = simplices.astype(dtype, copy=False)
+    a, b = np.triu_indices(s.shape[1], 1)
+    high, low = s[:, a], s[:, b]
+    keys = np.minimum(high, low)
+    np.maximum(high, low, out=low)
+    np.left_shift(keys, bits, out=keys)
+    np.bitwise_or(keys, low, out=keys)
+    keys = keys.ravel(order="K")  # a view: the columns' gathers come out column-major
+    keys.sort()
+    distinct = np.empty(keys.size, bool)
+    distinct[0] = True
+    np.not_equal(keys[1:], keys[:-1], out=distinct[1:])
+    return keys[distinct], bits
 
 
 def _symmetric(adj: np.ndarray) -> bool:

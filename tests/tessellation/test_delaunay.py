@@ -201,7 +201,7 @@ def test_morton_sorted_path_maps_indices_back(d):
 def test_simplex_edges_are_the_pairs_of_each_simplex(rng, n):
     """The host's neighbour pairs from the simplices against a set of all vertex pairs, with
     walker ids whose pair keys fit 32 bits (up to n = 2^16 - 1) and ids that need 64."""
-    from jaxgeom.tessellation._delaunay import simplex_edges
+    from jaxgeom.tessellation._triangulators import simplex_edges
 
     simplices = np.stack([rng.choice(n, 4, replace=False) for _ in range(300)]).astype(np.int32)
     src, dst = simplex_edges(simplices, n)
