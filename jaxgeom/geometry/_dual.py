@@ -48,10 +48,11 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
 
     Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
     face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
-    of the edge's two ends gets it), `moment_a`, `moment_b` (4, 3, 3) the orthoschemes' volume
-    times (centroid - end), for the edge's first and second end; and the faces' unit normals
-    towards the opposite vertex (4, 3)."""
-    pieces, heights, volumes, moments_a, moments_b, normals = [], [], [], [], [], []
+    of the edge's two ends gets it), `weighted` (4, 3, 3) the volume times m_ab + c_T + C (the
+    orthoscheme at end x has its centroid at (x + m_ab + c_T + C) / 4: `_sums_at_vertices`
+    takes the moments about the ends from it); and the faces' unit normals towards the
+    opposite vertex (4, 3)."""
+    pieces, heights, volumes, weighted, normals = [], [], [], [], []
     for o, face in enumerate(FACES_3D):
         a, b, c = (p[v] for v in face)
         c_t, tri_ok = face_centres[o], face_ok[o]
@@ -60,7 +61,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
         normals.append(normal)
         piece = jnp.where(ok & tri_ok, dot(centre - c_t, normal), 0.0)
         pieces.append(piece)
-        h_row, v_row, ma_row, mb_row = [], [], [], []
+        h_row, v_row, w_row = [], [], []
         for e in range(3):  # edge opposite the face's e-th vertex: (face[e+1], face[e+2])
             x, y, k = p[face[(e + 1) % 3]], p[face[(e + 2) % 3]], p[face[e]]
             edge = y - x
@@ -72,20 +73,11 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
             volume = jnp.sqrt(jnp.sum(edge * edge)) * height * piece / 12.0
             h_row.append(height)
             v_row.append(volume)
-            ma_row.append(volume * (middle + c_t + centre - 3.0 * x) / 4.0)
-            mb_row.append(volume * (middle + c_t + centre - 3.0 * y) / 4.0)
+            w_row.append(volume * (middle + c_t + centre))
         heights.append(jnp.stack(h_row))
         volumes.append(jnp.stack(v_row))
-        moments_a.append(jnp.stack(ma_row))
-        moments_b.append(jnp.stack(mb_row))
-    return (
-        jnp.stack(pieces),
-        jnp.stack(heights),
-        jnp.stack(volumes),
-        jnp.stack(moments_a),
-        jnp.stack(moments_b),
-        jnp.stack(normals),
-    )
+        weighted.append(jnp.stack(w_row))
+    return jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(weighted), jnp.stack(normals)
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -267,21 +259,23 @@ def _sum_into_slots(values, index, n: int, k: int):
     return sums[:-1].reshape(n, k)
 
 
-def _sums_at_vertices(local_ends, values, moment_a, moment_b, m: int):
+def _sums_at_vertices(local_ends, values, weighted, points):
     """Per simplex and vertex: the sum of `values` (S, ...), one per edge `local_ends` (..., 2)
-    of each simplex (its vertices' positions in the row), counted at both ends, and of the
-    moments (S, ..., d) about the first and the second end: (S, m) and (S, m, d)."""
-    s, d = values.shape[0], moment_a.shape[-1]
+    of each simplex (its vertices' positions in the row), counted at both ends, and the first
+    moments about the vertex of the orthoschemes (d-simplices of volume `values`, centroid
+    (end + q) / (d + 1)) from `weighted` (S, ..., d) = values * q: sum (weighted - d value end)
+    / (d + 1), `points` (S, m, d) the simplices' vertices in the frame of `weighted`.
+    Returns (S, m) and (S, m, d)."""
+    s, m, d = points.shape
     pairs = np.asarray(local_ends).reshape(-1, 2)  # static: the same for every simplex
     values = values.reshape(s, -1)
-    keep = (values != 0)[..., None]
-    moment_a = jnp.where(keep, moment_a.reshape(s, -1, d), 0.0)
-    moment_b = jnp.where(keep, moment_b.reshape(s, -1, d), 0.0)
-    firsts = [[f for f, pair in enumerate(pairs.tolist()) if pair[0] == v] for v in range(m)]
-    seconds = [[f for f, pair in enumerate(pairs.tolist()) if pair[1] == v] for v in range(m)]
+    weighted = jnp.where((values != 0)[..., None], weighted.reshape(s, -1, d), 0.0)  # flat ones: 0, not 0 * inf
+    at_ends = [[f for f, pair in enumerate(pairs.tolist()) if v in pair] for v in range(m)]
     at = lambda a, flags: sum(a[:, f] for f in flags)  # noqa: E731  # sums of static slices fuse into one loop
-    totals = jnp.stack([at(values, firsts[v]) + at(values, seconds[v]) for v in range(m)], axis=1)
-    moments = jnp.stack([at(moment_a, firsts[v]) + at(moment_b, seconds[v]) for v in range(m)], axis=1)
+    totals = jnp.stack([at(values, at_ends[v]) for v in range(m)], axis=1)
+    moments = (jnp.stack([at(weighted, at_ends[v]) for v in range(m)], axis=1) - d * totals[..., None] * points) / (
+        d + 1
+    )
     return totals, moments
 
 
@@ -295,9 +289,9 @@ def _scatter_at_vertices(simplices, totals, moments, n: int):
     )
 
 
-def _sum_at_ends(simplices, local_ends, values, moment_a, moment_b, n: int):
+def _sum_at_ends(simplices, local_ends, values, weighted, points, n: int):
     """Per walker: `_sums_at_vertices` scattered to the simplices' walkers, (N,) and (N, d)."""
-    totals, moments = _sums_at_vertices(local_ends, values, moment_a, moment_b, simplices.shape[1])
+    totals, moments = _sums_at_vertices(local_ends, values, weighted, points)
     return _scatter_at_vertices(simplices, totals, moments, n)
 
 
@@ -352,7 +346,7 @@ def _simplex_stage_3d(tess: Tessellation, rows):
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
     origin = verts[:, :1]
-    pieces, heights, volumes, moment_a, moment_b, normals = jax.vmap(simplex_flags_3d)(
+    pieces, heights, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
         verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
     )
     mask = tess.simplex_mask
@@ -375,7 +369,7 @@ def _simplex_stage_3d(tess: Tessellation, rows):
     out["edge_areas"] = _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add)
     # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
     out["vertex_volumes"], out["vertex_moments"] = _sums_at_vertices(
-        EDGE_ENDS, jnp.where(keep, volumes, 0.0), moment_a, moment_b, 4
+        EDGE_ENDS, jnp.where(keep, volumes, 0.0), weighted, verts - origin
     )
     return out
 
@@ -653,7 +647,7 @@ def triangle_flags_2d(p):
     """The flags of one triangle p (3, 2), coordinates relative to its first vertex: per edge
     (EDGES_2D order) the signed distance s = (c - m_ab) . w from the edge's midpoint to the
     circumcentre c (w across the edge towards the third vertex), the orthoschemes' area r s / 4
-    (each end of the edge gets one), their moments about the first and second end; the
+    (each end of the edge gets one), the area times m_ab + c (`_sums_at_vertices`); the
     circumcentre and whether the triangle is not flat."""
     e1, e2 = p[1] - p[0], p[2] - p[0]
     cross = e1[0] * e2[1] - e1[1] * e2[0]
@@ -664,7 +658,7 @@ def triangle_flags_2d(p):
         [e2[1] * jnp.sum(e1 * e1) - e1[1] * jnp.sum(e2 * e2), e1[0] * jnp.sum(e2 * e2) - e2[0] * jnp.sum(e1 * e1)]
     ) / (2.0 * safe)
     centre = p[0] + jnp.where(ok, offset, 0.0)
-    heights, areas, moments_a, moments_b = [], [], [], []
+    heights, areas, weighted = [], [], []
     for a, b, k in EDGES_2D:
         edge = p[b] - p[a]
         direction, _ = unit_vector(edge)
@@ -674,9 +668,8 @@ def triangle_flags_2d(p):
         area = jnp.sqrt(jnp.sum(edge * edge)) * height / 4.0
         heights.append(height)
         areas.append(area)
-        moments_a.append(area * (middle + centre - 2.0 * p[a]) / 3.0)
-        moments_b.append(area * (middle + centre - 2.0 * p[b]) / 3.0)
-    return jnp.stack(heights), jnp.stack(areas), jnp.stack(moments_a), jnp.stack(moments_b), centre, ok
+        weighted.append(area * (middle + centre))
+    return jnp.stack(heights), jnp.stack(areas), jnp.stack(weighted), centre, ok
 
 
 RAY_CHUNK = 64  # hull walkers per chunk of the ray test (chunks past their count are skipped)
@@ -713,7 +706,8 @@ def dual_faces_2d(tess: Tessellation):
     walker is beside a triangle within rounding of flat (its cell's sign is not decided)."""
     n, k = tess.neighbors.shape
     verts = simplex_vertices(tess)  # (S, 3, 2)
-    heights, areas, moment_a, moment_b, _, proper = jax.vmap(triangle_flags_2d)(verts - verts[:, :1])
+    local = verts - verts[:, :1]
+    heights, areas, weighted, _, proper = jax.vmap(triangle_flags_2d)(local)
     mask = tess.simplex_mask
     pairs = np.asarray([[a, b] for a, b, _ in EDGES_2D], np.int32)
     ends = tess.simplices[:, pairs]  # (S, 3, 2)
@@ -721,9 +715,7 @@ def dual_faces_2d(tess: Tessellation):
     index = _find_slots(tess, _sorted_rows(tess), ends, shifts)
     faces = _sum_into_slots(jnp.where(mask[:, None], heights, 0.0), index, n, k)
     unbounded = _unbounded_slots_2d(tess) if tess.box is None else jnp.zeros((n, k), bool)
-    cell_area, moments = _sum_at_ends(
-        tess.simplices, pairs, jnp.where(mask[:, None], areas, 0.0), moment_a, moment_b, n
-    )
+    cell_area, moments = _sum_at_ends(tess.simplices, pairs, jnp.where(mask[:, None], areas, 0.0), weighted, local, n)
     # a polygon has as many vertices as edges: the faces of positive length
     r = neighbor_distances(tess)
     vertices = jnp.sum(faces > ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * r, axis=1, dtype=jnp.int32)
