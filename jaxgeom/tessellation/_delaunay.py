@@ -447,9 +447,10 @@ def _simplex_capacity(n_simplices: int, n: int, d: int, capacity) -> int:
 
 
 def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
-    """(graph, adjacency) for the checks of `_open_graph`: the walkers padded to `bucket_walkers(N)` as in
-    `_padded_walkers` (so that it compiles once per bucket), the simplices to `s_cap`; the graph
-    has no neighbour rows (one padding slot each), which the checks do not read."""
+    """(graph, adjacency) for the checks of `_open_graph`: the walkers padded to
+    `bucket_walkers(N)` as in `_padded_walkers` (so that the checks compile once per bucket),
+    the simplices to `s_cap`; the graph has no neighbour rows (one padding slot each), which
+    the checks do not read."""
     n, d = x.shape
     m = bucket_walkers(n)
     simplices_m = np.full((s_cap, d + 1), m, np.int32)
