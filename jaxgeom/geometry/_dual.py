@@ -38,7 +38,16 @@ from ..tessellation._graph import (
     take_or_zero,
 )
 from ._boxclip import ROUNDING_ULPS, map_flagged_rows
-from ._dualclip import CORNER_WALLS, EDGE_WALLS, FACES_3D, box_edge_faces, clipped_sums, dual_centres, unit_vector
+from ._dualclip import (
+    CORNER_WALLS,
+    EDGE_WALLS,
+    FACES_3D,
+    box_edge_faces,
+    clipped_sums,
+    dual_centres,
+    near_walls,
+    unit_vector,
+)
 
 
 def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
@@ -356,8 +365,7 @@ def _simplex_stage_3d(tess: Tessellation, rows):
         box = tess.box.astype(verts.dtype)
         # pieces reaching a wall are clipped: those leaving the box, and those with a point on a
         # wall (a walker on it), whose edges there bound the cell's wall face
-        margin = ROUNDING_ULPS * jnp.finfo(verts.dtype).eps * jnp.max(jnp.abs(box))
-        reaches = lambda y: jnp.any((y <= box[0] + margin) | (y >= box[1] - margin), axis=-1)  # noqa: E731
+        reaches = lambda y: jnp.any(near_walls(y, box), axis=-1)  # noqa: E731
         centre_out = reaches(centres)
         on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
         outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)

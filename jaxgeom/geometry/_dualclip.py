@@ -380,12 +380,17 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
     return scan_live_chunks(add, sums, rows.reshape(n_chunks, FACE_CHUNK), total)
 
 
-def _near_one_wall(centres, box):
-    """(S, 4) bool: faces whose simplex's and own circumcentres are near (`clip_tolerance` of
-    the box) or beyond one wall at most: their triangles mostly reach that wall alone."""
+def near_walls(y, box):
+    """(..., 2d) bool: per wall (`wall_bounds`' order), whether the points y (..., d) lie
+    beyond it, on it, or within `clip_tolerance` of it."""
     margin = clip_tolerance(box[0], box[1])
-    near = lambda y: jnp.concatenate([y >= box[1] - margin, y <= box[0] + margin], axis=-1)  # noqa: E731
-    return jnp.sum(near(centres[0])[:, None, :] | near(centres[1]), axis=-1) <= 1
+    return jnp.concatenate([y >= box[1] - margin, y <= box[0] + margin], axis=-1)
+
+
+def _near_one_wall(centres, box):
+    """(S, 4) bool: faces whose simplex's and own circumcentres are near (`near_walls`) one
+    wall at most: their triangles mostly reach that wall alone."""
+    return jnp.sum(near_walls(centres[0], box)[:, None, :] | near_walls(centres[1], box), axis=-1) <= 1
 
 
 def _compacted(flags, first, size: int):
