@@ -137,14 +137,22 @@ def clip_polygon(verts, count, lower, upper, tol, wall=None):
     """A convex polygon (`count` of the rows of `verts` (P, 3), in order) cut to the box
     [lower, upper]: (vertices (P + 6, 3), count, on (P + 6, 6): the vertex lies on wall j).
     Each wall adds at most one vertex, so the buffer grows by one row per wall. With `wall`
-    (an index, traced), the cut against that wall alone, (P + 1) rows: the same polygon where
-    every vertex lies inside the other walls by more than `tol` (`walls_reached`)."""
-    d = verts.shape[-1]
-    axes, bounds, signs = wall_bounds(lower, upper)
+    (an index, traced), the cut against that wall alone: (P + 1) rows, and `on` (P + 1, 1) for
+    that wall; the same polygon where every vertex lies inside the other walls by more than
+    `tol` (`walls_reached`), so on none of them."""
+    axes, bounds, signs = _walls(lower, upper, wall)
     on = jnp.abs(verts[:, axes] - bounds) <= tol
-    for j in range(2 * d) if wall is None else (wall,):
-        verts, count, on = _clip_to_wall(verts, count, on, axes[j], bounds[j], signs[j], jnp.arange(2 * d) == j)
+    for j in range(len(axes)):
+        verts, count, on = _clip_to_wall(verts, count, on, axes[j], bounds[j], signs[j], jnp.arange(len(axes)) == j)
     return verts, count, on
+
+
+def _walls(lower, upper, wall=None):
+    """`wall_bounds`, or that of the one `wall` (an index) as arrays of one."""
+    axes, bounds, signs = wall_bounds(lower, upper)
+    if wall is None:
+        return axes, bounds, signs
+    return axes[wall][None], bounds[wall][None], signs[wall][None]
 
 
 def _clip_to_wall(verts, count, on, k, bound, sign, is_wall):
@@ -252,19 +260,20 @@ def clipped_piece(q, piece, lower, upper, wall=None):
     it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the walls' signed
     segment lengths (6,), and per end x, y: the volume and first moment of the cone over the
     piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
-    added by the segments)."""
+    added by the segments). With `wall`, the walls' quantities are those of that wall alone,
+    (1,) and (1, 3) (the others are zero)."""
     sign, orient, polygon, count, direction = piece
     tol = clip_tolerance(lower, upper)
     clipped = clip_polygon(polygon, count, lower, upper, tol, wall)
     area, moment, lengths, length_moments = polygon_measures(*clipped, direction)  # type: ignore[call-arg]  # (verts, count, on)
     area, moment = sign * orient * area, sign * orient * moment
-    axes, bounds, signs = wall_bounds(lower, upper)
+    axes, bounds, signs = _walls(lower, upper, wall)
     # a piece outside a wall that its face meets there (a walker on the wall, its hull
     # triangle's strip) keeps only its edge on the wall: no measure inside, no segment
-    depth = signs[None, :] * (bounds[None, :] - clipped[0][:, axes])  # (P, 6) distance inside
+    depth = signs[None, :] * (bounds[None, :] - clipped[0][:, axes])  # (P, W) distance inside
     inside = jnp.max(jnp.where((jnp.arange(len(depth)) < clipped[1])[:, None], depth, 0.0), axis=0) > tol
     lengths = jnp.where(inside, lengths, 0.0)
-    walls = signs[:, None] * jnp.eye(3, dtype=q.dtype)[axes]  # (6, 3) outward normals
+    walls = signs[:, None] * jnp.eye(3, dtype=q.dtype)[axes]  # (W, 3) outward normals
     r = jnp.sqrt(jnp.sum(q[1] * q[1]))
     safe = jnp.where(lengths > 0, lengths, 1.0)
     middles = length_moments / safe[:, None]
@@ -363,7 +372,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         reached = jax.vmap(walls_reached)(piece[2], piece[3], lower, upper, jax.vmap(clip_tolerance)(lower, upper))
         area, lengths, per_end = jax.lax.cond(  # pieces that reach one wall each are cut by it alone
             jnp.all(jnp.sum(reached, axis=1) <= 1),
-            lambda: jax.vmap(clipped_piece)(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
+            lambda: _clipped_by_one_wall(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
             lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
         )
         both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
@@ -378,6 +387,15 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         )
 
     return scan_live_chunks(add, sums, rows.reshape(n_chunks, FACE_CHUNK), total)
+
+
+def _clipped_by_one_wall(q, piece, lower, upper, wall):
+    """`clipped_piece` of pieces (M,) that each reach one `wall` (M,) alone: measured on that
+    wall, its values put at its entry of the six walls'."""
+    area, lengths, per_end = jax.vmap(clipped_piece)(q, piece, lower, upper, wall)
+    at_wall = jnp.arange(6) == wall[:, None]  # (M, 6)
+    spread = lambda v: jnp.where(at_wall.reshape(*at_wall.shape, *(1,) * (v.ndim - 2)), v, 0.0)  # noqa: E731  (M, 1, ...) -> (M, 6, ...)
+    return area, spread(lengths), [(vol, mom, spread(wa), spread(wm)) for vol, mom, wa, wm in per_end]
 
 
 def near_walls(y, box):
