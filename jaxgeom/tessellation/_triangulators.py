@@ -64,11 +64,13 @@ class CoincidentPointsError(ValueError):
 class Triangulated(NamedTuple):
     """A host triangulation in original walker indices: `tri` has scipy's layout on the points
     `x[perm]` (`perm` None: unsorted); `fallback` is None, or why the asked-for backend was
-    replaced by Qhull."""
+    replaced by Qhull; `edge_keys` the `_pair_keys` of `tri.simplices` where its check already
+    computed them (3D), for `simplex_edges`, else None."""
 
     tri: Any
     perm: np.ndarray | None
     fallback: str | None
+    edge_keys: tuple[np.ndarray, int] | None = None
 
 
 @functools.cache
@@ -155,9 +157,9 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
     else:
         if len(tri.coplanar):
             raise_duplicates(x, tri.coplanar[:, 0], tri.coplanar[:, 2])
-        reason = None if getattr(tri, "checked", False) else check_triangulation(tri, x)
+        reason, keys = (None, None) if getattr(tri, "checked", False) else _checked(tri, x)
         if reason is None:
-            return Triangulated(tri, None, None)
+            return Triangulated(tri, None, None, keys)
         reason = f"{name}'s triangulation failed its check: {reason}"
     if FALLBACK.get(name) == "cdt":
         try:
@@ -493,33 +495,47 @@ def check_triangulation(tri, x: np.ndarray) -> str | None:
     symmetric, and Euler's formula (2D: S = 2N - b - 2 with b hull edges; 3D: V - E + F - S = 1).
     The orientation test is skipped for a triangulation marked `oriented` (CDT's builder ran
     the same `_flat` test on the same simplices)."""
+    return _checked(tri, x)[0]
+
+
+def _checked(tri, x: np.ndarray) -> tuple[str | None, tuple[np.ndarray, int] | None]:
+    """`check_triangulation`, and the `_pair_keys` its 3D Euler count computed (else None)."""
     s, adj = np.asarray(tri.simplices), np.asarray(tri.neighbors)
     n, d = x.shape
     if s.ndim != 2 or s.shape[1] != d + 1 or adj.shape != s.shape or len(s) == 0:
-        return f"simplices of shape {s.shape}, adjacency {adj.shape}"
+        return f"simplices of shape {s.shape}, adjacency {adj.shape}", None
     if s.min() < 0 or s.max() >= n or np.bincount(s.ravel(), minlength=n).min() == 0:
-        return "a vertex index out of range or a walker left out"
+        return "a vertex index out of range or a walker left out", None
     flat = np.zeros(0, bool) if getattr(tri, "oriented", False) else _flat(x, s)
     if flat.any():
-        return f"{int(flat.sum())} simplices flat or negatively oriented"
+        return f"{int(flat.sum())} simplices flat or negatively oriented", None
     if adj.max() >= len(s) or not _symmetric(adj):
-        return "the simplex adjacency is not symmetric"
+        return "the simplex adjacency is not symmetric", None
     hull_faces = int((adj < 0).sum())
     if d == 2 and len(s) != 2 * n - hull_faces - 2:
-        return f"{len(s)} triangles where Euler's formula needs {2 * n - hull_faces - 2}"
-    if d == 3:
-        edges = len(_pair_keys(s, n)[0])
-        if n - edges + (4 * len(s) + hull_faces) // 2 - len(s) != 1:
-            return "Euler's characteristic V - E + F - S is not 1"
-    return None
+        return f"{len(s)} triangles where Euler's formula needs {2 * n - hull_faces - 2}", None
+    if d != 3:
+        return None, None
+    keys = _pair_keys(s, n)
+    if n - len(keys[0]) + (4 * len(s) + hull_faces) // 2 - len(s) != 1:
+        return "Euler's characteristic V - E + F - S is not 1", None
+    return None, keys
 
 
-def simplex_edges(simplices: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def simplex_edges(
+    simplices: np.ndarray, n: int, keys: tuple[np.ndarray, int] | None = None, sources: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Host: the directed Delaunay edges (src, dst) of `simplices` (walkers < n), each once,
-    sorted by src, then dst (`_pair_keys`, each key then also reversed)."""
-    keys, bits = _pair_keys(simplices, n)
-    mask = keys.dtype.type((1 << bits) - 1)
-    directed = np.concatenate([keys, ((keys & mask) << bits) | (keys >> bits)])
+    sorted by src, then dst (`_pair_keys`, each key then also reversed). `keys`: their
+    `_pair_keys` where already computed (`Triangulated.edge_keys`); `sources` (n,) bool: only
+    the edges from these walkers."""
+    pairs, bits = _pair_keys(simplices, n) if keys is None else keys
+    mask = pairs.dtype.type((1 << bits) - 1)
+    high, low = pairs >> bits, pairs & mask
+    reversed_ = (low << bits) | high
+    if sources is not None:
+        pairs, reversed_ = pairs[sources[high]], reversed_[sources[low]]
+    directed = np.concatenate([pairs, reversed_])
     directed.sort()
     return (directed >> bits).astype(np.int32), (directed & mask).astype(np.int32)
 
@@ -564,7 +580,8 @@ def _volumes(x: np.ndarray, s: np.ndarray, xp=np) -> tuple[np.ndarray, np.ndarra
     """Signed volumes (times d!) of simplices `s` of `x` in float64, and the size of their
     terms (a volume within 8 float64 epsilons of it counts as flat: its sign is rounding)."""
     cols = xp.asarray(x, dtype=xp.float64).T
-    e = [[c[s[:, a]] - c[s[:, 0]] for c in cols] for a in range(1, s.shape[1])]
+    base = [c[s[:, 0]] for c in cols]
+    e = [[c[s[:, a]] - b for c, b in zip(cols, base, strict=True)] for a in range(1, s.shape[1])]
     if x.shape[1] == 2:
         terms = (e[0][0] * e[1][1], e[0][1] * e[1][0])
         return terms[0] - terms[1], xp.abs(terms[0]) + xp.abs(terms[1])
@@ -574,9 +591,10 @@ def _volumes(x: np.ndarray, s: np.ndarray, xp=np) -> tuple[np.ndarray, np.ndarra
         e[1][0] * e[2][1] - e[1][1] * e[2][0],
     ]
     volume = e[0][0] * minors[0] - e[0][1] * minors[1] + e[0][2] * minors[2]
-    size = sum(
-        xp.abs(e[0][k])
-        * sum(xp.abs(e[1][m]) * xp.abs(e[2][q]) for m in range(3) for q in range(3) if len({k, m, q}) == 3)
-        for k in range(3)
+    a = [[xp.abs(v) for v in row] for row in e]  # the terms' sizes: the permanent of |e|
+    size = (
+        a[0][0] * (a[1][1] * a[2][2] + a[1][2] * a[2][1])
+        + a[0][1] * (a[1][0] * a[2][2] + a[1][2] * a[2][0])
+        + a[0][2] * (a[1][0] * a[2][1] + a[1][1] * a[2][0])
     )
     return volume, size

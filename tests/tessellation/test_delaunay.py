@@ -59,7 +59,7 @@ def test_circumcentres_outside_the_hull_equal_scipys_point_location(rng, monkeyp
         monkeypatch.setattr(_delaunay, "hull_walk_batch", lambda s_count: batch)
     x = rng.normal(size=(300, d))
     tess = jaxgeom.delaunay(x, triangulator="qhull")
-    tri, perm, _ = _delaunay.triangulate(x, "qhull")  # the same Qhull triangles, with their adjacency
+    tri, perm, *_ = _delaunay.triangulate(x, "qhull")  # the same Qhull triangles, with their adjacency
     assert perm is None  # too few walkers to be sorted
     s = len(tri.simplices)
     np.testing.assert_array_equal(np.asarray(tess.simplices)[:s], tri.simplices)
@@ -200,13 +200,19 @@ def test_morton_sorted_path_maps_indices_back(d):
 @pytest.mark.parametrize("n", [50, 65_535, 65_536])
 def test_simplex_edges_are_the_pairs_of_each_simplex(rng, n):
     """The host's neighbour pairs from the simplices against a set of all vertex pairs, with
-    walker ids whose pair keys fit 32 bits (up to n = 2^16 - 1) and ids that need 64."""
-    from jaxgeom.tessellation._triangulators import simplex_edges
+    walker ids whose pair keys fit 32 bits (up to n = 2^16 - 1) and ids that need 64; from keys
+    computed before (a triangulation's check), and those from some walkers alone."""
+    from jaxgeom.tessellation._triangulators import _pair_keys, simplex_edges
 
     simplices = np.stack([rng.choice(n, 4, replace=False) for _ in range(300)]).astype(np.int32)
     src, dst = simplex_edges(simplices, n)
     expected = sorted({(int(a), int(b)) for s in simplices for a in s for b in s if a != b})
     assert list(zip(src.tolist(), dst.tolist(), strict=True)) == expected
+    src, dst = simplex_edges(simplices, n, _pair_keys(simplices, n))
+    assert list(zip(src.tolist(), dst.tolist(), strict=True)) == expected
+    sources = rng.random(n) < 0.3
+    src, dst = simplex_edges(simplices, n, sources=sources)
+    assert list(zip(src.tolist(), dst.tolist(), strict=True)) == [e for e in expected if sources[e[0]]]
 
 
 @pytest.mark.parametrize("offset", [1e3, 1e6])
