@@ -43,6 +43,7 @@ from ._dualclip import (
     EDGE_WALLS,
     FACES_3D,
     box_edge_faces,
+    cells_near_box_edges,
     clipped_sums,
     dual_centres,
     near_walls,
@@ -452,7 +453,9 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
         functools.partial(flag_slots, edge_index),
     )
     areas = areas + area_add.reshape(n, k)
-    edge_area, edge_moment, real, inner, corners = box_edge_faces(tess)
+    edge_area, edge_moment, real, inner, corners = box_edge_faces(
+        tess, cells_near_box_edges(tess, centres[0], centres[2])
+    )
     wall_area, wall_moment = wall_area + edge_area, wall_moment + edge_moment
     box = tess.box.astype(tess.points.dtype)
     distance = jnp.concatenate([box[1] - tess.points, tess.points - box[0]], axis=1)  # (N, 6)

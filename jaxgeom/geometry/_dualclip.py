@@ -440,17 +440,38 @@ EDGE_WALLS = jnp.asarray([[w1, w2] for _, w1, w2 in BOX_EDGES], jnp.int32)  # (1
 CORNER_WALLS = jnp.asarray(BOX_CORNERS, jnp.int32)  # (8, 3)
 
 
-def box_edge_faces(tess: Tessellation):
+def cells_near_box_edges(tess: Tessellation, centres, ok):
+    """(N,) the walkers at the boundary (tier 0) whose cells may hold a point of a box edge: a
+    bounded cell is the hull of its simplices' circumcentres (`centres` (S, 3); `ok` (S,): not
+    flat), so its bounding box must reach both walls of the edge. Hull walkers' (unbounded)
+    cells, and those beside a flat simplex, always. A cell taken in vain costs time only."""
+    n = tess.n_points
+    box = tess.box.astype(tess.points.dtype)
+    usable = ok[:, None]  # a flat simplex's centre is anywhere: its cells reach every wall
+    high = jax.ops.segment_max(
+        jnp.repeat(jnp.where(usable, centres, jnp.inf), 4, axis=0), tess.simplices.ravel(), num_segments=n + 1
+    )[:n]
+    low = jax.ops.segment_min(
+        jnp.repeat(jnp.where(usable, centres, -jnp.inf), 4, axis=0), tess.simplices.ravel(), num_segments=n + 1
+    )[:n]
+    margin = clip_tolerance(box[0], box[1])
+    reached = jnp.concatenate([high >= box[1] - margin, low <= box[0] + margin], axis=1)  # (N, 6), walls' order
+    edges = jnp.any(jnp.all(reached[:, EDGE_WALLS], axis=-1), axis=-1)
+    return (tess.tier == 0) & (tess.hull | edges)
+
+
+def box_edge_faces(tess: Tessellation, cells):
     """Per walker at the boundary (tier 0): the 12 box edges' parts inside its cell, as their
     share of the wall faces' areas (N, 6) and first moments about the walker (N, 6, 3); whether
     each has a positive length (N, 12) and how many of its ends lie inside the box edge (N, 12)
-    (vertices of the cell on two walls); and whether each box corner lies in the cell (N, 8)."""
+    (vertices of the cell on two walls); and whether each box corner lies in the cell (N, 8).
+    Measured for the walkers `cells` (N,) marks (`cells_near_box_edges`), zero for the others."""
     n, d = tess.points.shape
     box = tess.box.astype(tess.points.dtype)
     axes, bounds, signs = wall_bounds(box[0], box[1])
     eye = jnp.eye(3, dtype=box.dtype)
 
-    def cells(ids):
+    def measured(ids):
         normals, offsets, active = cell_planes(tess, ids)
         x = tess.points[jnp.minimum(ids, n - 1)]
 
@@ -498,5 +519,5 @@ def box_edge_faces(tess: Tessellation):
             jnp.zeros((m, 8), bool),
         )
 
-    rows, out = map_flagged_rows(tess.tier == 0, EDGE_CHUNK, cells, empty)
+    rows, out = map_flagged_rows(cells, EDGE_CHUNK, measured, empty)
     return jax.tree_util.tree_map(lambda a: jnp.zeros((n,) + a.shape[1:], a.dtype).at[rows].set(a, mode="drop"), out)

@@ -144,6 +144,33 @@ def test_one_wall_cut_equals_the_cut_by_every_wall(rng):
     assert compared >= 10
 
 
+@pytest.mark.parametrize("kind", ["uniform", "lattice"])
+def test_box_edges_are_measured_in_every_cell_that_holds_one(rng, kind):
+    """`cells_near_box_edges` (the cells whose centres' bounding box reaches two walls of an
+    edge) leaves out no cell that holds a piece of a box edge or a corner, and leaves out most
+    of a uniform swarm's cells at the boundary; the box edges' measures equal those over every
+    tier-0 cell."""
+    import jax
+
+    from jaxgeom.geometry import _dual, _dualclip
+
+    if kind == "uniform":
+        x = rng.uniform(0.0, 1.0, (1500, 3))
+    else:  # co-spherical walkers: vertices on the box edges and corners
+        x = (np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / 8
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0))
+    stage = jax.jit(lambda t: _dual._simplex_stage_3d(t, _dual._sorted_rows(t)))(tess)
+    near = np.asarray(_dualclip.cells_near_box_edges(tess, stage["centres"], stage["ok"]))
+    every = jax.jit(_dualclip.box_edge_faces)(tess, tess.tier == 0)
+    chosen = jax.jit(_dualclip.box_edge_faces)(tess, jnp.asarray(near))
+    holds = np.asarray(every[2]).any(axis=1) | np.asarray(every[4]).any(axis=1)
+    assert holds.any() and not (holds & ~near).any()
+    if kind == "uniform":  # a lattice's flat simplices (centres anywhere) take every cell beside them
+        assert near.sum() < 0.5 * int((tess.tier == 0).sum())
+    for a, b in zip(every, chosen, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_boxed_cells_of_co_spherical_walkers_at_the_walls_equal_scipy():
     """3D cells clipped by the dual's pieces where degenerate configurations meet the walls:
     an FCC lattice with walkers on the walls (their cells' wall faces hold them; flat hull
