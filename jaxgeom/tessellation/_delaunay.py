@@ -592,11 +592,16 @@ def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
     """Every periodic image of `y` (box-relative) with all coordinates in (lo, hi)."""
     n, d = y.shape
     reach = int(np.ceil(max(np.max(-lo / lengths), np.max((hi - lengths) / lengths), 0)))
+    offsets = range(-reach, reach + 1)
+    # per axis and offset, the walkers whose coordinate lands inside: an image is inside where
+    # all its axes are (N = 1e5, 27 images: 3-6 ms, against 59 ms for shifting every walker)
+    inside = [
+        {s: (y[:, k] + s * lengths[k] > lo[k]) & (y[:, k] + s * lengths[k] < hi[k]) for s in offsets} for k in range(d)
+    ]
     pts, ids, shifts = [], [], []
-    for s in itertools.product(range(-reach, reach + 1), repeat=d):
-        img = y + np.asarray(s) * lengths
-        keep = np.flatnonzero(np.all((img > lo) & (img < hi), axis=1)).astype(np.int32)  # half the copies of int64
-        pts.append(img[keep])
+    for s in itertools.product(offsets, repeat=d):
+        keep = np.flatnonzero(np.logical_and.reduce([inside[k][s[k]] for k in range(d)])).astype(np.int32)
+        pts.append(y[keep] + np.asarray(s) * lengths)
         ids.append(keep)
         shifts.append(np.broadcast_to(np.asarray(s, np.int8), (keep.size, d)))
     return np.concatenate(pts), np.concatenate(ids), np.concatenate(shifts)
