@@ -543,8 +543,8 @@ def simplex_edges(
 def _pair_keys(simplices: np.ndarray, n: int) -> tuple[np.ndarray, int]:
     """(the edges of `simplices` as sorted distinct integer keys, the bits of an id in a key):
     every pair of vertices of a simplex as one key, the lower id in the high bits (32-bit keys
-    up to n = 2^16, 64-bit above)."""
-    bits = max(1, int(n).bit_length())
+    up to n = 2^16 walkers, ids < 2^16; 64-bit above)."""
+    bits = max(1, int(n - 1).bit_length())
     dtype = np.uint32 if 2 * bits <= 32 else np.uint64
     s = simplices.astype(dtype, copy=False)
     a, b = np.triu_indices(s.shape[1], 1)

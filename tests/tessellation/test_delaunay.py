@@ -197,14 +197,15 @@ def test_morton_sorted_path_maps_indices_back(d):
     assert int(tess.simplex_mask.sum()) == len(Delaunay(x).simplices)
 
 
-@pytest.mark.parametrize("n", [50, 65_535, 65_536])
+@pytest.mark.parametrize("n", [50, 65_536, 65_537])
 def test_simplex_edges_are_the_pairs_of_each_simplex(rng, n):
     """The host's neighbour pairs from the simplices against a set of all vertex pairs, with
-    walker ids whose pair keys fit 32 bits (up to n = 2^16 - 1) and ids that need 64; from keys
+    walker ids whose pair keys fit 32 bits (up to n = 2^16) and ids that need 64; from keys
     computed before (a triangulation's check), and those from some walkers alone."""
     from jaxgeom.tessellation._triangulators import _pair_keys, simplex_edges
 
     simplices = np.stack([rng.choice(n, 4, replace=False) for _ in range(300)]).astype(np.int32)
+    simplices[0] = [n - 4, n - 3, n - 2, n - 1]  # the largest ids: all their bits in the key
     src, dst = simplex_edges(simplices, n)
     expected = sorted({(int(a), int(b)) for s in simplices for a in s for b in s if a != b})
     assert list(zip(src.tolist(), dst.tolist(), strict=True)) == expected
