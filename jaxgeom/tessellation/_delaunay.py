@@ -569,6 +569,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
     """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop, the fallback
     reasons of its triangulations and the volume of the simplices it keeps (of `y0`)."""
     fallbacks = []
+    widest = float(np.linalg.norm(lengths))  # an empty ball is narrower than the box's diagonal: this skin always does
     for _ in range(SKIN_ATTEMPTS):
         lo, hi = np.full(len(lengths), -skin), lengths + skin
         lo[axis], hi[axis] = start - skin, stop + skin
@@ -582,7 +583,11 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
         if not owned[tri.convex_hull].any() and _circumballs_empty(ext, simp, y, lengths, lo, hi):
             break
-        skin *= SKIN_GROWTH
+        if skin >= widest:  # it holds every image a Delaunay neighbour can be: widening cannot help
+            raise RuntimeError(
+                "periodic Delaunay: the skin check failed at a skin of the box's diagonal; please report this input."
+            )
+        skin = min(skin * SKIN_GROWTH, widest)
     else:
         raise RuntimeError(
             "periodic Delaunay: the skin check failed after widening the skin; please report this input."
@@ -641,6 +646,8 @@ def _circumballs_empty(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     center, radius = (np.concatenate(parts) for parts in zip(*pokes, strict=True))
     if not len(radius):
         return True
+    if np.any(radius > 0.5 * np.linalg.norm(lengths)):
+        return False  # it holds a whole period: an image of every walker, some outside the region
     reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
     reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
     outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)

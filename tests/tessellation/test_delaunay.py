@@ -176,6 +176,35 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
 
 
+def test_a_circumball_wider_than_the_box_fails_the_skin_check_at_once(rng):
+    """A sliver's circumball wider than the box's diagonal holds a whole period, so an image of
+    some walker outside the region lies inside it: the check fails without listing the images
+    its bounding box reaches (a clustered swarm's sliver once reached 212 box lengths out:
+    int8 shifts overflowed, and slivers a little narrower took 40 s of image loops)."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    y, lengths = rng.random((50, 3)), np.ones(3)
+    sliver = np.array([[0.5, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.6, 0.5], [0.56, 0.57, 0.5 + 1e-6]])
+    _, radius = dl._circumballs(sliver[None])
+    assert radius[0] > 100.0
+    lo, hi = np.full(3, -0.1), np.full(3, 1.1)
+    assert dl._circumballs_empty(sliver, np.array([[0, 1, 2, 3]]), y, lengths, lo, hi) is False
+
+
+@pytest.mark.slow
+def test_periodic_clustered_swarm_with_wide_voids_builds_and_tiles_the_box():
+    """20 tight clusters in a periodic box (voids ~10x the mean spacing): the skin grows until
+    the check passes (capped at the box's diagonal), and the volumes tile the box. This seed's
+    first skins gave slivers with circumballs 212 box lengths wide (an OverflowError before)."""
+    rng = np.random.default_rng(500)
+    n = 10_000
+    centres = rng.random((20, 3))
+    x = (centres[rng.integers(0, 20, n)] + 0.03 * rng.normal(size=(n, 3))) % 1.0
+    tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True, triangulator="qhull")
+    volumes = np.asarray(jaxgeom.voronoi_volumes(tess))
+    assert (volumes > 0).all() and abs(volumes.sum() - 1.0) < 1e-9
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_morton_sorted_path_maps_indices_back(d):
     """Above MORTON_MIN_POINTS Qhull sees sorted points; results must be in the caller's order."""
