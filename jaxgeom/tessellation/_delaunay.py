@@ -71,12 +71,10 @@ from ._triangulators import (
 
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed (the
-# slab then triangulates again). In 3D it grows with N from 2.6 at 1e4 (`skin_spacings`): the
-# farthest circumball of a slab's simplices reaches 2.3-2.6 spacings beyond it at 1e4 and
-# 2.5-2.7 at 1e5 (uniform, bench/README.md), and at 1e6 a skin of 2.6 was too thin.
-SKIN_SPACINGS = {2: 3.0, 3: 2.6, 4: 3.0}
-SKIN_PER_DECADE = {3: 0.2}  # added per decade of N above 1e4, up to SKIN_MOST
-SKIN_MOST = 3.0
+# slab then triangulates again). A thinner start in 3D (2.6, growing with N) was 7-13% faster
+# on uniform walkers, but clustered swarms failed the check more often: 20 clusters at N = 1e4,
+# median 7.4 s against 4.4 s (bench/README.md).
+SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
 MAX_SLABS = 4
 # (slabs per core, a slab's least thickness in skins), per dimension
@@ -538,7 +536,7 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     """`_periodic_graph` for one tie-break (`y` the perturbed walkers, `y0` the plain ones),
     and its simplices' volume (of the plain walkers), summed by the slabs' threads."""
     n, d = y.shape
-    skin = skin_spacings(n, d) * spacing
+    skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
     # Every slab adds its skin's images. In 3D one slab per core, down to two skins thick, is
     # fastest (periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs
@@ -557,12 +555,6 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     fallbacks = tuple(reason for p in parts for reason in p[5])
     volume = sum(p[6] for p in parts)
     return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume
-
-
-def skin_spacings(n: int, d: int) -> float:
-    """The initial periodic skin for N = `n` walkers in d dimensions, in mean spacings."""
-    grown = SKIN_SPACINGS[d] + SKIN_PER_DECADE.get(d, 0.0) * max(0.0, math.log10(n / 1e4))
-    return min(max(grown, SKIN_SPACINGS[d]), max(SKIN_MOST, SKIN_SPACINGS[d]))
 
 
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
