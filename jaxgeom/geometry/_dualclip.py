@@ -454,8 +454,8 @@ def cells_near_box_edges(tess: Tessellation, centres, ok):
     low = jax.ops.segment_min(
         jnp.repeat(jnp.where(usable, centres, -jnp.inf), 4, axis=0), tess.simplices.ravel(), num_segments=n + 1
     )[:n]
-    margin = clip_tolerance(box[0], box[1])
-    reached = jnp.concatenate([high >= box[1] - margin, low <= box[0] + margin], axis=1)  # (N, 6), walls' order
+    d = centres.shape[-1]  # the upper walls reached by the highest centres, the lower by the lowest
+    reached = jnp.concatenate([near_walls(high, box)[:, :d], near_walls(low, box)[:, d:]], axis=1)  # (N, 2d)
     edges = jnp.any(jnp.all(reached[:, EDGE_WALLS], axis=-1), axis=-1)
     return (tess.tier == 0) & (tess.hull | edges)
 
