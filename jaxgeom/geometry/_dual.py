@@ -263,10 +263,15 @@ def _per_edge(values, combine):
 def _sum_into_slots(values, index, n: int, k: int):
     """(N, K) sums of `values` (the same for both ends of each edge) at `_find_slots`'s `index`
     (two arrays of values' shape)."""
-    sums = jnp.zeros(n * k + 1, values.dtype)
+    return _add_into_slots(jnp.zeros(n * k + 1, values.dtype), values, index)[:-1].reshape(n, k)
+
+
+def _add_into_slots(sums, values, index):
+    """`sums` (N K + 1,), the last for edges without a slot, plus `values` at both of
+    `_find_slots`'s `index`."""
     for side in index:
         sums = sums.at[side.ravel()].add(values.ravel())
-    return sums[:-1].reshape(n, k)
+    return sums
 
 
 def _sums_at_vertices(local_ends, values, weighted, points):
@@ -299,6 +304,14 @@ def _scatter_at_vertices(simplices, totals, moments, n: int):
     )
 
 
+def _add_at_vertices(sums, simplices, totals, moments):
+    """`sums` ((N + 1,), (N + 1, d)), the last for padding, plus the per-simplex-vertex
+    `totals` (S, m) and `moments` (S, m, d) at their walkers (`_scatter_at_vertices`)."""
+    volumes, first_moments = sums
+    ids = simplices.ravel()
+    return volumes.at[ids].add(totals.ravel()), first_moments.at[ids].add(moments.reshape(-1, moments.shape[-1]))
+
+
 def _sum_at_ends(simplices, local_ends, values, weighted, points, n: int):
     """Per walker: `_sums_at_vertices` scattered to the simplices' walkers, (N,) and (N, d)."""
     totals, moments = _sums_at_vertices(local_ends, values, weighted, points)
@@ -317,14 +330,16 @@ def block_layout(s: int, most: int) -> tuple[int, int]:
     return blocks, -(-s // blocks)
 
 
-def _in_blocks(tess: Tessellation, per_simplex):
-    """`per_simplex(sub)` (a dict of (S_b, ...) arrays of the simplices of `sub`, `tess` cut to
-    a block of them) over all simplices, at most SIMPLEX_BLOCK at a time (`lax.map`): its
-    temporaries, ~1.7 kB per simplex when unblocked (11 GiB at N = 1e6 in 3D), then take one
+def _in_blocks(tess: Tessellation, per_simplex, sums):
+    """`per_simplex(sub, sums)` -> (out, sums) over all simplices, at most SIMPLEX_BLOCK at a
+    time (`lax.scan`): `out` a dict of (S_b, ...) arrays of the simplices of `sub` (`tess` cut
+    to a block of them), stacked, and `sums` a pytree of arrays added to block after block
+    (in place: what is summed per walker or slot is never stacked per simplex). A block's
+    temporaries, ~1.7 kB per simplex when unblocked (11 GiB at N = 1e6 in 3D), take one
     block's room."""
     s = tess.simplices.shape[0]
     if s <= SIMPLEX_BLOCK:
-        return per_simplex(tess)
+        return per_simplex(tess, sums)
     blocks, size = block_layout(s, SIMPLEX_BLOCK)
     pad = blocks * size - s
     cut = (
@@ -335,24 +350,26 @@ def _in_blocks(tess: Tessellation, per_simplex):
     simplices = cut(tess.simplices, tess.n_points)
     shifts = None if tess.simplex_shifts is None else cut(tess.simplex_shifts, 0)
 
-    def block(parts):
+    def block(acc, parts):
         ids, moved = parts
-        return per_simplex(
-            eqx.tree_at(lambda t: (t.simplices, t.simplex_shifts), tess, (ids, moved), is_leaf=lambda x: x is None)
-        )
+        sub = eqx.tree_at(lambda t: (t.simplices, t.simplex_shifts), tess, (ids, moved), is_leaf=lambda x: x is None)
+        out, acc = per_simplex(sub, acc)
+        return acc, out
 
-    out = jax.lax.map(block, (simplices, shifts))
-    return jax.tree.map(lambda a: a.reshape(blocks * size, *a.shape[2:])[:s], out)
+    sums, out = jax.lax.scan(block, sums, (simplices, shifts))
+    return jax.tree.map(lambda a: a.reshape(blocks * size, *a.shape[2:])[:s], out), sums
 
 
-def _simplex_stage_3d(tess: Tessellation, rows):
+def _simplex_stage_3d(tess: Tessellation, sums, rows):
     """Per simplex, everything `dual_faces_3d` needs of its geometry (module docstring): the
     areas its flags add to its 6 edges' faces (S, 6), the volumes and first moments its
     orthoschemes add to its 4 walkers' cells (S, 4), (S, 4, 3), its circumcentre (S, 3), whether
     it is not flat and counted as a vertex (S,); in a box also its faces' centres, their
     flatness, unit normals towards the opposite vertex and whether their pieces reach a wall
     (clipped by `_clip_to_box`, not summed here); and the neighbour slots of its edges
-    (`edge_slot_index`, `rows`: `_sorted_rows` of the whole graph). One block of `_in_blocks`."""
+    (`edge_slot_index`, `rows`: `_sorted_rows` of the whole graph; not on a torus, where only
+    the areas need them). The areas, volumes and moments are added to `sums` (flat slots
+    (N K + 1,), per walker (N + 1,) and (N + 1, 3)) instead. One block of `_in_blocks`."""
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
     origin = verts[:, :1]
@@ -360,7 +377,10 @@ def _simplex_stage_3d(tess: Tessellation, rows):
         verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
     )
     mask = tess.simplex_mask
-    out = {"centres": centres, "ok": ok, "proper": proper, "edge_index": edge_slot_index(tess, rows)}
+    edge_index = edge_slot_index(tess, rows)
+    out = {"centres": centres, "ok": ok, "proper": proper}
+    if tess.simplex_shifts is None:
+        out["edge_index"] = edge_index
     keep = mask[:, None]
     if tess.box is not None and tess.simplex_shifts is None:
         box = tess.box.astype(verts.dtype)
@@ -375,12 +395,12 @@ def _simplex_stage_3d(tess: Tessellation, rows):
     keep = jnp.broadcast_to(keep, pieces.shape)[:, :, None]
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing),
     # summed over the edge's two flags first
-    out["edge_areas"] = _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add)
-    # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
-    out["vertex_volumes"], out["vertex_moments"] = _sums_at_vertices(
-        EDGE_ENDS, jnp.where(keep, volumes, 0.0), weighted, verts - origin
+    areas = _add_into_slots(
+        sums[0], _per_edge(jnp.where(keep, 0.5 * heights * pieces[:, :, None], 0.0), jnp.add), edge_index
     )
-    return out
+    # volumes and first moments: every flag's orthoscheme belongs to both ends of its edge
+    totals, moments = _sums_at_vertices(EDGE_ENDS, jnp.where(keep, volumes, 0.0), weighted, verts - origin)
+    return out, (areas, *_add_at_vertices(sums[1:], tess.simplices, totals, moments))
 
 
 def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
@@ -393,16 +413,19 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     n, k = tess.neighbors.shape
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
-    stage = _in_blocks(tess, functools.partial(_simplex_stage_3d, rows=_sorted_rows(tess)))
+    dtype = tess.points.dtype
+    sums = (jnp.zeros(n * k + 1, dtype), jnp.zeros(n + 1, dtype), jnp.zeros((n + 1, 3), dtype))
+    stage, (slot_areas, walker_volumes, walker_moments) = _in_blocks(
+        tess, functools.partial(_simplex_stage_3d, rows=_sorted_rows(tess)), sums
+    )
     centres, proper = stage["centres"], stage["proper"]
     # open and boxed: the hull's faces bound the unbounded cells (a torus has none)
     if tess.simplex_shifts is not None:
         hull_face = jnp.zeros(tess.simplices.shape, bool)
     else:
         hull_face = hull_faces(tess, proper & mask if boxed else None)
-    edge_index = stage["edge_index"]
-    areas = _sum_into_slots(stage["edge_areas"], edge_index, n, k)
-    cell_volume, moments = _scatter_at_vertices(tess.simplices, stage["vertex_volumes"], stage["vertex_moments"], n)
+    edge_index = stage.get("edge_index")
+    areas, cell_volume, moments = slot_areas[:-1].reshape(n, k), walker_volumes[:n], walker_moments[:n]
     wall_areas = jnp.zeros((n, 6), areas.dtype)
     if boxed:
         areas, cell_volume, moments, wall_areas, wall_lengths, edges = _clip_to_box(
@@ -416,6 +439,8 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             cell_volume,
             moments,
         )
+        unbounded = jnp.zeros((n, k), bool)
+    elif edge_index is None:  # a torus: every cell is bounded
         unbounded = jnp.zeros((n, k), bool)
     else:
         per_flag = jnp.broadcast_to(hull_face[:, :, None], (*hull_face.shape, 3))

@@ -152,15 +152,16 @@ def test_box_edges_are_measured_in_every_cell_that_holds_one(rng, kind):
     tier-0 cell."""
     import jax
 
-    from jaxgeom.geometry import _dual, _dualclip
+    from jaxgeom.geometry import _dualclip
+    from jaxgeom.tessellation._graph import simplex_vertices
 
     if kind == "uniform":
         x = rng.uniform(0.0, 1.0, (1500, 3))
     else:  # co-spherical walkers: vertices on the box edges and corners
         x = (np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / 8
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0))
-    stage = jax.jit(lambda t: _dual._simplex_stage_3d(t, _dual._sorted_rows(t)))(tess)
-    near = np.asarray(_dualclip.cells_near_box_edges(tess, stage["centres"], stage["ok"]))
+    centres, ok, *_ = jax.jit(lambda t: _dualclip.dual_centres(t, simplex_vertices(t)))(tess)
+    near = np.asarray(_dualclip.cells_near_box_edges(tess, centres, ok))
     every = jax.jit(_dualclip.box_edge_faces)(tess, tess.tier == 0)
     chosen = jax.jit(_dualclip.box_edge_faces)(tess, jnp.asarray(near))
     holds = np.asarray(every[2]).any(axis=1) | np.asarray(every[4]).any(axis=1)
