@@ -566,14 +566,20 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         lo, hi = np.full(len(lengths), -skin), lengths + skin
         lo[axis], hi[axis] = start - skin, stop + skin
         ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
-        tri, perm, fallback, edge_keys = triangulate(ext, triangulator)
+        guard = np.arange(len(ext) + 2 ** len(lengths)) >= len(ext)
+        ext = np.concatenate([ext, _guards(lo, hi, GUARD_REACH * skin)])
+        ids, shifts = (
+            np.concatenate([ids, np.zeros(guard.sum(), ids.dtype)]),
+            np.pad(shifts, ((0, guard.sum()), (0, 0))),
+        )
+        tri, perm, fallback, edge_keys = triangulate(ext, triangulator, enclosed=True)
         fallbacks += [] if fallback is None else [fallback]
         if perm is not None:
-            ids, shifts, ext = ids[perm], shifts[perm], ext[perm]
+            ids, shifts, ext, guard = ids[perm], shifts[perm], ext[perm], guard[perm]
         home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
-        owned = ~shifts.any(axis=1) & (home >= start) & (home < stop)
+        owned = ~guard & ~shifts.any(axis=1) & (home >= start) & (home < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
-        if not owned[tri.convex_hull].any() and _circumballs_empty(ext, simp, y, lengths, lo, hi):
+        if not guard[simp].any() and _circumballs_empty(ext, simp, y, lengths, lo, hi):
             break
         if skin >= widest:  # it holds every image a Delaunay neighbour can be: widening cannot help
             raise RuntimeError(
@@ -592,6 +598,25 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
     simp = simp[owned[canonical]]
     volume = _volume_sum(y0, ids[simp], shifts[simp], lengths)
     return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume
+
+
+GUARD_REACH = 1.0  # the guards' distance outside a slab's region, in skins
+# fixed irregular moves of the guards (in units of their reach): 2^d corners of a box are co-spherical
+GUARD_WOBBLE = np.random.default_rng(7).uniform(-0.25, 0.25, (16, 4))
+
+
+def _guards(lo, hi, reach: float) -> np.ndarray:
+    """(2^d, d) points that enclose a slab's region (lo, hi): its corners moved `reach` outward,
+    each by a fixed irregular amount more. Their hull, a few big simplices, is the whole
+    triangulation's, in place of the images' ragged outer layer: exact translates there make
+    Qhull merge many co-spherical facets (3D, N = 1e4, images 3 spacings around the box: 463
+    -> 367 ms). A walker in a simplex with a guard is on the images' hull: its skin is too thin."""
+    d = len(lo)
+    corners = np.array(list(itertools.product((0, 1), repeat=d)), bool)
+    return (
+        np.where(corners, hi + reach, lo - reach)
+        + np.where(corners, 1.0, -1.0) * np.abs(GUARD_WOBBLE[: 2**d, :d]) * reach
+    )
 
 
 def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):

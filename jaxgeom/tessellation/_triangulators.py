@@ -48,6 +48,7 @@ FALLBACK = {"cupy": "cdt"}  # the backend that builds a call whose result failed
 # Q5 skips Qhull's final check of its outer planes (the simplices and left-out walkers are the
 # same): a periodic 3D build 7-9% faster, 1e4 and 1e5 (bench/README.md)
 QHULL_OPTIONS = "Qbb Qc Qz Q12 Q5"
+QHULL_ENCLOSED_OPTIONS = "Qbb Qc Q12 Q5"  # input enclosed by far points of its own: no point at infinity (Qz)
 MORTON_MIN_POINTS = 30_000
 
 
@@ -142,14 +143,15 @@ def check_coordinates(x: np.ndarray) -> None:
         )
 
 
-def triangulate(x: np.ndarray, name: str) -> Triangulated:
+def triangulate(x: np.ndarray, name: str, *, enclosed: bool = False) -> Triangulated:
     """Delaunay triangulation of `x` (N, d) by the resolved backend `name`, Qhull where it
     fails. Raises `CoincidentPointsError` for walkers the triangulation leaves out, and
     `ValueError` for degenerate input (all walkers on a hyperplane) and for coordinates no
-    backend can take (`check_coordinates`)."""
+    backend can take (`check_coordinates`). `enclosed`: a few far points of `x` enclose the
+    rest (a periodic slab's guards), so Qhull needs no point at infinity (`qhull`)."""
     check_coordinates(x)
     if name == "qhull":
-        return Triangulated(*qhull(x), None)
+        return Triangulated(*qhull(x, enclosed=enclosed), None)
     try:
         tri = BUILDERS[name](x)
     except CoincidentPointsError:
@@ -171,7 +173,7 @@ def triangulate(x: np.ndarray, name: str) -> Triangulated:
         except Exception:  # noqa: BLE001 - then Qhull, as for the other backends
             pass
     try:
-        return Triangulated(*qhull(x), f"{reason}; Qhull built this graph instead")
+        return Triangulated(*qhull(x, enclosed=enclosed), f"{reason}; Qhull built this graph instead")
     except ValueError as err:
         advice = f" Use triangulator='{name}' (exact predicates), or"  # it was used: not advice
         raise ValueError(f"{reason}, and its fallback: {err}".replace(advice, "")) from None
@@ -254,14 +256,19 @@ def check_thick_enough_for_qhull(x: np.ndarray) -> None:
         )
 
 
-def qhull(x: np.ndarray) -> tuple[Delaunay, np.ndarray | None]:
+def qhull(x: np.ndarray, *, enclosed: bool = False) -> tuple[Delaunay, np.ndarray | None]:
     """Qhull on Morton-sorted points; returns the triangulation and the sort permutation
     (None where the points were not sorted: sorting pays off only for large inputs,
-    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`."""
+    20% faster Qhull at N = 1e5, nothing at 1e4). `tri.points` are `qhull_input(x)`.
+    `enclosed` (a few far points of `x` enclose the rest): without Qz
+    (`QHULL_ENCLOSED_OPTIONS`), whose point at infinity they replace; beside them it cost
+    precision (3D periodic, N = 1e5: in one of 8 samples a simplex whose circumsphere holds a
+    walker 1.7e-7 of its size inside)."""
     check_thick_enough_for_qhull(x)
     perm = morton_order(x) if len(x) >= MORTON_MIN_POINTS else None
+    options = QHULL_ENCLOSED_OPTIONS if enclosed else QHULL_OPTIONS
     try:
-        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=QHULL_OPTIONS)
+        tri = Delaunay(qhull_input(x if perm is None else x[perm]), qhull_options=options)
     except QhullError as err:
         first_line = str(err).strip().splitlines()[0] if str(err).strip() else "no details"
         raise ValueError(

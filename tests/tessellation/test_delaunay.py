@@ -1,3 +1,5 @@
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -166,7 +168,9 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     monkeypatch.setitem(dl.SKIN_SPACINGS, d, 1.0)
     calls = []
     real_triangulate = dl.triangulate
-    monkeypatch.setattr(dl, "triangulate", lambda pts, name: calls.append(len(pts)) or real_triangulate(pts, name))
+    monkeypatch.setattr(
+        dl, "triangulate", lambda pts, name, **kw: calls.append(len(pts)) or real_triangulate(pts, name, **kw)
+    )
     x = rng.random((n, d))
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True)
     nbrs, shifts = np.asarray(tess.neighbors), np.asarray(tess.neighbor_shifts)
@@ -174,6 +178,23 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     assert ours == periodic_neighbor_sets(x, np.zeros(d), np.ones(d), layers=1)
     assert len(calls) > 2, "more than one slab, and at least one retry"
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
+
+
+@pytest.mark.parametrize("d", [2, 3, 4])
+def test_a_slabs_guards_enclose_its_region_at_their_reach(d):
+    """`_guards`: 2^d points, each beyond `reach` of the region on every axis (outside every
+    circumball a kept simplex can have when the reach exceeds the skin) and together
+    enclosing the whole region (every corner of it inside their hull)."""
+    from scipy.spatial import Delaunay
+
+    import jaxgeom.tessellation._delaunay as dl
+
+    lo, hi, reach = -0.1 * np.ones(d), np.array([0.6, 1.1, 1.1, 1.1][:d]), 0.1
+    guards = dl._guards(lo, hi, reach)
+    assert guards.shape == (2**d, d)
+    assert np.all((guards <= lo - reach) | (guards >= hi + reach))
+    corners = np.array(list(itertools.product(*zip(lo, hi, strict=True))))
+    assert np.all(Delaunay(guards).find_simplex(corners) >= 0)
 
 
 def test_a_circumball_wider_than_the_box_fails_the_skin_check_at_once(rng):
@@ -350,7 +371,9 @@ def test_periodic_lattice_split_into_slabs_keeps_its_exact_cells(monkeypatch):
     monkeypatch.setitem(dl.SLABS, 3, (1, 1))
     calls = []
     real_triangulate = dl.triangulate
-    monkeypatch.setattr(dl, "triangulate", lambda pts, name: calls.append(len(pts)) or real_triangulate(pts, name))
+    monkeypatch.setattr(
+        dl, "triangulate", lambda pts, name, **kw: calls.append(len(pts)) or real_triangulate(pts, name, **kw)
+    )
     m = 8
     g = (np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / m
     facets = jaxgeom.voronoi_facets(jaxgeom.delaunay(g, box=(0.0, 1.0), periodic=True, triangulator="qhull"))
