@@ -297,11 +297,9 @@ def _sums_at_vertices(local_ends, values, weighted, points):
 def _scatter_at_vertices(simplices, totals, moments, n: int):
     """(N,) and (N, d): the per-simplex-vertex `totals` (S, m) and `moments` (S, m, d) summed
     per walker; the scatter takes one entry per simplex vertex (4 in 3D, not 24 flags)."""
-    ids = simplices.ravel()
-    return (
-        jax.ops.segment_sum(totals.ravel(), ids, num_segments=n + 1)[:n],
-        jax.ops.segment_sum(moments.reshape(-1, moments.shape[-1]), ids, num_segments=n + 1)[:n],
-    )
+    zeros = (jnp.zeros(n + 1, totals.dtype), jnp.zeros((n + 1, moments.shape[-1]), moments.dtype))
+    volumes, first_moments = _add_at_vertices(zeros, simplices, totals, moments)
+    return volumes[:n], first_moments[:n]
 
 
 def _add_at_vertices(sums, simplices, totals, moments):
@@ -440,7 +438,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             moments,
         )
         unbounded = jnp.zeros((n, k), bool)
-    elif edge_index is None:  # a torus: every cell is bounded
+    elif tess.simplex_shifts is not None:  # a torus: every cell is bounded
         unbounded = jnp.zeros((n, k), bool)
     else:
         per_flag = jnp.broadcast_to(hull_face[:, :, None], (*hull_face.shape, 3))

@@ -566,12 +566,10 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         lo, hi = np.full(len(lengths), -skin), lengths + skin
         lo[axis], hi[axis] = start - skin, stop + skin
         ext, ids, shifts = _periodic_images(y, lengths, lo, hi)
-        guard = np.arange(len(ext) + 2 ** len(lengths)) >= len(ext)
-        ext = np.concatenate([ext, _guards(lo, hi, GUARD_REACH * skin)])
-        ids, shifts = (
-            np.concatenate([ids, np.zeros(guard.sum(), ids.dtype)]),
-            np.pad(shifts, ((0, guard.sum()), (0, 0))),
-        )
+        guards = _guards(lo, hi, GUARD_REACH * skin)
+        guard = np.arange(len(ext) + len(guards)) >= len(ext)
+        ext = np.concatenate([ext, guards])
+        ids, shifts = np.pad(ids, (0, len(guards))), np.pad(shifts, ((0, len(guards)), (0, 0)))
         tri, perm, fallback, edge_keys = triangulate(ext, triangulator, enclosed=True)
         fallbacks += [] if fallback is None else [fallback]
         if perm is not None:
