@@ -70,12 +70,19 @@ from ._triangulators import (
 )
 
 MAX_DELAUNAY_DIM = 4
-# Initial periodic skin, in mean walker spacings; the skin check widens it when needed (the
-# slab then triangulates again). A thinner start in 3D (2.6, growing with N) was 7-13% faster
-# on uniform walkers, but clustered swarms failed the check more often: 20 clusters at N = 1e4,
-# median 7.4 s against 4.4 s (bench/README.md).
-SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
-SKIN_GROWTH = 1.6  # 12 attempts reach 280x the initial skin: voids as wide as the box (sparse samples)
+# Initial periodic skin, in mean walker spacings, at N <= 1e4; the skin check widens it when
+# needed (the slab then triangulates again). In 3D it grows with N as a uniform sample's widest
+# empty ball, (ln N)^(1/3): 2.8 at 1e5, 3.0 at 1e6 (at 1e6 a skin of 2.6 was too thin for a
+# slab: 38.8 s against 29.5 s with 3.0). 2D and 4D: not measured beyond 1e4.
+SKIN_SPACINGS = {2: 3.0, 3: 2.6, 4: 3.0}
+SKIN_GROWS_WITH_N = (3,)
+# After a failed check the skin grows at least 1.6x (12 attempts reach 280x the initial skin:
+# voids as wide as the box, sparse samples), and at least to the diameter, plus 5%, of the widest
+# circumball the check saw inside the region: a ball through an owned walker reaches at most that
+# far beyond the slab. Clustered swarms (20 clusters at N = 1e4, 8 seeds) then triangulate a slab
+# twice, not four times: median 3.8 -> 2.6 s (bench/README.md).
+SKIN_GROWTH = 1.6
+SKIN_MARGIN = 0.05
 MAX_SLABS = 4
 # (slabs per core, a slab's least thickness in skins), per dimension
 SLABS = {3: (1, 2)}
@@ -128,8 +135,9 @@ def delaunay(
     - `periodic`: wrap the box (needs `box`). Periodic images in a skin around
       the box are triangulated and mapped back to original indices with the
       integer image shift of each neighbour and simplex vertex. The skin starts
-      at `SKIN_SPACINGS[d]` mean spacings and grows until every circumsphere of
-      a simplex with an original vertex lies inside it, so the result is exact.
+      at 3 mean spacings (in 3D 2.6 up to N = 1e4, then growing as
+      (ln N)^(1/3)) and grows until every circumsphere of a simplex with an
+      original vertex lies inside it, so the result is exact.
       Ties (co-circular walkers, lattices) are broken by a fixed perturbation of
       1e-9 mean spacings, the same for every image of a walker, so all translates
       of a periodic simplex are split alike.
@@ -536,7 +544,7 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     """`_periodic_graph` for one tie-break (`y` the perturbed walkers, `y0` the plain ones),
     and its simplices' volume (of the plain walkers), summed by the slabs' threads."""
     n, d = y.shape
-    skin = SKIN_SPACINGS[d] * spacing
+    skin = skin_spacings(n, d) * spacing
     axis = int(np.argmax(lengths))
     # Every slab adds its skin's images. In 3D one slab per core, down to two skins thick, is
     # fastest (periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs
@@ -555,6 +563,13 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     fallbacks = tuple(reason for p in parts for reason in p[5])
     volume = sum(p[6] for p in parts)
     return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume
+
+
+def skin_spacings(n: int, d: int) -> float:
+    """The initial periodic skin for N = `n` walkers in d dimensions, in mean spacings."""
+    if d not in SKIN_GROWS_WITH_N or n <= 1e4:
+        return SKIN_SPACINGS[d]
+    return SKIN_SPACINGS[d] * (math.log(n) / math.log(1e4)) ** (1.0 / d)
 
 
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
@@ -577,13 +592,14 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
         owned = ~guard & ~shifts.any(axis=1) & (home >= start) & (home < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
-        if not guard[simp].any() and _circumballs_empty(ext, simp, y, lengths, lo, hi):
+        empty, widest_inside = _check_circumballs(ext, simp, y, lengths, lo, hi)
+        if empty and not guard[simp].any():
             break
         if skin >= widest:  # it holds every image a Delaunay neighbour can be: widening cannot help
             raise RuntimeError(
                 "periodic Delaunay: the skin check failed at a skin of the box's diagonal; please report this input."
             )
-        skin = min(skin * SKIN_GROWTH, widest)
+        skin = min(max(skin * SKIN_GROWTH, 2.0 * (1.0 + SKIN_MARGIN) * widest_inside), widest)
     else:
         raise RuntimeError(
             "periodic Delaunay: the skin check failed after widening the skin; please report this input."
@@ -644,33 +660,38 @@ def _host_chunks(total: int):
     return [slice(start, start + HOST_CHUNK) for start in range(0, total, HOST_CHUNK)]
 
 
-def _circumballs_empty(points: np.ndarray, simplices: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi) -> bool:
+def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi):
     """Whether no periodic image outside the region (lo, hi) lies strictly inside the
-    circumball of a simplex (rows of `points`).
+    circumball of a simplex (rows of `points`), and the widest radius of the balls inside the
+    region (0 if none).
 
     Balls inside the region are empty by construction (Qhull saw every point
-    there); the few that poke out are checked against the images just outside.
+    there), so they are true Delaunay balls and the widest is a lower bound on the
+    swarm's widest empty ball; the few that poke out are checked against the images
+    just outside.
     """
-    pokes = []
+    pokes, widest_inside, finite = [], 0.0, True
     for rows in _host_chunks(len(simplices)):
         center, radius = _circumballs(points[simplices[rows]])
-        if not np.isfinite(radius).all():
-            return False
+        finite &= bool(np.isfinite(radius).all())
         poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
+        widest_inside = max(widest_inside, float(radius.max(initial=0.0, where=~poke)))
         pokes.append((center[poke], radius[poke]))
+    if not finite:
+        return False, widest_inside
     center, radius = (np.concatenate(parts) for parts in zip(*pokes, strict=True))
     if not len(radius):
-        return True
+        return True, widest_inside
     if np.any(radius > 0.5 * np.linalg.norm(lengths)):
-        return False  # it holds a whole period: an image of every walker, some outside the region
+        return False, widest_inside  # it holds a whole period: an image of every walker, some outside the region
     reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
     reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
     outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
     outer = outer[~np.all((outer > lo) & (outer < hi), axis=1)]
     if len(outer) == 0:
-        return True
+        return True, widest_inside
     dist, _ = cKDTree(outer).query(center, k=1)
-    return bool(np.all(dist >= radius * (1.0 - 1e-10)))
+    return bool(np.all(dist >= radius * (1.0 - 1e-10))), widest_inside
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:

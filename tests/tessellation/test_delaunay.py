@@ -209,19 +209,55 @@ def test_a_circumball_wider_than_the_box_fails_the_skin_check_at_once(rng):
     _, radius = dl._circumballs(sliver[None])
     assert radius[0] > 100.0
     lo, hi = np.full(3, -0.1), np.full(3, 1.1)
-    assert dl._circumballs_empty(sliver, np.array([[0, 1, 2, 3]]), y, lengths, lo, hi) is False
+    empty, widest_inside = dl._check_circumballs(sliver, np.array([[0, 1, 2, 3]]), y, lengths, lo, hi)
+    assert empty is False and widest_inside == 0.0
+
+
+def test_the_skin_check_reports_the_widest_ball_inside_the_region(rng):
+    """`_check_circumballs`' second value is the widest circumradius (by scipy's vertices and a
+    brute-force equidistant point) among the simplices whose balls lie inside the region: the
+    lower bound on the swarm's widest empty ball that sets the next skin after a failed check."""
+    from scipy.spatial import Delaunay
+
+    import jaxgeom.tessellation._delaunay as dl
+
+    y, lengths = rng.random((300, 3)), np.ones(3)
+    lo, hi = np.full(3, -0.2), np.full(3, 1.2)
+    ext, _, _ = dl._periodic_images(y, lengths, lo, hi)
+    simplices = Delaunay(ext).simplices
+    corners = ext[simplices]
+    edges = corners[:, 1:] - corners[:, :1]
+    centres = corners[:, 0] + np.linalg.solve(2.0 * edges, np.sum(edges**2, axis=2)[..., None])[..., 0]
+    radii = np.linalg.norm(corners - centres[:, None], axis=2)
+    assert np.allclose(radii, radii[:, :1], rtol=1e-8)
+    inside = np.all((centres - radii[:, :1] >= lo) & (centres + radii[:, :1] <= hi), axis=1)
+    assert 0 < inside.sum() < len(simplices)
+    empty, widest_inside = dl._check_circumballs(ext, simplices, y, lengths, lo, hi)
+    assert empty is False  # the hull's simplices hold images outside the region
+    assert widest_inside == pytest.approx(radii[inside, 0].max(), rel=1e-9)
 
 
 @pytest.mark.slow
-def test_periodic_clustered_swarm_with_wide_voids_builds_and_tiles_the_box():
+def test_periodic_clustered_swarm_with_wide_voids_builds_and_tiles_the_box(monkeypatch):
     """20 tight clusters in a periodic box (voids ~10x the mean spacing): the skin grows until
     the check passes (capped at the box's diagonal), and the volumes tile the box. This seed's
-    first skins gave slivers with circumballs 212 box lengths wide (an OverflowError before)."""
+    first skins gave slivers with circumballs 212 box lengths wide (an OverflowError before).
+    After a failed check the skin grows to the widest ball seen inside the region, so its two
+    slabs take 5 triangulations (9 when the skin only grew 1.6x per failure)."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 2)
+    calls = []
+    real_triangulate = dl.triangulate
+    monkeypatch.setattr(
+        dl, "triangulate", lambda pts, name, **kw: calls.append(len(pts)) or real_triangulate(pts, name, **kw)
+    )
     rng = np.random.default_rng(500)
     n = 10_000
     centres = rng.random((20, 3))
     x = (centres[rng.integers(0, 20, n)] + 0.03 * rng.normal(size=(n, 3))) % 1.0
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0), periodic=True, triangulator="qhull")
+    assert len(calls) <= 6
     volumes = np.asarray(jaxgeom.voronoi_volumes(tess))
     assert (volumes > 0).all() and abs(volumes.sum() - 1.0) < 1e-9
 
