@@ -570,19 +570,36 @@ def _pair_keys(simplices: np.ndarray, n: int) -> tuple[np.ndarray, int]:
     return keys[distinct], bits
 
 
+# simplices per chunk of the host check: its temporaries stay in cache (a periodic slab's 5.2e5
+# simplices at N = 1e5: orientations 76 -> 17 ms, adjacency 56 -> 23 ms against one pass)
+CHECK_CHUNK = 1 << 13
+
+
 def _symmetric(adj: np.ndarray) -> bool:
     """Whether every simplex lists, among its own neighbours, each simplex that lists it."""
     flat, width = adj.ravel(), adj.shape[1]
-    listed = np.flatnonzero(flat >= 0)
-    owner, first = (listed // width).astype(adj.dtype), flat[listed] * width  # row-major: flat indices
-    return bool(np.logical_or.reduce([flat[first + k] == owner for k in range(width)]).all())
+    for start in range(0, len(adj), CHECK_CHUNK):
+        block = adj[start : start + CHECK_CHUNK].ravel()
+        listed = np.flatnonzero(block >= 0)
+        owner = (start + listed // width).astype(adj.dtype)
+        first = block[listed] * width  # row-major: flat indices
+        if not np.logical_or.reduce([flat[first + k] == owner for k in range(width)]).all():
+            return False
+    return True
 
 
 def _flat(x: np.ndarray, s: np.ndarray, xp=np) -> np.ndarray:
     """(S,) simplices of zero or negative volume, up to the rounding of its terms (arrays of
-    module `xp`: numpy, or CuPy on the device)."""
-    volume, size = _volumes(x, s, xp)
-    return volume <= 8 * np.finfo(np.float64).eps * size
+    module `xp`: numpy, in chunks, or CuPy on the device, at once)."""
+    rounding = 8 * np.finfo(np.float64).eps
+    if xp is not np:
+        volume, size = _volumes(x, s, xp)
+        return volume <= rounding * size
+    x, flat = np.asarray(x, dtype=np.float64), np.empty(len(s), bool)
+    for start in range(0, len(s), CHECK_CHUNK):
+        volume, size = _volumes(x, s[start : start + CHECK_CHUNK])
+        flat[start : start + CHECK_CHUNK] = volume <= rounding * size
+    return flat
 
 
 def _volumes(x: np.ndarray, s: np.ndarray, xp=np) -> tuple[np.ndarray, np.ndarray]:

@@ -320,6 +320,27 @@ def test_the_check_accepts_delaunay_and_names_each_defect(rng):
     assert check_triangulation(hollow, x3) is not None
 
 
+def test_the_check_finds_a_defect_in_any_chunk(rng, monkeypatch):
+    """The orientation and adjacency tests run in chunks of `CHECK_CHUNK` simplices: one
+    flipped triangle, or one neighbour entry its partner does not return, is found in the
+    first, a boundary or the last chunk."""
+    monkeypatch.setattr(backends, "CHECK_CHUNK", 64)
+    x = rng.random((300, 2))
+    tri = backends._cdt(x)
+    simplices, neighbors = np.asarray(tri.simplices), np.asarray(tri.neighbors)
+    assert check_triangulation(backends._Triangulation(simplices, neighbors), x) is None
+    for row in (0, 63, 64, len(simplices) - 1):
+        flipped_s, flipped_n = simplices.copy(), neighbors.copy()
+        flipped_s[row], flipped_n[row] = simplices[row, [0, 2, 1]], neighbors[row, [0, 2, 1]]
+        assert "flat or negatively oriented" in check_triangulation(backends._Triangulation(flipped_s, flipped_n), x)
+        other = next(
+            m for m in range(len(simplices)) if m != row and row not in neighbors[m] and m not in neighbors[row]
+        )
+        one_sided = neighbors.copy()
+        one_sided[row, 0] = other
+        assert "symmetric" in check_triangulation(backends._Triangulation(simplices, one_sided), x)
+
+
 def test_cdt_marks_its_triangles_oriented_only_where_the_check_would_pass(rng):
     """The check skips its orientation test for CDT's output (`oriented`): that holds only if
     `_cdt` kept exactly the triangles the test passes, here also on a sheared lattice whose
