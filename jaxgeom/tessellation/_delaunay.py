@@ -70,17 +70,17 @@ from ._triangulators import (
 )
 
 MAX_DELAUNAY_DIM = 4
-# Initial periodic skin, in mean walker spacings, at N <= 1e4; the skin check widens it when
-# needed (the slab then triangulates again). In 3D it grows with N as a uniform sample's widest
-# empty ball, (ln N)^(1/3): 2.8 at 1e5, 3.0 at 1e6 (at 1e6 a skin of 2.6 was too thin for a
-# slab: 38.8 s against 29.5 s with 3.0). 2D and 4D: not measured beyond 1e4.
-SKIN_SPACINGS = {2: 3.0, 3: 2.6, 4: 3.0}
-SKIN_GROWS_WITH_N = (3,)
+# Initial periodic skin, in mean walker spacings; the skin check widens it when needed (the
+# slab then triangulates again). A thinner start in 3D (2.6 up to N = 1e4, growing as
+# (ln N)^(1/3)) was 10% faster at 1e4, but an 8^3 cubic lattice then had two slabs split
+# co-spherical cubes unalike with the box still tiled (12 faces wrong), which the tiling check
+# cannot see (bench/README.md).
+SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 # After a failed check the skin grows at least 1.6x (12 attempts reach 280x the initial skin:
 # voids as wide as the box, sparse samples), and at least to the diameter, plus 5%, of the widest
 # circumball the check saw inside the region: a ball through an owned walker reaches at most that
 # far beyond the slab. Clustered swarms (20 clusters at N = 1e4, 8 seeds) then triangulate a slab
-# twice, not four times: median 3.8 -> 2.6 s (bench/README.md).
+# twice, not four times: median 3.5 -> 2.5 s (bench/README.md).
 SKIN_GROWTH = 1.6
 SKIN_MARGIN = 0.05
 MAX_SLABS = 4
@@ -135,9 +135,8 @@ def delaunay(
     - `periodic`: wrap the box (needs `box`). Periodic images in a skin around
       the box are triangulated and mapped back to original indices with the
       integer image shift of each neighbour and simplex vertex. The skin starts
-      at 3 mean spacings (in 3D 2.6 up to N = 1e4, then growing as
-      (ln N)^(1/3)) and grows until every circumsphere of a simplex with an
-      original vertex lies inside it, so the result is exact.
+      at `SKIN_SPACINGS[d]` mean spacings and grows until every circumsphere of
+      a simplex with an original vertex lies inside it, so the result is exact.
       Ties (co-circular walkers, lattices) are broken by a fixed perturbation of
       1e-9 mean spacings, the same for every image of a walker, so all translates
       of a periodic simplex are split alike.
@@ -531,19 +530,19 @@ def _tiles_the_box(volume: float, lengths: np.ndarray) -> bool:
     return bool(abs(volume - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
 
-def _volume_sum(points: np.ndarray, simplices: np.ndarray) -> float:
-    """The summed volume (float64) of simplices (rows of `points`)."""
-    points, total = np.asarray(points, np.float64), 0.0
+def _volume_sum(points: np.ndarray, simplices: np.ndarray, shifts: np.ndarray, lengths: np.ndarray) -> float:
+    """The summed volume (float64) of periodic simplices (rows of `points` at image `shifts`)."""
+    points, lengths, total = np.asarray(points, np.float64), np.asarray(lengths, np.float64), 0.0
     for rows in _host_chunks(len(simplices)):
-        total += float(np.sum(np.abs(_determinants(points[simplices[rows]]))))
+        total += float(np.sum(np.abs(_determinants(points[simplices[rows]] + shifts[rows] * lengths))))
     return total / math.factorial(points.shape[1])
 
 
 def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[RawGraph, float]:
     """`_periodic_graph` for one tie-break (`y` the perturbed walkers, `y0` the plain ones),
-    and its simplices' volume (of the perturbed walkers' images), summed by the slabs' threads."""
+    and its simplices' volume (of the plain walkers), summed by the slabs' threads."""
     n, d = y.shape
-    skin = skin_spacings(n, d) * spacing
+    skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
     # Every slab adds its skin's images. In 3D one slab per core, down to two skins thick, is
     # fastest (periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs
@@ -564,16 +563,9 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume
 
 
-def skin_spacings(n: int, d: int) -> float:
-    """The initial periodic skin for N = `n` walkers in d dimensions, in mean spacings."""
-    if d not in SKIN_GROWS_WITH_N or n <= 1e4:
-        return SKIN_SPACINGS[d]
-    return SKIN_SPACINGS[d] * (math.log(n) / math.log(1e4)) ** (1.0 / d)
-
-
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
     """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop, the fallback
-    reasons of its triangulations and the volume of the simplices it keeps (of the images of `y`)."""
+    reasons of its triangulations and the volume of the simplices it keeps (of `y0`)."""
     fallbacks = []
     widest = float(np.linalg.norm(lengths))  # an empty ball is narrower than the box's diagonal: this skin always does
     for _ in range(SKIN_ATTEMPTS):
@@ -609,7 +601,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         src, dst = simplex_edges(tri.simplices, len(ext), edge_keys, owned)
     canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
     simp = simp[owned[canonical]]
-    volume = _volume_sum(ext, simp)  # the perturbed walkers' images tile the box as the plain ones do
+    volume = _volume_sum(y0, ids[simp], shifts[simp], lengths)
     return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume
 
 
