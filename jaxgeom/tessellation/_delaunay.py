@@ -72,9 +72,9 @@ from ._triangulators import (
 MAX_DELAUNAY_DIM = 4
 # Initial periodic skin, in mean walker spacings; the skin check widens it when needed (the
 # slab then triangulates again). A thinner start in 3D (2.6 up to N = 1e4, growing as
-# (ln N)^(1/3)) was 10% faster at 1e4, but an 8^3 cubic lattice then had two slabs split
-# co-spherical cubes unalike with the box still tiled (12 faces wrong), which the tiling check
-# cannot see (bench/README.md).
+# (ln N)^(1/3)) was 10% faster at 1e4, but on an 8^3 cubic lattice Qhull then split translates
+# of its co-spherical cubes unalike with the box still tiled (12 faces wrong), which the tiling
+# check cannot see (bench/README.md).
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 # After a failed check the skin grows at least 1.6x (12 attempts reach 280x the initial skin:
 # voids as wide as the box, sparse samples), and at least to the diameter, plus 5%, of the widest
