@@ -64,6 +64,7 @@ from ._triangulators import (
     DEVICE_BACKENDS,
     FALLBACK,
     device_triangles,
+    host_chunks,
     resolve_triangulator,
     simplex_edges,
     triangulate,
@@ -533,7 +534,7 @@ def _tiles_the_box(volume: float, lengths: np.ndarray) -> bool:
 def _volume_sum(points: np.ndarray, simplices: np.ndarray, shifts: np.ndarray, lengths: np.ndarray) -> float:
     """The summed volume (float64) of periodic simplices (rows of `points` at image `shifts`)."""
     points, lengths, total = np.asarray(points, np.float64), np.asarray(lengths, np.float64), 0.0
-    for rows in _host_chunks(len(simplices)):
+    for rows in host_chunks(len(simplices)):
         total += float(np.sum(np.abs(_determinants(points[simplices[rows]] + shifts[rows] * lengths))))
     return total / math.factorial(points.shape[1])
 
@@ -643,16 +644,6 @@ def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
     return np.concatenate(pts), np.concatenate(ids), np.concatenate(shifts)
 
 
-# simplices per chunk of the host checks: their float64 temporaries (64 kB each) stay in cache
-# (a periodic slab's 5.2e5 simplices at N = 1e5: circumballs 122 -> 65 ms against chunks of 2^18)
-HOST_CHUNK = 1 << 13
-
-
-def _host_chunks(total: int):
-    """Slices of at most HOST_CHUNK rows covering `total`."""
-    return [slice(start, start + HOST_CHUNK) for start in range(0, total, HOST_CHUNK)]
-
-
 def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi):
     """Whether no periodic image outside the region (lo, hi) lies strictly inside the
     circumball of a simplex (rows of `points`), and the widest radius of the balls inside the
@@ -664,7 +655,7 @@ def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     just outside.
     """
     pokes, widest_inside, finite = [], 0.0, True
-    for rows in _host_chunks(len(simplices)):
+    for rows in host_chunks(len(simplices)):
         center, radius = _circumballs(points[simplices[rows]])
         finite &= bool(np.isfinite(radius).all())
         poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
