@@ -75,7 +75,7 @@ MAX_DELAUNAY_DIM = 4
 # slab then triangulates again). A thinner start in 3D (2.6 up to N = 1e4, growing as
 # (ln N)^(1/3)) was 10% faster at 1e4, but on an 8^3 cubic lattice Qhull then split translates
 # of its co-spherical cubes unalike with the box still tiled (12 faces wrong), which the tiling
-# check cannot see (bench/README.md).
+# check cannot see and the star check (`_star_mismatch`) now does (bench/README.md).
 SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
 # After a failed check the skin grows at least 1.6x (12 attempts reach 280x the initial skin:
 # voids as wide as the box, sparse samples), and at least to the diameter, plus 5%, of the widest
@@ -89,7 +89,9 @@ MAX_SLABS = 4
 SLABS = {3: (1, 2)}
 SLABS_ELSE = (2, 4)
 SKIN_ATTEMPTS = 12
-TIE_BREAKS = (1e-9, 1e-8, 1e-7)  # periodic symbolic perturbation, in mean spacings; the next if the box is not tiled
+# periodic symbolic perturbation, in mean spacings; the next if the box is not tiled or a
+# walker's star is not its kept simplices
+TIE_BREAKS = (1e-9, 1e-8, 1e-7)
 
 
 class CapacityError(ValueError):
@@ -514,19 +516,21 @@ def _periodic_graph(x: np.ndarray, box: np.ndarray, triangulator: str) -> RawGra
     # triangulated alike and the canonical-vertex rule keeps each exactly once.
     y0 = x - box[0]
     jitter = np.random.default_rng(0).uniform(-1.0, 1.0, (n, d))
-    for tie_break in TIE_BREAKS:  # a larger one where Qhull could not resolve the smaller (tiling check)
-        raw, volume = _periodic_raw(y0 + tie_break * spacing * jitter, y0, lengths, spacing, triangulator)
-        if _tiles_the_box(volume, lengths):
+    for tie_break in TIE_BREAKS:  # a larger one where Qhull could not resolve the smaller (tiling and star checks)
+        raw, volume, stars = _periodic_raw(y0 + tie_break * spacing * jitter, y0, lengths, spacing, triangulator)
+        if _tiles_the_box(volume, lengths) and stars % 2**64 == 0:
             return raw
     raise RuntimeError(
-        "periodic Delaunay: the simplices do not tile the box after the largest tie-break; please report this input."
+        "periodic Delaunay: the simplices do not tile the box, or a walker's star is not its kept simplices, after the "
+        "largest tie-break; please report this input."
     )
 
 
 def _tiles_the_box(volume: float, lengths: np.ndarray) -> bool:
     """Whether the periodic simplices' `volume` is the box's (to 1e-9): co-spherical walkers
     (an 8^3 cubic lattice) whose tie-break Qhull did not resolve were triangulated unalike in two
-    slabs, leaving a gap at the seam."""
+    slabs, leaving a gap at the seam. Unalike splits that still tile the box are the star
+    check's (`_star_mismatch`)."""
     box_volume = float(np.prod(np.asarray(lengths, np.float64)))
     return bool(abs(volume - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
@@ -539,9 +543,10 @@ def _volume_sum(points: np.ndarray, simplices: np.ndarray, shifts: np.ndarray, l
     return total / math.factorial(points.shape[1])
 
 
-def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[RawGraph, float]:
+def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[RawGraph, float, int]:
     """`_periodic_graph` for one tie-break (`y` the perturbed walkers, `y0` the plain ones),
-    and its simplices' volume (of the plain walkers), summed by the slabs' threads."""
+    its simplices' volume (of the plain walkers) and the slabs' `_star_mismatch`es summed
+    (0 mod 2^64 where every walker's star is its kept simplices)."""
     n, d = y.shape
     skin = SKIN_SPACINGS[d] * spacing
     axis = int(np.argmax(lengths))
@@ -561,12 +566,14 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     cat = lambda k: np.concatenate([p[k] for p in parts])  # noqa: E731
     fallbacks = tuple(reason for p in parts for reason in p[5])
     volume = sum(p[6] for p in parts)
-    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume
+    stars = sum(p[7] for p in parts)
+    return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume, stars
 
 
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
     """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop, the fallback
-    reasons of its triangulations and the volume of the simplices it keeps (of `y0`)."""
+    reasons of its triangulations, the volume of the simplices it keeps (of `y0`) and their
+    `_star_mismatch`."""
     fallbacks = []
     widest = float(np.linalg.norm(lengths))  # an empty ball is narrower than the box's diagonal: this skin always does
     for _ in range(SKIN_ATTEMPTS):
@@ -600,10 +607,49 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         src, dst = simplex_edges(simp, len(ext), sources=owned)  # every edge of an owned walker lies in `simp`
     else:  # the check's keys, of every simplex (ext ids: a checked triangulation is unsorted)
         src, dst = simplex_edges(tri.simplices, len(ext), edge_keys, owned)
-    canonical = simp[np.arange(len(simp)), _canonical_vertex(ids[simp], shifts[simp])]
-    simp = simp[owned[canonical]]
+    at = _canonical_vertex(ids[simp], shifts[simp])
+    kept = owned[simp[np.arange(len(simp)), at]]
+    seam = ~owned[simp].all(axis=1)
+    stars = _star_mismatch(ids[simp[seam]], shifts[simp[seam]], at[seam], kept[seam], owned[simp[seam]])
+    simp = simp[kept]
     volume = _volume_sum(y0, ids[simp], shifts[simp], lengths)
-    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume
+    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume, stars
+
+
+def _star_mismatch(ids: np.ndarray, shifts: np.ndarray, at: np.ndarray, kept: np.ndarray, owned: np.ndarray) -> int:
+    """A slab's share of the star check: the sum mod 2^64 of a hash of every (simplex, vertex)
+    of the simplices it keeps, minus that of every (simplex, owned walker) of its owned walkers'
+    stars, over its seam simplices (`ids`, `shifts` (M, d + 1, d): those with a vertex it does
+    not own; `at` (M,) their canonical vertices, `kept` (M,) whether it keeps them, `owned`
+    (M, d + 1) which vertices it owns).
+
+    Summed over the slabs it is 0 (to a 2^-64 chance) exactly where every walker's kept
+    simplices are its star in the slab that owns it. A simplex whose vertices the slab all owns
+    is in their stars and kept (its canonical vertex is owned), so only seam simplices can
+    differ: where the triangulator split translates of co-spherical walkers unalike (an 8^3
+    lattice at a 2.6-spacing skin), even when the kept simplices still tile the box. The hash
+    of a (simplex, vertex) is that of its walkers' ids and shifts relative to its canonical
+    vertex (the same in every translate) with the vertex's own."""
+    if not len(ids):
+        return 0
+    d = shifts.shape[-1]
+    relative = shifts.astype(np.int64) - shifts[np.arange(len(ids)), at][:, None, :]
+    keys = ids.astype(np.uint64) << np.uint64(32)
+    for axis in range(d):
+        keys |= (relative[..., axis] + 128).astype(np.uint64) << np.uint64(8 * axis)
+    vertex = _mix(keys)
+    simplex = _mix(vertex.sum(axis=1))  # the vertices in any order
+    entry = _mix(simplex[:, None] ^ vertex)
+    kept_sum = int(entry[kept].sum(dtype=np.uint64))
+    star_sum = int(entry[owned].sum(dtype=np.uint64))
+    return (kept_sum - star_sum) % 2**64
+
+
+def _mix(z: np.ndarray) -> np.ndarray:
+    """splitmix64's finalizer of uint64 `z` (a bijection that spreads every bit over all)."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
 
 
 GUARD_REACH = 1.0  # the guards' distance outside a slab's region, in skins

@@ -266,7 +266,8 @@ def test_3d_lattices_have_their_exact_cells(kind):
     over the 4 points of the FCC basis), fourteen vertices, volume a^3 / 4. A 1e-9 jitter splits
     each cube vertex into three (a simple polytope, 24 vertices, with tiny faces). At m = 8
     the periodic tie-break of 1e-9 spacings was once unresolved by Qhull: two slabs split
-    cubes unalike and four cells lost 2-6% (`_tiles_the_box` now retries a larger one)."""
+    cubes unalike and four cells lost 2-6% (`_tiles_the_box` and `_star_mismatch` now retry a
+    larger one)."""
     m = 8 if kind.endswith(" 8") else 5
     g = (np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / m
     if kind.startswith("fcc"):

@@ -180,6 +180,61 @@ def test_periodic_slabs_and_skin_retries_stay_exact(rng, monkeypatch, d, n):
     assert abs(float(jaxgeom.voronoi_volumes(tess).sum()) - 1.0) < 1e-9
 
 
+@pytest.mark.parametrize("skin", [2.4, 2.6, 2.8, 3.0])
+def test_periodic_lattice_translates_are_split_alike_at_any_skin(monkeypatch, skin):
+    """An 8^3 cubic lattice (one slab): Qhull, not resolving the 1e-9 tie-break, can split
+    translates of a co-spherical cube unalike. At a 2.6-spacing skin the kept simplices then
+    still tiled the box, so the tiling check passed and 12 faces came out 0.0117-0.0195
+    against 1/64; at 3.0 one walker's star lost a simplex. The star check (`_star_mismatch`)
+    sees both and retries a larger tie-break: every skin gives the exact cells."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    monkeypatch.setitem(dl.SKIN_SPACINGS, 3, skin)
+    m = 8
+    g = (np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / m
+    tess = jaxgeom.delaunay(g, box=(0.0, 1.0), periodic=True, triangulator="qhull")
+    facets = jaxgeom.voronoi_facets(tess)
+    areas = np.sort(np.asarray(facets.areas), axis=1)
+    np.testing.assert_allclose(areas[:, -6:], 1 / m**2, rtol=1e-10)
+    np.testing.assert_allclose(areas[:, :-6], 0.0, atol=1e-12)
+    assert (np.asarray(facets.n_vertices) == 8).all()
+    assert (np.asarray(tess.neighbor_mask).sum(axis=1) == 6).all()
+
+
+@pytest.mark.parametrize("d, n", [(2, 3000), (3, 3000), (4, 400)])
+def test_the_star_check_passes_generic_walkers_at_the_first_tie_break(rng, monkeypatch, d, n):
+    """`_star_mismatch` summed over the slabs is 0 mod 2^64 for walkers in general position
+    (several slabs in 2D and 3D, every seam simplex checked), so they are triangulated once; a simplex
+    dropped from the kept ones, or an owned walker's star simplex missing, makes it non-zero."""
+    import jaxgeom.tessellation._delaunay as dl
+
+    monkeypatch.setattr(dl.os, "cpu_count", lambda: 2)
+    x = rng.random((n, d))
+    y0 = x.copy()
+    lengths = np.ones(d)
+    spacing = (1.0 / n) ** (1.0 / d)
+    raw, volume, stars = dl._periodic_raw(y0, y0, lengths, spacing, "qhull")
+    assert stars % 2**64 == 0 and dl._tiles_the_box(volume, lengths)
+
+    slabs = []
+    real_mismatch = dl._star_mismatch
+    monkeypatch.setattr(dl, "_star_mismatch", lambda *a: slabs.append(a) or real_mismatch(*a))
+    dl._periodic_raw(y0, y0, lengths, spacing, "qhull")
+    assert len(slabs) >= (2 if d < 4 else 1)  # 4D: one slab at this N (its seams are the box's faces)
+    ids, shifts, at, kept, owned = slabs[0]
+    assert 0 < kept.sum() < len(kept) and (~owned).any()
+    others = sum(real_mismatch(*a) for a in slabs[1:])
+    assert (real_mismatch(*slabs[0]) + others) % 2**64 == 0
+    one = np.flatnonzero(kept)[0]
+    dropped = kept.copy()
+    dropped[one] = False
+    assert (real_mismatch(ids, shifts, at, dropped, owned) + others) % 2**64 != 0
+    star = np.argwhere(owned)[0]
+    missing = owned.copy()
+    missing[tuple(star)] = False
+    assert (real_mismatch(ids, shifts, at, kept, missing) + others) % 2**64 != 0
+
+
 @pytest.mark.parametrize("d", [2, 3, 4])
 def test_a_slabs_guards_enclose_its_region_at_their_reach(d):
     """`_guards`: 2^d points, each beyond `reach` of the region on every axis (outside every
