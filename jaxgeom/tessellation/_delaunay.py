@@ -71,12 +71,14 @@ from ._triangulators import (
 )
 
 MAX_DELAUNAY_DIM = 4
-# Initial periodic skin, in mean walker spacings; the skin check widens it when needed (the
-# slab then triangulates again). A thinner start in 3D (2.6 up to N = 1e4, growing as
-# (ln N)^(1/3)) was 10% faster at 1e4, but on an 8^3 cubic lattice Qhull then split translates
-# of its co-spherical cubes unalike with the box still tiled (12 faces wrong), which the tiling
-# check cannot see and the star check (`_star_mismatch`) now does (bench/README.md).
-SKIN_SPACINGS = {2: 3.0, 3: 3.0, 4: 3.0}
+# Initial periodic skin, in mean walker spacings, at N <= 1e4; the skin check widens it when
+# needed (the slab then triangulates again). In 3D it grows with N as a uniform sample's widest
+# empty ball, (ln N)^(1/3): 2.8 at 1e5, 3.0 at 1e6. Uniform walkers, periodic `delaunay`: Qhull
+# at 1e4 324 -> 283 ms against 3.0 (2.3: 268 ms, but 6 of 20 slabs triangulated twice); shull
+# at 1e5 a skin of 2.4 retried 8 of 12 slabs, 2.6 one, 2.8 none (bench/README.md). 2D and 4D:
+# not measured beyond 1e4.
+SKIN_SPACINGS = {2: 3.0, 3: 2.6, 4: 3.0}
+SKIN_GROWS_WITH_N = (3,)
 # After a failed check the skin grows at least 1.6x (12 attempts reach 280x the initial skin:
 # voids as wide as the box, sparse samples), and at least to the diameter, plus 5%, of the widest
 # circumball the check saw inside the region: a ball through an owned walker reaches at most that
@@ -138,11 +140,13 @@ def delaunay(
     - `periodic`: wrap the box (needs `box`). Periodic images in a skin around
       the box are triangulated and mapped back to original indices with the
       integer image shift of each neighbour and simplex vertex. The skin starts
-      at `SKIN_SPACINGS[d]` mean spacings and grows until every circumsphere of
+      at 3 mean spacings (in 3D 2.6 up to N = 1e4, then growing as
+      (ln N)^(1/3)) and grows until every circumsphere of
       a simplex with an original vertex lies inside it, so the result is exact.
       Ties (co-circular walkers, lattices) are broken by a fixed perturbation of
       1e-9 mean spacings, the same for every image of a walker, so all translates
-      of a periodic simplex are split alike.
+      of a periodic simplex are split alike (checked: where the triangulator did
+      not resolve it, a larger one, up to 1e-7, is tried).
     - `capacity`: `Capacity(simplices, neighbors)`, a `(simplices, neighbors)`
       tuple or another `Tessellation` to reuse its capacities. `None` buckets
       them (neighbours to a multiple of 8, simplices on an 8-steps-per-octave
@@ -548,7 +552,7 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     its simplices' volume (of the plain walkers) and the slabs' `_star_mismatch`es summed
     (0 mod 2^64 where every walker's star is its kept simplices)."""
     n, d = y.shape
-    skin = SKIN_SPACINGS[d] * spacing
+    skin = skin_spacings(n, d) * spacing
     axis = int(np.argmax(lengths))
     # Every slab adds its skin's images. In 3D one slab per core, down to two skins thick, is
     # fastest (periodic `delaunay` with Qhull on 2 cores: N = 1e4 0.51 -> 0.27 s with two slabs
@@ -568,6 +572,13 @@ def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[Ra
     volume = sum(p[6] for p in parts)
     stars = sum(p[7] for p in parts)
     return RawGraph(cat(0), cat(1), cat(2), cat(3), cat(4), np.zeros(n, bool), fallbacks), volume, stars
+
+
+def skin_spacings(n: int, d: int) -> float:
+    """The initial periodic skin for N = `n` walkers in d dimensions, in mean spacings."""
+    if d not in SKIN_GROWS_WITH_N or n <= 1e4:
+        return SKIN_SPACINGS[d]
+    return SKIN_SPACINGS[d] * (math.log(n) / math.log(1e4)) ** (1.0 / d)
 
 
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
