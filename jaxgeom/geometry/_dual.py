@@ -317,8 +317,10 @@ def _sum_at_ends(simplices, local_ends, values, weighted, points, n: int):
 
 
 # simplices per block of the 3D dual's per-simplex stage: a block's temporaries stay in cache
-# (periodic `voronoi_facets`, float32: 1e5 1.20 -> 1.05 s and 1e6 16.4 -> 14.4 s from 2^15)
-SIMPLEX_BLOCK = 1 << 13
+# (periodic `voronoi_facets`, float32: 1e5 1.20 -> 1.05 s and 1e6 16.4 -> 14.4 s from 2^15 to
+# 2^13; from 2^13 to 2^12 at 1e5, interleaved: float64 periodic 638 -> 568 ms, boxed 1222 ->
+# 1184 ms, float32 periodic 495 -> 487 ms; the same at 1e4)
+SIMPLEX_BLOCK = 1 << 12
 
 
 def block_layout(s: int, most: int) -> tuple[int, int]:
