@@ -539,18 +539,11 @@ def _tiles_the_box(volume: float, lengths: np.ndarray) -> bool:
     return bool(abs(volume - box_volume) <= 1e-9 * box_volume)  # numpy gives np.bool_
 
 
-def _volume_sum(points: np.ndarray, simplices: np.ndarray, shifts: np.ndarray, lengths: np.ndarray) -> float:
-    """The summed volume (float64) of periodic simplices (rows of `points` at image `shifts`)."""
-    points, lengths, total = np.asarray(points, np.float64), np.asarray(lengths, np.float64), 0.0
-    for rows in host_chunks(len(simplices)):
-        total += float(np.sum(np.abs(_determinants(points[simplices[rows]] + shifts[rows] * lengths))))
-    return total / math.factorial(points.shape[1])
-
-
 def _periodic_raw(y, y0, lengths, spacing: float, triangulator: str) -> tuple[RawGraph, float, int]:
     """`_periodic_graph` for one tie-break (`y` the perturbed walkers, `y0` the plain ones),
-    its simplices' volume (of the plain walkers) and the slabs' `_star_mismatch`es summed
-    (0 mod 2^64 where every walker's star is its kept simplices)."""
+    its simplices' volume (of the perturbed walkers' images: those of a periodic triangulation
+    tile the box as the plain ones do) and the slabs' `_star_mismatch`es summed (0 mod 2^64
+    where every walker's star is its kept simplices)."""
     n, d = y.shape
     skin = skin_spacings(n, d) * spacing
     axis = int(np.argmax(lengths))
@@ -583,8 +576,8 @@ def skin_spacings(n: int, d: int) -> float:
 
 def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: float, triangulator: str):
     """Exact periodic Delaunay star of the walkers with start <= y[axis] < stop, the fallback
-    reasons of its triangulations, the volume of the simplices it keeps (of `y0`) and their
-    `_star_mismatch`."""
+    reasons of its triangulations, the volume of the simplices it keeps (from the skin check's
+    determinants) and their `_star_mismatch`."""
     fallbacks = []
     widest = float(np.linalg.norm(lengths))  # an empty ball is narrower than the box's diagonal: this skin always does
     for _ in range(SKIN_ATTEMPTS):
@@ -602,7 +595,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         home = y0[ids, axis]  # slabs own walkers by their unperturbed coordinate
         owned = ~guard & ~shifts.any(axis=1) & (home >= start) & (home < stop)
         simp = tri.simplices[owned[tri.simplices].any(axis=1)]
-        empty, widest_inside = _check_circumballs(ext, simp, y, lengths, lo, hi)
+        empty, widest_inside, volumes = _check_circumballs(ext, simp, y, lengths, lo, hi)
         if empty and not guard[simp].any():
             break
         if skin >= widest:  # it holds every image a Delaunay neighbour can be: widening cannot help
@@ -623,7 +616,7 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
     seam = ~owned[simp].all(axis=1)
     stars = _star_mismatch(ids[simp[seam]], shifts[simp[seam]], at[seam], kept[seam], owned[simp[seam]])
     simp = simp[kept]
-    volume = _volume_sum(y0, ids[simp], shifts[simp], lengths)
+    volume = float(volumes[kept].sum())
     return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume, stars
 
 
@@ -703,8 +696,9 @@ def _periodic_images(y: np.ndarray, lengths: np.ndarray, lo, hi):
 
 def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray, lengths: np.ndarray, lo, hi):
     """Whether no periodic image outside the region (lo, hi) lies strictly inside the
-    circumball of a simplex (rows of `points`), and the widest radius of the balls inside the
-    region (0 if none).
+    circumball of a simplex (rows of `points`), the widest radius of the balls inside the
+    region (0 if none), and the simplices' volumes (S,) (float64, from the same determinants:
+    the tiling check's).
 
     Balls inside the region are empty by construction (Qhull saw every point
     there), so they are true Delaunay balls and the widest is a lower bound on the
@@ -712,27 +706,33 @@ def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     just outside.
     """
     pokes, widest_inside, finite = [], 0.0, True
+    volumes = np.empty(len(simplices))
     for rows in host_chunks(len(simplices)):
-        center, radius = _circumballs(points[simplices[rows]])
+        center, radius, det = _circumballs_and_determinants(points[simplices[rows]])
+        volumes[rows] = np.abs(det) / math.factorial(points.shape[1])
         finite &= bool(np.isfinite(radius).all())
         poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
         widest_inside = max(widest_inside, float(radius.max(initial=0.0, where=~poke)))
         pokes.append((center[poke], radius[poke]))
     if not finite:
-        return False, widest_inside
+        return False, widest_inside, volumes
     center, radius = (np.concatenate(parts) for parts in zip(*pokes, strict=True))
     if not len(radius):
-        return True, widest_inside
+        return True, widest_inside, volumes
     if np.any(radius > 0.5 * np.linalg.norm(lengths)):
-        return False, widest_inside  # it holds a whole period: an image of every walker, some outside the region
+        return (
+            False,
+            widest_inside,
+            volumes,
+        )  # it holds a whole period: an image of every walker, some outside the region
     reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
     reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
     outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
     outer = outer[~np.all((outer > lo) & (outer < hi), axis=1)]
     if len(outer) == 0:
-        return True, widest_inside
+        return True, widest_inside, volumes
     dist, _ = cKDTree(outer).query(center, k=1)
-    return bool(np.all(dist >= radius * (1.0 - 1e-10))), widest_inside
+    return bool(np.all(dist >= radius * (1.0 - 1e-10))), widest_inside, volumes
 
 
 def _edge_columns(p: np.ndarray) -> np.ndarray:
@@ -751,18 +751,16 @@ def _dot(u, v):
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
-def _determinants(p: np.ndarray) -> np.ndarray:
-    """det of the edges (from the first vertex) of simplices p (S, d + 1, d); in 3D the triple
-    product (numpy's batched LU costs 8x more there)."""
-    if p.shape[1:] != (4, 3):
-        return np.linalg.det(p[:, 1:] - p[:, :1])
-    a, b, c = _edge_columns(p)
-    return _dot(a, _cross(b, c))
-
-
 def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2
     (in 3D by Cramer's rule: u = (|a|^2 b x c + |b|^2 c x a + |c|^2 a x b) / (2 a . b x c))."""
+    center, radius, _ = _circumballs_and_determinants(p)
+    return center, radius
+
+
+def _circumballs_and_determinants(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_circumballs`, and det E (S,) of the edges from the first vertex (d! times the signed
+    volume)."""
     if p.shape[1:] == (4, 3):
         a, b, c = _edge_columns(p)
         squares = [_dot(e, e) for e in (a, b, c)]
@@ -777,11 +775,12 @@ def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     else:
         e = p[:, 1:] - p[:, :1]
         squares = np.einsum("sij,sij->si", e, e)
-        flat = np.abs(np.linalg.det(e)) <= 1e-12 * np.sum(squares, axis=1) ** (e.shape[1] / 2)
+        det = np.linalg.det(e)
+        flat = np.abs(det) <= 1e-12 * np.sum(squares, axis=1) ** (e.shape[1] / 2)
         e[flat] = np.eye(e.shape[1])
         offset = np.linalg.solve(e, 0.5 * squares[..., None])[..., 0]
     radius = np.where(flat, np.inf, np.linalg.norm(offset, axis=1))
-    return p[:, 0] + offset, radius
+    return p[:, 0] + offset, radius, det
 
 
 def _canonical_vertex(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:

@@ -264,7 +264,7 @@ def test_a_circumball_wider_than_the_box_fails_the_skin_check_at_once(rng):
     _, radius = dl._circumballs(sliver[None])
     assert radius[0] > 100.0
     lo, hi = np.full(3, -0.1), np.full(3, 1.1)
-    empty, widest_inside = dl._check_circumballs(sliver, np.array([[0, 1, 2, 3]]), y, lengths, lo, hi)
+    empty, widest_inside, _ = dl._check_circumballs(sliver, np.array([[0, 1, 2, 3]]), y, lengths, lo, hi)
     assert empty is False and widest_inside == 0.0
 
 
@@ -272,7 +272,7 @@ def test_the_skin_check_reports_the_widest_ball_inside_the_region(rng):
     """`_check_circumballs`' second value is the widest circumradius (by scipy's vertices and a
     brute-force equidistant point) among the simplices whose balls lie inside the region: the
     lower bound on the swarm's widest empty ball that sets the next skin after a failed check."""
-    from scipy.spatial import Delaunay
+    from scipy.spatial import ConvexHull, Delaunay
 
     import jaxgeom.tessellation._delaunay as dl
 
@@ -287,9 +287,12 @@ def test_the_skin_check_reports_the_widest_ball_inside_the_region(rng):
     assert np.allclose(radii, radii[:, :1], rtol=1e-8)
     inside = np.all((centres - radii[:, :1] >= lo) & (centres + radii[:, :1] <= hi), axis=1)
     assert 0 < inside.sum() < len(simplices)
-    empty, widest_inside = dl._check_circumballs(ext, simplices, y, lengths, lo, hi)
+    empty, widest_inside, volumes = dl._check_circumballs(ext, simplices, y, lengths, lo, hi)
     assert empty is False  # the hull's simplices hold images outside the region
     assert widest_inside == pytest.approx(radii[inside, 0].max(), rel=1e-9)
+    # the third value, the tiling check's volumes: each simplex's, and together the hull's
+    np.testing.assert_allclose(volumes, np.abs(np.linalg.det(edges)) / 6, rtol=1e-9)
+    assert volumes.sum() == pytest.approx(ConvexHull(ext).volume, rel=1e-9)
 
 
 @pytest.mark.slow
