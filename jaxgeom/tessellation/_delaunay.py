@@ -638,10 +638,10 @@ def _star_mismatch(ids: np.ndarray, shifts: np.ndarray, at: np.ndarray, kept: np
         return 0
     d = shifts.shape[-1]
     relative = shifts.astype(np.int64) - shifts[np.arange(len(ids)), at][:, None, :]
-    keys = ids.astype(np.uint64) << np.uint64(32)
+    code = np.zeros(ids.shape, np.uint64)  # 16 bits per axis (relative int8 shifts: |s| <= 254)
     for axis in range(d):
-        keys |= (relative[..., axis] + 128).astype(np.uint64) << np.uint64(8 * axis)
-    vertex = _mix(keys)
+        code |= (relative[..., axis] + 2**15).astype(np.uint64) << np.uint64(16 * axis)
+    vertex = _mix(_mix(ids.astype(np.uint64)) ^ code)
     simplex = _mix(vertex.sum(axis=1))  # the vertices in any order
     entry = _mix(simplex[:, None] ^ vertex)
     kept_sum = int(entry[kept].sum(dtype=np.uint64))
@@ -720,11 +720,8 @@ def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     if not len(radius):
         return True, widest_inside, volumes
     if np.any(radius > 0.5 * np.linalg.norm(lengths)):
-        return (
-            False,
-            widest_inside,
-            volumes,
-        )  # it holds a whole period: an image of every walker, some outside the region
+        # it holds a whole period: an image of every walker, some outside the region
+        return False, widest_inside, volumes
     reach_lo = np.minimum((center - radius[:, None]).min(axis=0), lo)
     reach_hi = np.maximum((center + radius[:, None]).max(axis=0), hi)
     outer, _, _ = _periodic_images(y, lengths, reach_lo, reach_hi)
