@@ -611,13 +611,13 @@ def _periodic_slab(y, y0, lengths, axis: int, start: float, stop: float, skin: f
         src, dst = simplex_edges(simp, len(ext), sources=owned)  # every edge of an owned walker lies in `simp`
     else:  # the check's keys, of every simplex (ext ids: a checked triangulation is unsorted)
         src, dst = simplex_edges(tri.simplices, len(ext), edge_keys, owned)
-    at = _canonical_vertex(ids[simp], shifts[simp])
-    kept = owned[simp[np.arange(len(simp)), at]]
-    seam = ~owned[simp].all(axis=1)
-    stars = _star_mismatch(ids[simp[seam]], shifts[simp[seam]], at[seam], kept[seam], owned[simp[seam]])
-    simp = simp[kept]
+    walkers, images, corners_owned = ids[simp], shifts[simp], owned[simp]
+    at = _canonical_vertex(walkers, images)
+    kept = corners_owned[np.arange(len(simp)), at]
+    seam = ~corners_owned.all(axis=1)
+    stars = _star_mismatch(walkers[seam], images[seam], at[seam], kept[seam], corners_owned[seam])
     volume = float(volumes[kept].sum())
-    return ids[simp], shifts[simp], ids[src], ids[dst], shifts[dst], fallbacks, volume, stars
+    return walkers[kept], images[kept], ids[src], ids[dst], shifts[dst], fallbacks, volume, stars
 
 
 def _star_mismatch(ids: np.ndarray, shifts: np.ndarray, at: np.ndarray, kept: np.ndarray, owned: np.ndarray) -> int:
