@@ -51,10 +51,10 @@ from ._dualclip import (
 )
 
 
-def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
+def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, normals):
     """The flags of one tetrahedron p (4, 3), coordinates relative to its first vertex, with
-    its circumcentre and its faces' (4, 3) in that frame, and whether each is not flat
-    (`dual_centres`).
+    its circumcentre and its faces' (4, 3) in that frame, whether each is not flat, and its
+    faces' heights h, edge lengths and unit normals (`dual_centres`).
 
     Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
     face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
@@ -62,32 +62,22 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok):
     orthoscheme at end x has its centroid at (x + m_ab + c_T + C) / 4: `_sums_at_vertices`
     takes the moments about the ends from it); and the faces' unit normals towards the
     opposite vertex (4, 3)."""
-    pieces, heights, volumes, weighted, normals = [], [], [], [], []
+    pieces, volumes, weighted, oriented = [], [], [], []
     for o, face in enumerate(FACES_3D):
-        a, b, c = (p[v] for v in face)
         c_t, tri_ok = face_centres[o], face_ok[o]
-        normal, _ = unit_vector(jnp.cross(b - a, c - a))
-        normal = jnp.where(dot(normal, p[o] - a) < 0, -normal, normal)
-        normals.append(normal)
+        normal = jnp.where(dot(normals[o], p[o] - p[face[0]]) < 0, -normals[o], normals[o])
+        oriented.append(normal)
         piece = jnp.where(ok & tri_ok, dot(centre - c_t, normal), 0.0)
         pieces.append(piece)
-        h_row, v_row, w_row = [], [], []
+        v_row, w_row = [], []
         for e in range(3):  # edge opposite the face's e-th vertex: (face[e+1], face[e+2])
-            x, y, k = p[face[(e + 1) % 3]], p[face[(e + 2) % 3]], p[face[e]]
-            edge = y - x
-            direction, _ = unit_vector(edge)
-            across = (k - x) - dot(k - x, direction) * direction
-            w, _ = unit_vector(across)
-            middle = 0.5 * (x + y)
-            height = dot(c_t - middle, w)
-            volume = jnp.sqrt(jnp.sum(edge * edge)) * height * piece / 12.0
-            h_row.append(height)
+            middle = 0.5 * (p[face[(e + 1) % 3]] + p[face[(e + 2) % 3]])
+            volume = lengths[o, e] * heights[o, e] * piece / 12.0
             v_row.append(volume)
             w_row.append(volume * (middle + c_t + centre))
-        heights.append(jnp.stack(h_row))
         volumes.append(jnp.stack(v_row))
         weighted.append(jnp.stack(w_row))
-    return jnp.stack(pieces), jnp.stack(heights), jnp.stack(volumes), jnp.stack(weighted), jnp.stack(normals)
+    return jnp.stack(pieces), heights, jnp.stack(volumes), jnp.stack(weighted), jnp.stack(oriented)
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -371,10 +361,10 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     the areas need them). The areas, volumes and moments are added to `sums` (flat slots
     (N K + 1,), per walker (N + 1,) and (N + 1, 3)) instead. One block of `_in_blocks`."""
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
-    centres, ok, proper, face_centres, face_ok = dual_centres(tess, verts)
+    centres, ok, proper, face_centres, face_ok, measures = dual_centres(tess, verts)
     origin = verts[:, :1]
     pieces, heights, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
-        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok
+        verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok, *measures
     )
     mask = tess.simplex_mask
     edge_index = edge_slot_index(tess, rows)

@@ -84,7 +84,11 @@ def circumcentre_3d(p):
 def triangle_circumcentre(a, b, c):
     """Circumcentre of triangle abc in 3D and whether it is not flat, solved from the vertex
     opposite the longest edge (the cross product's rounding bound is least there; ties go to
-    the first, so callers pass the vertices in a canonical order)."""
+    the first, so callers pass the vertices in a canonical order). Also, per corner j (input
+    order), the edge opposite it: its signed distance from its midpoint to the circumcentre
+    (towards j: |edge| cot(angle at j) / 2 = |edge| (edge ends - j dotted) / (2 |normal|),
+    0 where flat) and its length; and the unit normal (0 where the cross product is 0), each
+    computed from the corners alone, so the two simplices of a face get them bit for bit."""
     p = jnp.stack([a, b, c])
     edges = p[OTHER_CORNERS] - p[:, None, :]  # (3, 2, 3): from each vertex to the other two
     lengths_sq = jnp.sum(edges * edges, axis=-1)
@@ -96,7 +100,12 @@ def triangle_circumcentre(a, b, c):
     ok = n_sq > 100.0 * jnp.finfo(a.dtype).eps ** 2 * scale
     safe = jnp.where(ok, n_sq, 1.0)
     offset = (jnp.sum(u * u) * jnp.cross(v, n) + jnp.sum(v * v) * jnp.cross(n, u)) / (2.0 * safe)
-    return jnp.where(ok, p[best] + offset, a), ok
+    opposite = jnp.sqrt(jnp.stack([lengths_sq[1, 1], lengths_sq[0, 1], lengths_sq[0, 0]]))
+    cosines = jnp.sum(edges[:, 0] * edges[:, 1], axis=-1)  # (3,) |ja| |jb| cos(angle at j)
+    heights = jnp.where(ok, opposite * cosines / (2.0 * jnp.sqrt(safe)), 0.0)
+    some = n_sq > 0
+    normal = jnp.where(some, n / jnp.sqrt(jnp.where(some, n_sq, 1.0)), 0.0)
+    return jnp.where(ok, p[best] + offset, a), ok, heights, opposite, normal
 
 
 def order_of_three(ids):
@@ -114,16 +123,19 @@ def dual_centres(tess: Tessellation, verts):
     simplex, must share its centre bit for bit, or the signed pieces around an edge stop
     cancelling (a needle's centre carries ~1e-5 of rounding from its inputs). Returns (centres
     (S, 3), not flat (S,), counted as a vertex (S,), face centres (S, 4, 3), faces not flat
-    (S, 4)); a face's vertices are taken in the order of their walker ids."""
+    (S, 4), and per face (S, 4, 3) (`triangle_circumcentre`'s, edge e opposite the face's e-th
+    vertex in FACES_3D order) the heights h and lengths of its edges, and (S, 4, 3) its unit
+    normals, either way round); a face's vertices are taken in the order of their walker ids."""
     centres, ok, counted = jax.vmap(circumcentre_3d)(verts)
     face_ids = tess.simplices[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3)
-    corners = jnp.take_along_axis(
-        verts[:, jnp.asarray(FACES_3D, jnp.int32)], order_of_three(face_ids)[..., None], axis=-2
-    )
-    face_centres, face_ok = jax.vmap(jax.vmap(triangle_circumcentre))(
+    order = order_of_three(face_ids)  # the face's place of each corner
+    corners = jnp.take_along_axis(verts[:, jnp.asarray(FACES_3D, jnp.int32)], order[..., None], axis=-2)
+    face_centres, face_ok, heights, lengths, normals = jax.vmap(jax.vmap(triangle_circumcentre))(
         corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
     )
-    return centres, ok, counted, face_centres, face_ok
+    placed = order[..., :, None] == jnp.arange(3, dtype=order.dtype)  # (S, 4, corner, place)
+    back = lambda a: jnp.sum(jnp.where(placed, a[..., :, None], 0.0), axis=-2)  # noqa: E731
+    return centres, ok, counted, face_centres, face_ok, (back(heights), back(lengths), normals)
 
 
 def wall_bounds(lower, upper):
