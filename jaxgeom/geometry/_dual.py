@@ -47,7 +47,6 @@ from ._dualclip import (
     clipped_sums,
     dual_centres,
     near_walls,
-    unit_vector,
 )
 
 
@@ -687,11 +686,11 @@ def triangle_flags_2d(p):
     heights, areas, weighted = [], [], []
     for a, b, k in EDGES_2D:
         edge = p[b] - p[a]
-        direction, _ = unit_vector(edge)
-        w, _ = unit_vector((p[k] - p[a]) - dot(p[k] - p[a], direction) * direction)
+        length = jnp.sqrt(jnp.sum(edge * edge))
+        # |ab| cot(angle at k) / 2: the circumcentre lies across ab from k where that angle is obtuse
+        height = jnp.where(ok, length * dot(p[a] - p[k], p[b] - p[k]) / (2.0 * jnp.abs(safe)), 0.0)
         middle = 0.5 * (p[a] + p[b])
-        height = jnp.where(ok, dot(centre - middle, w), 0.0)
-        area = jnp.sqrt(jnp.sum(edge * edge)) * height / 4.0
+        area = length * height / 4.0
         heights.append(height)
         areas.append(area)
         weighted.append(area * (middle + centre))
