@@ -86,8 +86,8 @@ def triangle_circumcentre(a, b, c):
     opposite the longest edge (the cross product's rounding bound is least there; ties go to
     the first, so callers pass the vertices in a canonical order). Also, per corner j (input
     order), the edge opposite it: its signed distance from its midpoint to the circumcentre
-    (towards j: |edge| cot(angle at j) / 2 = |edge| (edge ends - j dotted) / (2 |normal|),
-    0 where flat) and its length; and the unit normal (0 where the cross product is 0), each
+    (towards j: |edge| cot(angle at j) / 2 = |edge| (a - j) . (b - j) / (2 |(a - j) x (b - j)|),
+    a and b the edge's ends; 0 where flat) and its length; and the unit normal (0 where the cross product is 0), each
     computed from the corners alone, so the two simplices of a face get them bit for bit."""
     p = jnp.stack([a, b, c])
     edges = p[OTHER_CORNERS] - p[:, None, :]  # (3, 2, 3): from each vertex to the other two
