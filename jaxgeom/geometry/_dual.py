@@ -56,7 +56,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
     faces' heights h, edge lengths and unit normals (`dual_centres`).
 
     Returns per face f (opposite vertex f) and its edge e (FACES_3D order, edge e opposite the
-    face's e-th vertex): `piece` (4,) p_(s,T), `height` (4, 3) h, `volume` (4, 3) r h p / 12 (each
+    face's e-th vertex): `piece` (4,) p_(s,T), `volume` (4, 3) r h p / 12 (each
     of the edge's two ends gets it), `weighted` (4, 3, 3) the volume times m_ab + c_T + C (the
     orthoscheme at end x has its centroid at (x + m_ab + c_T + C) / 4: `_sums_at_vertices`
     takes the moments about the ends from it); and the faces' unit normals towards the
@@ -76,7 +76,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
             w_row.append(volume * (middle + c_t + centre))
         volumes.append(jnp.stack(v_row))
         weighted.append(jnp.stack(w_row))
-    return jnp.stack(pieces), heights, jnp.stack(volumes), jnp.stack(weighted), jnp.stack(oriented)
+    return jnp.stack(pieces), jnp.stack(volumes), jnp.stack(weighted), jnp.stack(oriented)
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -362,7 +362,8 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
     centres, ok, proper, face_centres, face_ok, measures = dual_centres(tess, verts)
     origin = verts[:, :1]
-    pieces, heights, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
+    heights = measures[0]
+    pieces, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
         verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok, *measures
     )
     mask = tess.simplex_mask
