@@ -345,8 +345,21 @@ def _in_blocks(tess: Tessellation, per_simplex, sums):
         out, acc = per_simplex(sub, acc)
         return acc, out
 
-    sums, out = jax.lax.scan(block, sums, (simplices, shifts))
+    def empty(acc, parts):
+        shapes = jax.eval_shape(block, acc, parts)[1]
+        return acc, jax.tree.map(functools.partial(_padding_like, no_slot=tess.neighbors.size), shapes)
+
+    def live_block(acc, parts):  # a block of padding alone (past a compacted graph's simplices) is skipped
+        return jax.lax.cond(jnp.any(parts[0][:, 0] < tess.n_points), block, empty, acc, parts)
+
+    sums, out = jax.lax.scan(live_block, sums, (simplices, shifts))
     return jax.tree.map(lambda a: a.reshape(blocks * size, *a.shape[2:])[:s], out), sums
+
+
+def _padding_like(shape, no_slot: int):
+    """A padding block's stage output of this shape: False or zero, and for the slot indices
+    (int32) `_find_slots`' "no slot" N K, as padding simplices get from it."""
+    return jnp.full(shape.shape, no_slot if shape.dtype == jnp.int32 else 0, shape.dtype)
 
 
 def _simplex_stage_3d(tess: Tessellation, sums, rows):
@@ -450,6 +463,30 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
                 vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths, edges)
             )
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
+
+
+# the simplices with a tier-0 walker are computed alone when at most this share of all (a
+# uniform sample: 35% at N = 1e4, 18% at 1e5, 13% at 3e5; most of a few hundred walkers')
+BOUNDARY_SHARE = 2
+
+
+def tier0_volumes_3d(tess: Tessellation):
+    """(N,) the volumes of the tier-0 cells of a boxed 3D graph clipped to the box (others:
+    meaningless), from `dual_faces_3d` of the simplices with a tier-0 walker alone: they hold
+    every flag of those cells, the hull's faces and every piece that reaches a wall on their
+    behalf. Cut to 1/BOUNDARY_SHARE of the capacity when they fit, the blocks of padding
+    skipped (`_in_blocks`): uniform walkers, float32, 1.19 -> 0.66 s at N = 1e5 and 153 ->
+    108 ms at 1e4 (the cut and the fallback compile as one program: ~1.4x the time)."""
+    s_cap = tess.simplices.shape[0]
+    tier0 = jnp.concatenate([tess.tier == 0, jnp.zeros(1, bool)])
+    marked = tess.simplex_mask & jnp.any(tier0[tess.simplices], axis=1)
+    volumes = lambda t: dual_faces_3d(t, counts=False)[2]  # noqa: E731
+    size = s_cap // BOUNDARY_SHARE
+    if size < 2 * SIMPLEX_BLOCK:  # small graphs: all of them
+        return volumes(tess)
+    ids = jnp.nonzero(marked, size=size, fill_value=s_cap)[0]
+    cut = eqx.tree_at(lambda t: t.simplices, tess, tess.simplices.at[ids].get(mode="fill", fill_value=tess.n_points))
+    return jax.lax.cond(jnp.sum(marked, dtype=jnp.int32) <= size, lambda: volumes(cut), lambda: volumes(tess))
 
 
 def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_index, areas, cell_volume, moments):

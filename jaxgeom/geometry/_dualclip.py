@@ -23,8 +23,6 @@ divergence theorem (cones from the walker), as in `_dual`.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 
@@ -215,17 +213,36 @@ def polygon_measures(verts, count, on, axis):
     )
 
 
-def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
-    """Flag (x, y, k, v) = q (rows relative to x), `centres` its simplex's and face xyk's
-    circumcentres (relative to x) and whether each is not flat (`dual_centres`): the signed
-    piece of face xy it adds, as (sign,
-    the polygon's orientation about the face normal, polygon (`size` rows: 3 for triangles
-    alone, 4 where a half-strip may be among them), count, the face's unit
-    normal x -> y). `kind` 0: the triangle (m, c_T, C); 1 (T on the hull): the half-strip
-    beyond c_T along T's outer normal u; 2 (T on the hull): the wedge m + cone(u, g), `toward`
-    the sum of the outer normals of the two hull triangles at edge xy (g its direction: the
-    two wedges of a hull edge make its face's recession cone m + cone(u_1, u_2))."""
+def _triangle_piece(q, centres):
+    """Flag (x, y, k, v) = q (rows relative to x, so q[0] = 0), `centres` its simplex's and face
+    xyk's circumcentres (relative to x) and whether each is not flat (`dual_centres`): the signed
+    triangle (m, c_T, C) of face xy it adds, as (sign, the triangle's orientation about the face
+    normal, the triangle (3 rows), its count 3, the face's unit normal x -> y). Its sign is that
+    of the height (c_T - m) . w times that of the piece (C - c_T) . u (`_dual`'s orthoscheme
+    legs; w across xy towards k, u the normal of xyk towards v), taken from unnormalised
+    vectors."""
     centre, c_t, ok, tri_ok = centres
+    edge = q[1]
+    edge_sq = dot(edge, edge)
+    direction = edge / jnp.sqrt(jnp.where(edge_sq > 0, edge_sq, 1.0))
+    middle = 0.5 * edge
+    across = edge_sq * q[2] - dot(q[2], edge) * edge  # |xy|^2 w |across|
+    normal = jnp.cross(edge, q[2])
+    height, piece = dot(c_t - middle, across), dot(centre - c_t, normal) * dot(q[3], normal)
+    sign = jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0)
+    orient = jnp.sign(dot(jnp.cross(c_t - middle, centre - middle), edge))
+    return sign, orient, jnp.stack([middle, c_t, centre]), jnp.asarray(3), direction
+
+
+def _hull_piece(q, centres, hull, lower, upper, kind, toward):
+    """Flag (x, y, k, v) = q (rows relative to x) of a triangle T = xyk on the hull, `centres`
+    as `_triangle_piece`'s: the signed piece of face xy beyond T's Voronoi ray, as (sign, the
+    polygon's orientation about the face normal, polygon (4 rows), count, the face's unit
+    normal x -> y). `kind` 1: the half-strip beyond c_T along T's outer normal u; 2: the wedge
+    m + cone(u, g), `toward` the sum of the outer normals of the two hull triangles at edge xy
+    (g its direction: the two wedges of a hull edge make its face's recession cone
+    m + cone(u_1, u_2))."""
+    centre, c_t, _, tri_ok = centres
     normal, _ = unit_vector(jnp.cross(q[1] - q[0], q[2] - q[0]))
     normal = jnp.where(dot(normal, q[3] - q[0]) < 0, -normal, normal)
     direction, _ = unit_vector(q[1] - q[0])
@@ -246,20 +263,12 @@ def _flag_piece(q, centres, hull, lower, upper, kind, toward, size: int):
     cos = jnp.where(b_ok, dot(g, bisector), 1.0)
     far = beyond_box(middle, bisector) / jnp.maximum(cos, 0.5)
     wedge = jnp.stack([middle, middle + far * g, middle + far * out, middle + far * out])
-    triangle = jnp.stack([middle, c_t, centre, centre])
-    corners = jnp.where(kind == 1, strip, jnp.where(kind == 2, wedge, triangle))
-    piece = dot(centre - c_t, normal)
+    corners = jnp.where(kind == 1, strip, wedge)
     sign = jnp.where(
-        kind == 1,
-        jnp.where(hull & tri_ok, jnp.sign(height), 0.0),
-        jnp.where(
-            kind == 2,
-            jnp.where(hull & g_ok & b_ok, 1.0, 0.0),
-            jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0),
-        ),
+        kind == 1, jnp.where(hull & tri_ok, jnp.sign(height), 0.0), jnp.where(hull & g_ok & b_ok, 1.0, 0.0)
     )
     orient = jnp.sign(dot(jnp.cross(corners[1] - corners[0], corners[2] - corners[0]), direction))
-    return sign, orient, corners[:size], jnp.where(kind == 1, 4, 3), direction
+    return sign, orient, corners, jnp.where(kind == 1, 4, 3), direction
 
 
 def clip_tolerance(lower, upper):
@@ -268,7 +277,7 @@ def clip_tolerance(lower, upper):
 
 
 def clipped_piece(q, piece, lower, upper, wall=None):
-    """One flag's piece (`_flag_piece`) clipped to the box (frame of x = q[0], box relative to
+    """One flag's piece (`_triangle_piece`, `_hull_piece`) clipped to the box (frame of x = q[0], box relative to
     it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the walls' signed
     segment lengths (6,), and per end x, y: the volume and first moment of the cone over the
     piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
@@ -342,45 +351,37 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
     n_chunks = -(-total // FACE_CHUNK)
     first = _near_one_wall(centres, box) if kinds == (0,) else jnp.ones_like(faces)
     rows = _compacted(faces.ravel(), first.ravel(), n_chunks * FACE_CHUNK)
-    flag_pieces = jax.vmap(functools.partial(_flag_piece, size=3 if kinds == (0,) else 4))
+    triangles = kinds == (0,)
 
     def chunk_inputs(face):  # inside the `cond`: a skipped chunk gathers nothing
         real = jnp.repeat(face < total, 3 * len(kinds))
         flag = ((face // 4) * 12 + (face % 4) * 3)[:, None, None] + jnp.arange(3, dtype=jnp.int32)[None, None, :]
         flag = jnp.broadcast_to(flag, (len(face), len(kinds), 3)).ravel() % (s_cap * 12)
-        kind = jnp.broadcast_to(jnp.asarray(kinds, jnp.int32)[None, :, None], (len(face), len(kinds), 3)).ravel()
         simplex, within = flag // 12, flag % 12
         ids = tess.simplices[simplex[:, None], FLAG_ORDER[within]]  # (M, 4): the edge's ends first
-        q = tess.points[ids]  # (M, 4, 3)
-        origin = q[:, 0]
-        face = FLAG_ORDER[within, 3]
+        origin = tess.points[ids[:, 0]]
+        q = tess.points[ids] - origin[:, None]  # (M, 4, 3) in the frame of the edge's first end
+        opposite = FLAG_ORDER[within, 3]  # the flag's face, by its opposite vertex
         flag_centres = (
             centres[0][simplex] - origin,
-            centres[1][simplex, face] - origin,
+            centres[1][simplex, opposite] - origin,
             centres[2][simplex],
-            centres[3][simplex, face],
+            centres[3][simplex, opposite],
         )
         slots = slots_of(flag)
         slot = jnp.where(jnp.concatenate([real, real]), slots.ravel(), n * k)
         walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ids[:, 0], ids[:, 1]]), n)
-        return (
-            slot,
-            walker,
-            (
-                q - origin[:, None],
-                flag_centres,
-                hull_face[simplex, face],
-                box[0] - origin,
-                box[1] - origin,
-                kind,
-                toward[slots[0]],
-            ),
+        lower, upper = box[0] - origin, box[1] - origin
+        if triangles:
+            return slot, walker, q, lower, upper, jax.vmap(_triangle_piece)(q, flag_centres)
+        kind = jnp.broadcast_to(jnp.asarray(kinds, jnp.int32)[None, :, None], (len(face), len(kinds), 3)).ravel()
+        pieces = jax.vmap(_hull_piece)(
+            q, flag_centres, hull_face[simplex, opposite], lower, upper, kind, toward[slots[0]]
         )
+        return slot, walker, q, lower, upper, pieces
 
     def add(sums, face):
-        slot, walker, args = chunk_inputs(face)
-        q, lower, upper = args[0], args[3], args[4]
-        piece = flag_pieces(*args)
+        slot, walker, q, lower, upper, piece = chunk_inputs(face)
         reached = jax.vmap(walls_reached)(piece[2], piece[3], lower, upper, jax.vmap(clip_tolerance)(lower, upper))
         area, lengths, per_end = jax.lax.cond(  # pieces that reach one wall each are cut by it alone
             jnp.all(jnp.sum(reached, axis=1) <= 1),

@@ -11,7 +11,7 @@ from jaxtyping import Array, Float
 from ..base._simplex import dual_pieces, simplex_circumcenter
 from ..tessellation._graph import Tessellation, simplex_coords, takes_tessellation
 from ._boxclip import clip_to_box
-from ._dual import dual_faces_3d
+from ._dual import tier0_volumes_3d
 
 
 @takes_tessellation
@@ -49,7 +49,7 @@ def voronoi_volumes(tess: Tessellation, *, clip: bool = True) -> Float[Array, " 
     volumes = jax.ops.segment_sum(pieces.ravel(), tess.simplices.ravel(), num_segments=tess.n_points)
     volumes = jnp.where(tess.hull | _beside_flat_triangle(tess, pieces), jnp.nan, volumes)
     if clip and tess.box is not None and not tess.periodic and tess.dim == 3:
-        return jnp.where(tess.tier == 0, dual_faces_3d(tess, counts=False)[2], volumes)
+        return jnp.where(tess.tier == 0, tier0_volumes_3d(tess), volumes)
     if clip and tess.box is not None and not tess.periodic and tess.dim == 2:
         return clip_to_box(tess, volumes)
     return volumes

@@ -257,3 +257,25 @@ def test_flagged_rows_run_in_groups_of_chunks_as_in_one_loop(rng, flagged):
 
     np.testing.assert_allclose(total(values), np.sum(np.asarray(values)[live] ** 2), rtol=1e-12)
     np.testing.assert_allclose(jax.grad(total)(values), 2 * np.asarray(values) * flags, rtol=1e-12)
+
+
+def test_boxed_3d_tier0_volumes_from_the_boundary_simplices_equal_those_from_all(rng, monkeypatch):
+    """`tier0_volumes_3d` measures the tier-0 cells from the simplices with a tier-0 walker alone,
+    cut to half the capacity when they fit (48% of them here), in blocks of 512, those of
+    padding skipped: bit for bit its own fallback over every simplex (`dual_faces_3d`'s
+    volumes, taken when every walker is marked tier 0: all simplices then count), in one
+    compiled program."""
+    import equinox as eqx
+
+    from jaxgeom.geometry import _dual
+
+    monkeypatch.setattr(_dual, "SIMPLEX_BLOCK", 512)
+    tess = jaxgeom.delaunay(rng.random((3000, 3)), box=(0.0, 1.0))
+    tier0 = np.asarray(tess.tier == 0)
+    on_boundary = np.concatenate([tier0, [False]])[np.asarray(tess.simplices)].any(axis=1)
+    assert on_boundary.sum() <= tess.simplices.shape[0] // _dual.BOUNDARY_SHARE < on_boundary.size
+    measure = jax.jit(_dual.tier0_volumes_3d)
+    cut = np.asarray(measure(tess))
+    every = np.asarray(measure(eqx.tree_at(lambda t: t.tier, tess, jnp.zeros_like(tess.tier))))
+    np.testing.assert_array_equal(cut[tier0], every[tier0])
+    assert measure._cache_size() == 1
