@@ -219,18 +219,17 @@ def _triangle_piece(q, centres):
     triangle (m, c_T, C) of face xy it adds, as (sign, the triangle's orientation about the face
     normal, the triangle (3 rows), its count 3, the face's unit normal x -> y). Its sign is that
     of the height (c_T - m) . w times that of the piece (C - c_T) . u (`_dual`'s orthoscheme
-    legs; w across xy towards k, u the normal of xyk towards v), taken from unnormalised
-    vectors."""
+    legs; w across xy towards k, u the normal of xyk towards v), from vectors along w and u
+    not normalised (products of two lengths at most: float32 keeps their signs down to
+    lengths of ~1e-19)."""
     centre, c_t, ok, tri_ok = centres
-    edge = q[1]
-    edge_sq = dot(edge, edge)
-    direction = edge / jnp.sqrt(jnp.where(edge_sq > 0, edge_sq, 1.0))
-    middle = 0.5 * edge
-    across = edge_sq * q[2] - dot(q[2], edge) * edge  # |xy|^2 w |across|
-    normal = jnp.cross(edge, q[2])
-    height, piece = dot(c_t - middle, across), dot(centre - c_t, normal) * dot(q[3], normal)
-    sign = jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece), 0.0)
-    orient = jnp.sign(dot(jnp.cross(c_t - middle, centre - middle), edge))
+    direction, _ = unit_vector(q[1])
+    middle = 0.5 * q[1]
+    across = q[2] - dot(q[2], direction) * direction  # |across| w
+    normal = jnp.cross(direction, q[2])  # |normal| (+-u): no power of the lengths above two
+    height, piece = dot(c_t - middle, across), dot(centre - c_t, normal)
+    sign = jnp.where(ok & tri_ok, jnp.sign(height) * jnp.sign(piece) * jnp.sign(dot(q[3], normal)), 0.0)
+    orient = jnp.sign(dot(jnp.cross(c_t - middle, centre - middle), direction))
     return sign, orient, jnp.stack([middle, c_t, centre]), jnp.asarray(3), direction
 
 
@@ -242,7 +241,7 @@ def _hull_piece(q, centres, hull, lower, upper, kind, toward):
     m + cone(u, g), `toward` the sum of the outer normals of the two hull triangles at edge xy
     (g its direction: the two wedges of a hull edge make its face's recession cone
     m + cone(u_1, u_2))."""
-    centre, c_t, _, tri_ok = centres
+    _, c_t, _, tri_ok = centres
     normal, _ = unit_vector(jnp.cross(q[1] - q[0], q[2] - q[0]))
     normal = jnp.where(dot(normal, q[3] - q[0]) < 0, -normal, normal)
     direction, _ = unit_vector(q[1] - q[0])
@@ -277,10 +276,10 @@ def clip_tolerance(lower, upper):
 
 
 def clipped_piece(q, piece, lower, upper, wall=None):
-    """One flag's piece (`_triangle_piece`, `_hull_piece`) clipped to the box (frame of x = q[0], box relative to
-    it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the walls' signed
-    segment lengths (6,), and per end x, y: the volume and first moment of the cone over the
-    piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
+    """One flag's piece (`_triangle_piece`, `_hull_piece`) clipped to the box (frame of x = q[0],
+    box relative to it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the
+    walls' signed segment lengths (6,), and per end x, y: the volume and first moment of the
+    cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
     added by the segments). With `wall`, the walls' quantities are those of that wall alone,
     (1,) and (1, 3) (the others are zero)."""
     sign, orient, polygon, count, direction = piece
