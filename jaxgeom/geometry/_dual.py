@@ -127,12 +127,12 @@ def hull_faces(tess: Tessellation, proper=None):
     return proper[:, None] & (raw | covered)
 
 
-def _few_or_all(marked, few, every):
+def _few_or_all(marked, few, every, share: int | None = None):
     """`few(ids)` of the `marked` (M,) entries' ids (padded with M) when they are at most
-    1/HULL_SHARE of them, else `every()`: the hull's faces are a few thousand of millions in a
-    uniform sample, and most of them on a lattice's flat outer layer."""
+    1/`share` of them (default HULL_SHARE), else `every()`: the hull's faces are a few thousand
+    of millions in a uniform sample, and most of them on a lattice's flat outer layer."""
     total = marked.size
-    size = max(64, total // HULL_SHARE)
+    size = max(64, total // (HULL_SHARE if share is None else share))
     ids = jnp.nonzero(marked.ravel(), size=size, fill_value=total)[0].astype(jnp.int32)
     return jax.lax.cond(jnp.sum(marked, dtype=jnp.int32) <= size, lambda: few(ids), every)
 
@@ -477,16 +477,16 @@ def tier0_volumes_3d(tess: Tessellation):
     behalf. Cut to 1/BOUNDARY_SHARE of the capacity when they fit, the blocks of padding
     skipped (`_in_blocks`): uniform walkers, float32, 1.19 -> 0.66 s at N = 1e5 and 153 ->
     108 ms at 1e4 (the cut and the fallback compile as one program: ~1.4x the time)."""
-    s_cap = tess.simplices.shape[0]
-    tier0 = jnp.concatenate([tess.tier == 0, jnp.zeros(1, bool)])
-    marked = tess.simplex_mask & jnp.any(tier0[tess.simplices], axis=1)
     volumes = lambda t: dual_faces_3d(t, counts=False)[2]  # noqa: E731
-    size = s_cap // BOUNDARY_SHARE
-    if size < 2 * SIMPLEX_BLOCK:  # small graphs: all of them
+    if tess.simplices.shape[0] // BOUNDARY_SHARE < 2 * SIMPLEX_BLOCK:  # small graphs: all of them
         return volumes(tess)
-    ids = jnp.nonzero(marked, size=size, fill_value=s_cap)[0]
-    cut = eqx.tree_at(lambda t: t.simplices, tess, tess.simplices.at[ids].get(mode="fill", fill_value=tess.n_points))
-    return jax.lax.cond(jnp.sum(marked, dtype=jnp.int32) <= size, lambda: volumes(cut), lambda: volumes(tess))
+    tier0 = (tess.tier == 0).at[tess.simplices].get(mode="fill", fill_value=False)  # (S, 4)
+    cut = lambda ids: eqx.tree_at(  # noqa: E731
+        lambda t: t.simplices, tess, tess.simplices.at[ids].get(mode="fill", fill_value=tess.n_points)
+    )
+    return _few_or_all(
+        tess.simplex_mask & jnp.any(tier0, axis=1), lambda ids: volumes(cut(ids)), lambda: volumes(tess), BOUNDARY_SHARE
+    )
 
 
 def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_index, areas, cell_volume, moments):

@@ -348,9 +348,9 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
     box = tess.box.astype(tess.points.dtype)
     total = s_cap * 4
     n_chunks = -(-total // FACE_CHUNK)
-    first = _near_one_wall(centres, box) if kinds == (0,) else jnp.ones_like(faces)
-    rows = _compacted(faces.ravel(), first.ravel(), n_chunks * FACE_CHUNK)
     triangles = kinds == (0,)
+    first = _near_one_wall(centres, box) if triangles else jnp.ones_like(faces)
+    rows = _compacted(faces.ravel(), first.ravel(), n_chunks * FACE_CHUNK)
 
     def chunk_inputs(face):  # inside the `cond`: a skipped chunk gathers nothing
         real = jnp.repeat(face < total, 3 * len(kinds))
