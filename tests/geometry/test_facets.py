@@ -395,37 +395,45 @@ def test_facets_of_rows_in_any_order_follow_their_slots(rng, d, periodic):
         np.testing.assert_allclose(getattr(after, name), getattr(before, name), rtol=1e-12, atol=1e-15)
 
 
-def test_sorted_values_equal_xlas_sort_under_jit_and_vmap(rng, monkeypatch):
-    """`sorted_values` (numpy's sort through a callback on the CPU backend) gives `lax.sort`'s
-    values, jitted and vmapped over a batch, for uint32 and int32; on another backend it is
-    `lax.sort` itself (no callback in the program)."""
+def test_the_cpu_order_of_a_key_is_numpys_stable_argsort_under_jit_and_vmap(rng):
+    """`_order_by_key` (the key and the entry in one uint64, sorted by numpy through a callback)
+    gives the stable argsort of uint32 keys full of ties, up to 2^32 - 1, jitted and vmapped."""
     import jax
 
     from jaxgeom.geometry import _dual
 
-    for dtype in (np.uint32, np.int32):
-        batch = jnp.asarray(rng.integers(0, 2**31 - 1, (3, 5000)).astype(dtype))
-        want = jax.lax.sort(batch, dimension=1)
-        np.testing.assert_array_equal(jax.jit(jax.vmap(_dual.sorted_values))(batch), want)
-        np.testing.assert_array_equal(jax.jit(_dual.sorted_values)(batch[0]), want[0])
-    traced = lambda: str(jax.make_jaxpr(lambda v: _dual.sorted_values(v))(batch[0]))  # noqa: E731  (a new trace)
-    assert "callback" in traced()
-    monkeypatch.setattr(_dual.jax, "default_backend", lambda: "gpu")
-    assert "callback" not in traced()
+    batch = rng.integers(0, 2**32, (3, 5000), dtype=np.uint64).astype(np.uint32)
+    batch[:, ::3] = batch[:, 1::3].max()  # ties
+    want = np.argsort(batch, axis=1, kind="stable")
+    np.testing.assert_array_equal(jax.jit(jax.vmap(_dual._order_by_key))(jnp.asarray(batch)), want)
+    np.testing.assert_array_equal(jax.jit(_dual._order_by_key)(jnp.asarray(batch[0])), want[0])
 
 
-def test_the_radix_order_sorts_by_cell_then_quantum_then_entry(rng):
-    """`_order_by_cell_and_projection` (one-operand radix passes) against numpy's lexsort, on
-    keys full of ties (few cells, projections from a handful of values) and at the sizes where
-    the passes' digit width changes."""
-    from jaxgeom.geometry._dual import _order_by_cell_and_projection
+@pytest.mark.parametrize("backend", ["cpu", "gpu"])
+def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backend):
+    """`_order_by_cell_and_projection` against numpy's lexsort, on keys full of ties (few cells,
+    projections from a handful of values) and at the sizes where the radix passes' digit width
+    changes: on the CPU one packed sort (`_order_by_key`, a callback), elsewhere the one-operand
+    radix passes (`lax.sort`, run here on the CPU with the backend's name patched)."""
+    import jax
 
+    from jaxgeom.geometry import _dual
+
+    monkeypatch.setattr(_dual.jax, "default_backend", lambda: backend)
+    traced = str(
+        jax.make_jaxpr(lambda c, p, r: _dual._order_by_cell_and_projection(c, p, r, 20))(
+            jnp.zeros(1000, jnp.int32), jnp.zeros(1000), jnp.ones(1000)
+        )
+    )
+    assert ("callback" in traced) == (backend == "cpu") and ("sort" in traced) == (backend == "gpu")
     for m, n in [(7, 3), (1000, 20), (70_000, 5_000), (300_000, 40_000)]:
         cells = rng.integers(0, n + 1, m).astype(np.int32)
         reach = np.where(cells < n, rng.uniform(0.5, 2.0, n + 1)[cells], 0.0)
         projection = rng.choice([-1.0, 0.0, 0.3, 1.0], m) * reach + rng.normal(0, 1e-3, m) * (rng.random(m) < 0.5)
         projection = np.clip(projection, -reach, reach)
-        order, quanta, quantum = (np.asarray(a) for a in _order_by_cell_and_projection(cells, projection, reach, n))
+        order, quanta, quantum = (
+            np.asarray(a) for a in _dual._order_by_cell_and_projection(cells, projection, reach, n)
+        )
         np.testing.assert_array_equal(order, np.lexsort((np.arange(m), quanta, cells)))
         same = cells[:, None] == cells[None, :100]  # quanta follow the projections within a cell
         below = projection[:, None] < projection[None, :100]
