@@ -523,7 +523,8 @@ def test_3d_dual_in_blocks_equals_it_in_one(rng, kind, monkeypatch):
 def test_hull_sums_over_few_faces_equal_those_over_every_face(rng, monkeypatch):
     """`_few_or_all` sums the hull's faces alone when they are few (a uniform sample) and walks
     every face otherwise (a lattice's flat outer layer): both give the same boxed cells, forced
-    one way (HULL_SHARE = 1: always few) and the other (HULL_SHARE huge: never few)."""
+    one way (HULL_SHARE = 1: always few) and the other (HULL_SHARE huge and FEW_AT_LEAST 1:
+    never few)."""
     import jax
 
     from jaxgeom.geometry import _dual
@@ -532,6 +533,7 @@ def test_hull_sums_over_few_faces_equal_those_over_every_face(rng, monkeypatch):
     cells = {}
     for share in (1, 10**9):
         monkeypatch.setattr(_dual, "HULL_SHARE", share)
+        monkeypatch.setattr(_dual, "FEW_AT_LEAST", 1 if share > 1 else _dual.FEW_AT_LEAST)
         jax.clear_caches()
         cells[share] = jaxgeom.voronoi_facets(tess)
     assert_same_cells(cells[1], cells[10**9])
