@@ -279,9 +279,9 @@ def clipped_piece(q, piece, lower, upper, wall=None):
     """One flag's piece (`_triangle_piece`, `_hull_piece`) clipped to the box (frame of x = q[0],
     box relative to it; `wall`: the only wall it reaches, `clip_polygon`): (signed area, the
     walls' signed segment lengths (6,), and per end x, y: the volume and first moment of the
-    cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3) (about that end)
-    added by the segments). With `wall`, the walls' quantities are those of that wall alone,
-    (1,) and (1, 3) (the others are zero)."""
+    cone over the piece (about that end), the wall faces' area (6,) and moment (6, 3) (about
+    that end) added by the segments). With `wall`, the walls' quantities are those of that
+    wall alone, (1,) and (1, 3) (the others are zero)."""
     sign, orient, polygon, count, direction = piece
     tol = clip_tolerance(lower, upper)
     clipped = clip_polygon(polygon, count, lower, upper, tol, wall)
