@@ -3,8 +3,9 @@
 For uniform walkers in the unit cube at each N: freud's periodic Voronoi (volumes and the
 face areas of every neighbour pair), and jaxgeom's `delaunay` + `voronoi_facets` (periodic,
 boxed) and `delaunay` + clipped `voronoi_volumes` (boxed), with `delaunay` alone and bare
-Qhull (scipy) on the same walkers as the floors. Medians (min, max) of warm calls; ratios
-against freud at the same N. Writes bench/results/cells_3d_<dtype>.json, or
+Qhull (scipy) on the same walkers as the floors, and (Qhull) the open `delaunay` with its
+Qhull in one call instead of in slabs (`_slabs`, from 3e4 walkers). Medians (min, max) of
+warm calls; ratios against freud at the same N. Writes bench/results/cells_3d_<dtype>.json, or
 cells_3d_<dtype>_<triangulator>.json for a triangulator other than Qhull ("shull", the `gpl`
 extra's: its bare call is then timed too).
 
@@ -52,6 +53,8 @@ def cases(x, dtype, triangulator: str):
         import shull
 
         fns["shull alone"] = lambda: shull.Delaunay(np.ascontiguousarray(x, dtype=np.float64)).simplices
+    if triangulator == "qhull":
+        fns["delaunay open, one Qhull call"] = lambda: one_call(lambda: delaunay(xd).neighbors)
     return fns | {
         "delaunay open": lambda: delaunay(xd).neighbors,
         "delaunay periodic": lambda: delaunay(xd, box=(0.0, 1.0), periodic=True).neighbors,
@@ -61,6 +64,17 @@ def cases(x, dtype, triangulator: str):
         "delaunay boxed + voronoi_facets": lambda: jaxgeom.voronoi_facets(delaunay(xd, box=(0.0, 1.0))).areas,
         "delaunay boxed + voronoi_volumes (clipped)": lambda: jaxgeom.voronoi_volumes(delaunay(xd, box=(0.0, 1.0))),
     }
+
+
+def one_call(build):
+    """`build()` with the open and boxed graphs' Qhull in one call, not in slabs (`_slabs`)."""
+    from jaxgeom.tessellation import _slabs
+
+    least, _slabs.SLAB_MIN_POINTS = _slabs.SLAB_MIN_POINTS, 2**62
+    try:
+        return build()
+    finally:
+        _slabs.SLAB_MIN_POINTS = least
 
 
 def row(n: int, repeat: int, dtype, triangulator: str) -> dict:

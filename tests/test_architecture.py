@@ -19,7 +19,7 @@ LAYERS = {
     "tessellation": [
         ("_device_check",),  # the cheap check of a GPU backend's triangles, on the device
         ("_planar", "_graph", "_triangulators"),  # 2D fan rows; the Tessellation pytree; host backends
-        ("_contacts",),
+        ("_contacts", "_slabs"),  # zero-measure contacts; open 3D Qhull in slabs on threads
         ("_delaunay", "_knn"),  # points -> Tessellation (host builds)
         ("_cellgrid",),  # the device cell list
         ("_cellclip",),  # the Delaunay rebuild on the device (per-cell Voronoi clipping, certified)

@@ -60,9 +60,11 @@ from ._graph import (
     take_or_zero,
 )
 from ._planar import fan_neighbors
+from ._slabs import slab_count, slab_triangulation
 from ._triangulators import (
     DEVICE_BACKENDS,
     FALLBACK,
+    circumballs_and_determinants,
     device_triangles,
     host_chunks,
     resolve_triangulator,
@@ -127,7 +129,9 @@ def delaunay(
     The default (`triangulator="auto"`) per dimension: in 2D CuPy's gDel2D when JAX runs on a
     CUDA GPU and the `cuda12`/`cuda13` extra is installed, else shull (the GPL extra), else
     CDT; in 3D shull (GPL extra), else Qhull; in 4D Qhull. Qhull gets the points in Morton
-    order, which makes it faster; all indices refer to the original order. In 2D (not
+    order, which makes it faster; all indices refer to the original order. From 3e4 walkers in
+    3D (open or boxed) Qhull runs in slabs, one per core, in parallel threads, whose union is
+    checked to be the one triangulation (else one call builds it). In 2D (not
     periodic) the neighbour rows, hull flags and tiers are derived from the triangles by the
     jitted `planar_tessellation` (tessellation/_delaunay.py).
 
@@ -415,12 +419,18 @@ def _cut_to_walkers(points, triangles, box, neighbors, hull, tier, overflow, *, 
 
 
 def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessellation, tuple[str, ...]]:
-    """`build_delaunay` without a torus, d >= 3. The simplices' checks (circumcentres and flat
+    """`build_delaunay` without a torus, d >= 3 (Qhull in 3D from 3e4 walkers in slabs,
+    `_slabs`). The simplices' checks (circumcentres and flat
     simplices, then cells reaching out of the domain) run on the device while the host builds
     the neighbour rows from the simplices (3D, N = 1e4: 2.9 ms against 11 ms for scipy's
     `vertex_neighbor_vertices`, which would also need a sort per row)."""
     n, d = x.shape
-    tri, perm, fallback, edge_keys = triangulate(x, triangulator)
+    slabs = slab_count(n, x) if triangulator == "qhull" else 1
+    tri = slab_triangulation(x, slabs) if slabs > 1 else None
+    if tri is None:  # no slabs, or their union failed a check: all walkers at once
+        tri, perm, fallback, edge_keys = triangulate(x, triangulator)
+    else:
+        perm = fallback = edge_keys = None
     simplices, hull_ids = tri.simplices, tri.convex_hull.ravel()
     if perm is not None:  # map sorted indices back
         simplices, hull_ids = perm[simplices], perm[hull_ids]
@@ -708,7 +718,7 @@ def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     pokes, widest_inside, finite = [], 0.0, True
     volumes = np.empty(len(simplices))
     for rows in host_chunks(len(simplices)):
-        center, radius, det = _circumballs_and_determinants(points[simplices[rows]])
+        center, radius, det = circumballs_and_determinants(points[simplices[rows]])
         volumes[rows] = np.abs(det) / math.factorial(points.shape[1])
         finite &= bool(np.isfinite(radius).all())
         poke = np.any((center - radius[:, None] < lo) | (center + radius[:, None] > hi), axis=1)
@@ -732,52 +742,10 @@ def _check_circumballs(points: np.ndarray, simplices: np.ndarray, y: np.ndarray,
     return bool(np.all(dist >= radius * (1.0 - 1e-10))), widest_inside, volumes
 
 
-def _edge_columns(p: np.ndarray) -> np.ndarray:
-    """(d, d, S) the edges of simplices p (S, d + 1, d) from their first vertex, each
-    coordinate of each edge a contiguous (S,) row (elementwise work on them runs 2x faster
-    than on strided columns)."""
-    return np.ascontiguousarray((p[:, 1:] - p[:, :1]).transpose(1, 2, 0))
-
-
-def _cross(u, v):
-    """u x v of 3-vectors given as rows (each coordinate an array)."""
-    return (u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0])
-
-
-def _dot(u, v):
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
 def _circumballs(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d), from E u = |e|^2 / 2
-    (in 3D by Cramer's rule: u = (|a|^2 b x c + |b|^2 c x a + |c|^2 a x b) / (2 a . b x c))."""
-    center, radius, _ = _circumballs_and_determinants(p)
+    """Circumcentres (S, d) and radii (S,) of simplices p (S, d + 1, d) (`circumballs_and_determinants`)."""
+    center, radius, _ = circumballs_and_determinants(p)
     return center, radius
-
-
-def _circumballs_and_determinants(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`_circumballs`, and det E (S,) of the edges from the first vertex (d! times the signed
-    volume)."""
-    if p.shape[1:] == (4, 3):
-        a, b, c = _edge_columns(p)
-        squares = [_dot(e, e) for e in (a, b, c)]
-        bc = _cross(b, c)
-        det = _dot(a, bc)
-        flat = np.abs(det) <= 1e-12 * (squares[0] + squares[1] + squares[2]) ** 1.5
-        half = 0.5 / np.where(flat, 1.0, det)
-        ca, ab = _cross(c, a), _cross(a, b)
-        offset = np.stack(
-            [(squares[0] * bc[k] + squares[1] * ca[k] + squares[2] * ab[k]) * half for k in range(3)], axis=1
-        )
-    else:
-        e = p[:, 1:] - p[:, :1]
-        squares = np.einsum("sij,sij->si", e, e)
-        det = np.linalg.det(e)
-        flat = np.abs(det) <= 1e-12 * np.sum(squares, axis=1) ** (e.shape[1] / 2)
-        e[flat] = np.eye(e.shape[1])
-        offset = np.linalg.solve(e, 0.5 * squares[..., None])[..., 0]
-    radius = np.where(flat, np.inf, np.linalg.norm(offset, axis=1))
-    return p[:, 0] + offset, radius, det
 
 
 def _canonical_vertex(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:
