@@ -32,10 +32,16 @@ def spied(monkeypatch):
     return results
 
 
+def qhull_delaunay(x, **kwargs):
+    """`jaxgeom.delaunay` with Qhull named: the slabs are Qhull's (with the GPL extra installed
+    the 3D default is shull, which never runs in slabs)."""
+    return jaxgeom.delaunay(x, triangulator="qhull", **kwargs)
+
+
 def without_slabs(monkeypatch, x, **kwargs):
     with monkeypatch.context() as m:
         m.setattr(slabs, "SLAB_MIN_POINTS", 10**9)
-        return jaxgeom.delaunay(x, **kwargs)
+        return qhull_delaunay(x, **kwargs)
 
 
 def swarm(kind: str, n: int, rng):
@@ -58,7 +64,7 @@ def swarm(kind: str, n: int, rng):
 def test_the_slabs_give_the_graph_of_one_qhull_call(rng, monkeypatch, spied, kind):
     n = 3000
     x, box = swarm(kind, n, rng)
-    ours = jaxgeom.delaunay(x, box=box)
+    ours = qhull_delaunay(x, box=box)
     assert len(spied) == 1 and spied[0] is not None, "the slabs' union passed its checks"
     one = without_slabs(monkeypatch, x, box=box)
     for field in ("neighbors", "hull", "tier"):
@@ -81,7 +87,7 @@ def test_the_hull_layer_is_filled_again(spied, monkeypatch, seed):
 
     monkeypatch.setattr(slabs._Union, "holes", counted)
     x = np.random.default_rng(seed).random((4000, 3))
-    ours = jaxgeom.delaunay(x)
+    ours = qhull_delaunay(x)
     assert spied[0] is not None
     assert holes[0] > 0 and holes[-1] == 0, holes
     assert simplex_set(ours.simplices, len(x)) == simplex_set(Delaunay(x).simplices, len(x))
@@ -94,12 +100,12 @@ def test_a_lattice_is_built_by_one_call(monkeypatch, spied):
     x = np.stack(np.meshgrid(*[np.arange(m)] * 3, indexing="ij"), -1).reshape(-1, 3) / m + 0.01
     assert slabs.slab_count(len(x), x) == 1
     assert slabs.slab_triangulation(x, 2) is None
-    jaxgeom.delaunay(x, box=(0.0, 1.0))
+    qhull_delaunay(x, box=(0.0, 1.0))
     assert spied == []
     jittered = x + 0.1 / m * np.random.default_rng(0).random(x.shape)  # distinct coordinates: slabs, same graph
     assert slabs.slab_count(len(x), jittered) == 2
     np.testing.assert_array_equal(
-        np.asarray(jaxgeom.delaunay(jittered, box=(0.0, 1.0)).neighbors),
+        np.asarray(qhull_delaunay(jittered, box=(0.0, 1.0)).neighbors),
         np.asarray(without_slabs(monkeypatch, jittered, box=(0.0, 1.0)).neighbors),
     )
     assert spied[-1] is not None
@@ -109,7 +115,7 @@ def test_coincident_walkers_are_refused_as_without_slabs(rng, monkeypatch, spied
     x = rng.random((2000, 3))
     x[7] = x[1500]
     with pytest.raises(CoincidentPointsError) as ours:
-        jaxgeom.delaunay(x)
+        qhull_delaunay(x)
     with pytest.raises(CoincidentPointsError) as one:
         without_slabs(monkeypatch, x)
     assert str(ours.value) == str(one.value)
