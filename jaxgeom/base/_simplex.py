@@ -18,6 +18,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# Small per-walker tensors are written out entry by entry up to this dimension (XLA fuses
+# each entry's products and sums; batched small matmuls are several times slower on CPU);
+# above it they are einsums: one op per entry is d^2 to d^4 ops to compile (a d = 30 k-NN
+# graph's Hessian fit took over 10 minutes, its emergent metric 45 s).
+WRITTEN_OUT_MAX_DIM = 3
+HIGHEST = jax.lax.Precision.HIGHEST  # einsums in full float32 on GPUs too (no TF32)
+
 
 def safe_sqrt(x):
     """sqrt for x > 0 and 0 elsewhere (padding, flat simplices), with finite gradients."""

@@ -14,10 +14,11 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..base._checks import check_choice, check_nonnegative
-from ..base._simplex import safe_sqrt
+from ..base._simplex import HIGHEST, WRITTEN_OUT_MAX_DIM, safe_sqrt
 from ..tessellation._graph import (
     Tessellation,
     neighbor_coord_displacements,
@@ -181,30 +182,48 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
     """Hessians and gradients of local quadratic fits for a batch of stencils, and whether
     each is well determined.
 
-    **Arguments:** `dxs`: d arrays (M, P) of displacements; `dv`: (M, P) value
+    **Arguments:** `dxs`: d arrays (M, P) of displacements up to d = WRITTEN_OUT_MAX_DIM,
+    one (M, P, d) array above (`stencil_displacements`); `dv`: (M, P) value
     differences; `usable`: (M, P) mask. Fits V - V_i = g.u + sum_{a<=b} c_ab u_a u_b in
     the scaled displacement u = dx / s (s = mean stencil distance, for conditioning
     only: the fit is exact for quadratics at any scale). The normal equations are
-    assembled entry by entry over the (M, P) arrays (XLA fuses each entry's product
-    and sum; batched small matmuls are several times slower on CPU).
+    assembled entry by entry over the (M, P) arrays up to d = WRITTEN_OUT_MAX_DIM (XLA fuses
+    each entry's product and sum; batched small matmuls are several times slower on CPU),
+    as einsums above.
     """
-    d = len(dxs)
-    sq = sum(x * x for x in dxs)
+    d = len(dxs) if isinstance(dxs, list) else dxs.shape[-1]
+    if dv.shape[1] < (d + 1) * (d + 2) // 2 - 1:  # fewer stencil slots than coefficients: no fit is determined
+        return (
+            jnp.full((dv.shape[0], d, d), jnp.nan, dv.dtype),
+            jnp.full((dv.shape[0], d), jnp.nan, dv.dtype),
+            jnp.zeros(dv.shape[0], bool),
+        )
+    sq = sum(x * x for x in dxs) if isinstance(dxs, list) else jnp.sum(dxs * dxs, axis=-1)
     mask = usable.astype(dv.dtype)
     dist = safe_sqrt(sq)  # 0 on padding, with a finite gradient there
     scale = jnp.sum(dist * mask, axis=1) / jnp.maximum(jnp.sum(mask, axis=1), 1.0)
     scale = jnp.where(scale > 0, scale, 1.0)
-    u = [x / scale[:, None] for x in dxs]
-    feats = u + [u[a] * u[b] for a in range(d) for b in range(a, d)]
     # weighted least squares: each equation times sqrt(w) (w = 1 for "uniform"; the weights
     # of a row only rescale its equations, so any positive weights keep quadratics exact)
     root_w = mask if weighting == "uniform" else safe_sqrt(_weights_of_rows(sq, usable, weighting)) * mask
-    feats = [f * root_w for f in feats]
-    dv = dv * root_w
-    n_coef = len(feats)
-    entries = {(p, q): jnp.sum(feats[p] * feats[q], axis=1) for p in range(n_coef) for q in range(p, n_coef)}
-    a = jnp.stack([jnp.stack([entries[min(p, q), max(p, q)] for q in range(n_coef)], -1) for p in range(n_coef)], -2)
-    b = jnp.stack([jnp.sum(f * dv, axis=1) for f in feats], axis=-1)
+    if d <= WRITTEN_OUT_MAX_DIM:
+        u = [x / scale[:, None] for x in dxs]
+        products = u + [u[a] * u[b] for a in range(d) for b in range(a, d)]
+        feats = [f * root_w for f in products]
+        dv = dv * root_w
+        n_coef = len(feats)
+        entries = {(p, q): jnp.sum(feats[p] * feats[q], axis=1) for p in range(n_coef) for q in range(p, n_coef)}
+        pairs = [[entries[min(p, q), max(p, q)] for q in range(n_coef)] for p in range(n_coef)]
+        a = jnp.stack([jnp.stack(row, -1) for row in pairs], -2)
+        b = jnp.stack([jnp.sum(f * dv, axis=1) for f in feats], axis=-1)
+    else:  # the same features as arrays: one op per feature or entry is d^2..d^4 ops to compile
+        rows = (jnp.stack(dxs, axis=-1) if isinstance(dxs, list) else dxs) / scale[:, None, None]  # (M, P, d)
+        first, second = np.triu_indices(d)  # the products u_a u_b, a <= b, row by row
+        table = jnp.concatenate([rows, rows[..., first] * rows[..., second]], axis=-1) * root_w[..., None]
+        dv = dv * root_w
+        n_coef = table.shape[-1]  # (M, P, C)
+        a = jnp.einsum("mpc,mpe->mce", table, table, precision=HIGHEST)
+        b = jnp.einsum("mpc,mp->mc", table, dv, precision=HIGHEST)
     coef, ok = jax.vmap(lambda a_, b_: _solve_normal(a_, b_, rcond))(a, b)
     ok = ok & (jnp.sum(usable, axis=1) >= n_coef)
     grad = coef[:, :d] / scale[:, None]
@@ -217,18 +236,23 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
 
 def _unpack_hessian(coef, scale, d: int):
     """Hessian from the quadratic coefficients c (first d entries are the gradient)."""
-    rows: list[list[Any]] = [[None] * d for _ in range(d)]
-    k = d
-    for a in range(d):
-        for b in range(a, d):
-            rows[a][b] = rows[b][a] = coef[:, k] * (2.0 if a == b else 1.0)
-            k += 1
-    h = jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    upper = np.zeros((d, d), np.int32)
+    upper[np.triu_indices(d)] = d + np.arange(d * (d + 1) // 2)  # c_ab's place, a <= b, row by row
+    h = coef[:, np.maximum(upper, upper.T)] * jnp.asarray(1.0 + np.eye(d), coef.dtype)
     return h / scale[:, None, None] ** 2
 
 
+def stencil_displacements(tess: Tessellation):
+    """The 1-ring's displacements in `_quadratic_fit`'s layout: d arrays (N, K) up to
+    d = WRITTEN_OUT_MAX_DIM, one (N, K, d) array above."""
+    if tess.dim > WRITTEN_OUT_MAX_DIM:
+        return neighbor_displacements(tess)
+    return neighbor_coord_displacements(tess)
+
+
 def _two_ring(tess: Tessellation, values, walkers):
-    """2-ring stencils (d displacement arrays, value differences, usable) of the given walkers.
+    """2-ring stencils (displacements in `_quadratic_fit`'s layout, value differences, usable)
+    of the given walkers.
 
     The 2-ring is the 1-ring plus the neighbours' neighbours (the first
     `TWO_RING_WIDTH[d]` of each row), without the walker itself; points reached along
@@ -241,17 +265,25 @@ def _two_ring(tess: Tessellation, values, walkers):
     second = nbrs_pad[first].reshape(walkers.shape[0], -1)  # (F, m*m)
     ring = jnp.concatenate([first, second], axis=1)
     is_self = ring == walkers[:, None]
-    dxs = [
-        take_or_zero(tess.points[:, k], ring) - take_or_zero(tess.points[:, k], walkers)[:, None]
-        for k in range(tess.dim)
-    ]
+    high = tess.dim > WRITTEN_OUT_MAX_DIM  # one (F, P, d) array, else d (F, P) arrays
+    dxs: Any
+    if high:
+        dxs = take_or_zero(tess.points, ring) - take_or_zero(tess.points, walkers)[:, None, :]
+    else:
+        dxs = [
+            take_or_zero(tess.points[:, k], ring) - take_or_zero(tess.points[:, k], walkers)[:, None]
+            for k in range(tess.dim)
+        ]
     if tess.neighbor_shifts is not None:  # compose the stored image shifts along i -> j -> k
         shifts = jnp.concatenate([tess.neighbor_shifts[:, :width], jnp.zeros((1, width, tess.dim), jnp.int8)])
         shifts = shifts.astype(jnp.int32)
         s1 = shifts[walkers]  # (F, m, d)
         s2 = (shifts[first] + s1[:, :, None, :]).reshape(walkers.shape[0], -1, tess.dim)
         total = jnp.concatenate([s1, s2], axis=1)
-        dxs = [x + total[..., k].astype(x.dtype) * tess.box_lengths[k] for k, x in enumerate(dxs)]
+        if high:
+            dxs = dxs + total.astype(dxs.dtype) * jnp.asarray(tess.box_lengths)
+        else:
+            dxs = [x + total[..., k].astype(x.dtype) * jnp.asarray(tess.box_lengths)[k] for k, x in enumerate(dxs)]
         is_self = is_self & jnp.all(total == 0, axis=-1)  # another image of i is a real point
     ring = jnp.where(is_self, n, ring)
     vals = padded_values(values)
@@ -306,7 +338,7 @@ def _local_quadratic(tess: Tessellation, values, weighting: str = "uniform"):
     small or poorly conditioned: (hessian (N, d, d), gradient (N, d), info); `weighting`
     weighs each stencil point's equation (weighted least squares)."""
     dv, usable = _value_differences(tess, values)
-    hess, grad, ok = _quadratic_fit(neighbor_coord_displacements(tess), dv, usable, RCOND_TWO_RING, weighting)
+    hess, grad, ok = _quadratic_fit(stencil_displacements(tess), dv, usable, RCOND_TWO_RING, weighting)
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
     walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)

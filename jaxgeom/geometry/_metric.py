@@ -32,7 +32,16 @@ from ..base._checks import (
     walker_values,
     warn_at_caller,
 )
-from ..base._simplex import JACOBI_SWEEPS, dot, small_adjugate, small_det, small_eigh, spectral_function
+from ..base._simplex import (
+    HIGHEST,
+    JACOBI_SWEEPS,
+    WRITTEN_OUT_MAX_DIM,
+    dot,
+    small_adjugate,
+    small_det,
+    small_eigh,
+    spectral_function,
+)
 from ..tessellation._graph import (
     Tessellation,
     neighbor_coord_displacements,
@@ -105,6 +114,8 @@ def _call_metric(metric: Callable, x):
 def _quad(g, dx):
     """dx^T g dx over the last axes, written out so that XLA fuses it."""
     d = dx.shape[-1]
+    if d > WRITTEN_OUT_MAX_DIM:
+        return jnp.einsum("...ij,...i,...j->...", g, dx, dx, precision=HIGHEST)
     return sum(g[..., i, j] * dx[..., i] * dx[..., j] for i in range(d) for j in range(d))
 
 
@@ -480,10 +491,14 @@ def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array
     (g -> g / s^2 under x -> s x). Walkers without neighbours get NaN.
     """
     check_nonnegative(eps_reg, "eps_reg")
-    dx = neighbor_coord_displacements(tess)
     degree = tess.degree
     d = tess.dim
-    cov = jnp.stack([jnp.stack([jnp.sum(dx[i] * dx[j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
+    if d > WRITTEN_OUT_MAX_DIM:
+        rows = neighbor_displacements(tess)  # (N, K, d)
+        cov = jnp.einsum("nki,nkj->nij", rows, rows, precision=HIGHEST)
+    else:
+        dx = neighbor_coord_displacements(tess)
+        cov = jnp.stack([jnp.stack([jnp.sum(dx[i] * dx[j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
     cov = cov / jnp.maximum(degree, 1)[:, None, None].astype(cov.dtype)
     reg = eps_reg * jnp.trace(cov, axis1=1, axis2=2) / d
     c = cov + reg[:, None, None] * jnp.eye(d, dtype=cov.dtype)

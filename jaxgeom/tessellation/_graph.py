@@ -15,7 +15,7 @@ import scipy.sparse
 from jaxtyping import Array, Bool, Float, Int
 
 from ..base._checks import check_metric_array, check_walker_array, real_array
-from ..base._simplex import safe_sqrt
+from ..base._simplex import WRITTEN_OUT_MAX_DIM, safe_sqrt
 
 
 class Capacity(NamedTuple):
@@ -134,7 +134,12 @@ def take_or_zero(values: Array, index: Int[Array, ...]) -> Array:
 
 def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
     """x_j - x_i for every neighbour slot (periodic images applied); zero on padding."""
-    return jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+    if tess.dim <= WRITTEN_OUT_MAX_DIM:
+        return jnp.stack(neighbor_coord_displacements(tess), axis=-1)
+    dx = take_or_zero(tess.points, tess.neighbors) - tess.points[:, None, :]  # rows: one gather in any d
+    if tess.neighbor_shifts is not None and tess.box_lengths is not None:
+        dx = dx + tess.neighbor_shifts.astype(dx.dtype) * tess.box_lengths
+    return jnp.where(tess.neighbor_mask[..., None], dx, 0.0)
 
 
 def neighbor_coord_displacements(tess: Tessellation) -> list:
