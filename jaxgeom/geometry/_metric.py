@@ -112,7 +112,8 @@ def _call_metric(metric: Callable, x):
 
 
 def _quad(g, dx):
-    """dx^T g dx over the last axes, written out so that XLA fuses it."""
+    """dx^T g dx over the last axes: written out up to d = WRITTEN_OUT_MAX_DIM (XLA fuses it),
+    an einsum above."""
     d = dx.shape[-1]
     if d > WRITTEN_OUT_MAX_DIM:
         return jnp.einsum("...ij,...i,...j->...", g, dx, dx, precision=HIGHEST)
