@@ -228,7 +228,6 @@ def metric_defect_masks(g, xp):
     host check) or jax.numpy (the jittable `jaxgeom.metric_defects`). Symmetric means to
     100 eps of the row's largest entry; definiteness from Sylvester's leading minors up to
     d = 3 (elementwise over (N,) columns), eigenvalues above."""
-    d = g.shape[-1]
     wide = xp.float64 if xp is np else g.dtype
     eps = float(xp.finfo(g.dtype if xp.issubdtype(g.dtype, xp.floating) else wide).eps)
     # whole-array reductions, not one op per entry: XLA's compile time grows steeply with
@@ -239,12 +238,13 @@ def metric_defect_masks(g, xp):
     skew = xp.max(xp.abs(g - g.swapaxes(-1, -2)), axis=(-2, -1))
     # definiteness of g / scale: the minors of g itself overflow or underflow (g = 1e-200 I)
     unit = xp.where(scale > 0, scale, 1.0)
-    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(g / unit[:, None, None], d, xp)
+    return finite & (skew > 100 * eps * scale), finite & ~_positive_definite(g / unit[:, None, None], xp)
 
 
-def _positive_definite(g, d: int, xp):
-    """(N,) bool: Sylvester's leading minors up to d = 3, eigenvalues above (NaN rows come
-    out False and are masked by the caller)."""
+def _positive_definite(g, xp):
+    """(N,) bool: Sylvester's leading minors of (N, d, d) `g` up to d = 3, eigenvalues above
+    (NaN rows come out False and are masked by the caller)."""
+    d = g.shape[-1]
     if d > 3:
         sym = xp.nan_to_num(0.5 * (g + g.swapaxes(-1, -2)))
         return xp.linalg.eigvalsh(sym)[:, 0] > 0

@@ -21,8 +21,8 @@ from ..base._checks import check_choice, check_nonnegative
 from ..base._simplex import HIGHEST, WRITTEN_OUT_MAX_DIM, safe_sqrt
 from ..tessellation._graph import (
     Tessellation,
-    neighbor_coord_displacements,
     neighbor_displacements,
+    neighbor_displacements_for_sums,
     take_or_zero,
     takes_tessellation,
 )
@@ -183,7 +183,7 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
     each is well determined.
 
     **Arguments:** `dxs`: d arrays (M, P) of displacements up to d = WRITTEN_OUT_MAX_DIM,
-    one (M, P, d) array above (`stencil_displacements`); `dv`: (M, P) value
+    one (M, P, d) array above (`neighbor_displacements_for_sums`); `dv`: (M, P) value
     differences; `usable`: (M, P) mask. Fits V - V_i = g.u + sum_{a<=b} c_ab u_a u_b in
     the scaled displacement u = dx / s (s = mean stencil distance, for conditioning
     only: the fit is exact for quadratics at any scale). The normal equations are
@@ -217,7 +217,7 @@ def _quadratic_fit(dxs, dv, usable, rcond: float = RCOND, weighting: str = "unif
         a = jnp.stack([jnp.stack(row, -1) for row in pairs], -2)
         b = jnp.stack([jnp.sum(f * dv, axis=1) for f in feats], axis=-1)
     else:  # the same features as arrays: one op per feature or entry is d^2..d^4 ops to compile
-        rows = (jnp.stack(dxs, axis=-1) if isinstance(dxs, list) else dxs) / scale[:, None, None]  # (M, P, d)
+        rows = dxs / scale[:, None, None]  # (M, P, d)
         first, second = np.triu_indices(d)  # the products u_a u_b, a <= b, row by row
         table = jnp.concatenate([rows, rows[..., first] * rows[..., second]], axis=-1) * root_w[..., None]
         dv = dv * root_w
@@ -240,14 +240,6 @@ def _unpack_hessian(coef, scale, d: int):
     upper[np.triu_indices(d)] = d + np.arange(d * (d + 1) // 2)  # c_ab's place, a <= b, row by row
     h = coef[:, np.maximum(upper, upper.T)] * jnp.asarray(1.0 + np.eye(d), coef.dtype)
     return h / scale[:, None, None] ** 2
-
-
-def stencil_displacements(tess: Tessellation):
-    """The 1-ring's displacements in `_quadratic_fit`'s layout: d arrays (N, K) up to
-    d = WRITTEN_OUT_MAX_DIM, one (N, K, d) array above."""
-    if tess.dim > WRITTEN_OUT_MAX_DIM:
-        return neighbor_displacements(tess)
-    return neighbor_coord_displacements(tess)
 
 
 def _two_ring(tess: Tessellation, values, walkers):
@@ -338,7 +330,7 @@ def _local_quadratic(tess: Tessellation, values, weighting: str = "uniform"):
     small or poorly conditioned: (hessian (N, d, d), gradient (N, d), info); `weighting`
     weighs each stencil point's equation (weighted least squares)."""
     dv, usable = _value_differences(tess, values)
-    hess, grad, ok = _quadratic_fit(stencil_displacements(tess), dv, usable, RCOND_TWO_RING, weighting)
+    hess, grad, ok = _quadratic_fit(neighbor_displacements_for_sums(tess), dv, usable, RCOND_TWO_RING, weighting)
     needs = ~ok & jnp.isfinite(values)
     capacity = max(1, math.ceil(TWO_RING_FRACTION.get(tess.dim, 0.0625) * tess.n_points))
     walkers = jnp.nonzero(needs, size=capacity, fill_value=tess.n_points)[0].astype(jnp.int32)

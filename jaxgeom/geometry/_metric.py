@@ -44,8 +44,8 @@ from ..base._simplex import (
 )
 from ..tessellation._graph import (
     Tessellation,
-    neighbor_coord_displacements,
     neighbor_displacements,
+    neighbor_displacements_for_sums,
     simplex_coords,
     take_or_zero,
     takes_tessellation,
@@ -494,11 +494,10 @@ def emergent_metric(tess: Tessellation, *, eps_reg: float = 1e-5) -> Float[Array
     check_nonnegative(eps_reg, "eps_reg")
     degree = tess.degree
     d = tess.dim
+    dx = neighbor_displacements_for_sums(tess)
     if d > WRITTEN_OUT_MAX_DIM:
-        rows = neighbor_displacements(tess)  # (N, K, d)
-        cov = jnp.einsum("nki,nkj->nij", rows, rows, precision=HIGHEST)
+        cov = jnp.einsum("nki,nkj->nij", dx, dx, precision=HIGHEST)
     else:
-        dx = neighbor_coord_displacements(tess)
         cov = jnp.stack([jnp.stack([jnp.sum(dx[i] * dx[j], axis=1) for j in range(d)], -1) for i in range(d)], -2)
     cov = cov / jnp.maximum(degree, 1)[:, None, None].astype(cov.dtype)
     reg = eps_reg * jnp.trace(cov, axis1=1, axis2=2) / d

@@ -142,6 +142,15 @@ def neighbor_displacements(tess: Tessellation) -> Float[Array, "N K d"]:
     return jnp.where(tess.neighbor_mask[..., None], dx, 0.0)
 
 
+def neighbor_displacements_for_sums(tess: Tessellation):
+    """The neighbours' displacements in the layout of per-walker sums over them: d arrays
+    (N, K) up to d = WRITTEN_OUT_MAX_DIM (`neighbor_coord_displacements`, for sums written out
+    entry by entry), one (N, K, d) array above (`neighbor_displacements`, for einsums)."""
+    if tess.dim > WRITTEN_OUT_MAX_DIM:
+        return neighbor_displacements(tess)
+    return neighbor_coord_displacements(tess)
+
+
 def neighbor_coord_displacements(tess: Tessellation) -> list:
     """`neighbor_displacements` coordinate-major: d arrays (N, K), the fast layout on CPU."""
     mask = tess.neighbor_mask
