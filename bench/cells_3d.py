@@ -5,9 +5,10 @@ face areas of every neighbour pair), and jaxgeom's `delaunay` + `voronoi_facets`
 boxed) and `delaunay` + clipped `voronoi_volumes` (boxed), with `delaunay` alone and bare
 Qhull (scipy) on the same walkers as the floors, and (Qhull) the open `delaunay` with its
 Qhull in one call instead of in slabs (`_slabs`, from 3e4 walkers). Medians (min, max) of
-warm calls; ratios against freud at the same N. Writes bench/results/cells_3d_<dtype>.json, or
-cells_3d_<dtype>_<triangulator>.json for a triangulator other than Qhull ("shull", the `gpl`
-extra's: its bare call is then timed too).
+warm calls; ratios against freud at the same N: of the medians, and per round (every case
+once, interleaved) that round's time over freud's, median (min, max). Writes
+bench/results/cells_3d_<dtype>.json, or cells_3d_<dtype>_<triangulator>.json for a
+triangulator other than Qhull ("shull", the `gpl` extra's: its bare call is then timed too).
 
 Run alone (2 cores: anything beside it skews the ratios):
     .venv/bin/python bench/cells_3d.py [--n 10000 100000] [--repeat 5] [--dtype float64]
@@ -86,13 +87,17 @@ def row(n: int, repeat: int, dtype, triangulator: str) -> dict:
     for _ in range(repeat):
         for name, fn in fns.items():  # interleaved: the ratios are measured side by side
             times[name].append(timed(fn))
-    freud_median = float(np.median(times["freud periodic (volumes + face areas)"]))
+    freud = times["freud periodic (volumes + face areas)"]
+    freud_median = float(np.median(freud))
     return {
         "n": n,
         "dtype": str(np.dtype(dtype)),
         "triangulator": triangulator,
         "seconds": {k: summary(v) for k, v in times.items()},
         "over_freud": {k: float(np.median(v)) / freud_median for k, v in times.items()},
+        # each round's time over freud's in the same round: the VM's slow spells (+-20% between
+        # runs) hit both, so the spread of these is the ratio's own
+        "over_freud_by_round": {k: summary([a / b for a, b in zip(v, freud, strict=True)]) for k, v in times.items()},
     }
 
 
@@ -109,9 +114,10 @@ def main() -> None:
     for r in rows:
         print(f"N = {r['n']} ({r['dtype']})")
         for name, s in r["seconds"].items():
+            by_round = r["over_freud_by_round"][name]
             print(
                 f"  {name:<46} {s['median']:8.3f} s ({s['min']:.3f}-{s['max']:.3f})  "
-                f"{r['over_freud'][name]:6.2f}x freud"
+                f"{r['over_freud'][name]:6.2f}x freud (by round {by_round['min']:.2f}-{by_round['max']:.2f})"
             )
     suffix = "" if args.triangulator == "qhull" else f"_{args.triangulator}"
     out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}{suffix}.json"
