@@ -13,7 +13,13 @@ PACKAGE = Path(__file__).parent.parent / "jaxgeom"
 # Within a folder, each tuple may import the tuples before it.
 LAYERS = {
     "base": [
-        ("_checks", "_simplex", "_progress", "_sharding"),  # validation; dense algebra; bars; meshes
+        (
+            "_checks",
+            "_simplex",
+            "_progress",
+            "_sharding",
+            "_compact",
+        ),  # validation; dense algebra; bars; meshes; flagged ids
         ("_h5md",),  # H5MD trajectory files through h5py
     ],
     "tessellation": [

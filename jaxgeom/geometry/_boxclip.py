@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ..base._compact import flagged_ids
 from ..tessellation._graph import Tessellation, neighbor_displacements
 
 CLIP_CHUNK = 64  # boundary cells clipped per chunk
@@ -102,7 +103,7 @@ def map_flagged_rows(flags, size: int, fn, empty):
     walkers."""
     n = flags.shape[0]
     n_chunks = -(-n // size)
-    rows = jnp.nonzero(flags, size=n_chunks * size, fill_value=n)[0].astype(jnp.int32)
+    rows = flagged_ids(flags, n_chunks * size, n)
     out = map_live_chunks(fn, empty, rows.reshape(n_chunks, size), n)
     return rows, jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
 

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base._compact import flagged_ids
 from ..base._simplex import dot
 from ..tessellation._graph import (
     Tessellation,
@@ -47,6 +48,7 @@ from ._dualclip import (
     clipped_sums,
     dual_centres,
     near_walls,
+    order_in_rows,
 )
 
 
@@ -139,7 +141,7 @@ def _few_or_all(marked, few, every, share: int | None = None):
     outer layer."""
     total = marked.size
     size = max(FEW_AT_LEAST, total // (HULL_SHARE if share is None else share))
-    ids = jnp.nonzero(marked.ravel(), size=size, fill_value=total)[0].astype(jnp.int32)
+    ids = flagged_ids(marked.ravel(), size, total)
     return jax.lax.cond(jnp.sum(marked, dtype=jnp.int32) <= size, lambda: few(ids), every)
 
 
@@ -379,7 +381,7 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     the areas need them). The areas, volumes and moments are added to `sums` (flat slots
     (N K + 1,), per walker (N + 1,) and (N + 1, 3)) instead. One block of `_in_blocks`."""
     verts = simplex_vertices(tess)  # (S, 4, 3), images applied
-    centres, ok, proper, face_centres, face_ok, measures = dual_centres(tess, verts)
+    centres, ok, proper, face_centres, face_ok, measures = dual_centres(verts)
     origin = verts[:, :1]
     heights = measures[0]
     pieces, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
@@ -419,6 +421,7 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     nothing) and the faces on the box walls (N, 6), from the Delaunay dual (module docstring).
     With a (non-periodic) box every cell is clipped to it (`_dualclip`); otherwise hull cells'
     volumes, moments and counts are meaningless (callers mask them with `tess.hull`)."""
+    tess = with_sorted_simplices(tess)
     n, k = tess.neighbors.shape
     mask = tess.simplex_mask
     boxed = tess.box is not None and tess.simplex_shifts is None
@@ -469,6 +472,17 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
                 vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths, edges)
             )
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
+
+
+def with_sorted_simplices(tess: Tessellation):
+    """`tess` with each simplex's walkers in ascending order (their periodic images with them):
+    every face then lists its walkers in one order in both its simplices (`dual_centres`)."""
+    order = order_in_rows(tess.simplices)
+    take = lambda a: jnp.take_along_axis(a, order if a.ndim == 2 else order[..., None], axis=1)  # noqa: E731
+    shifts = None if tess.simplex_shifts is None else take(tess.simplex_shifts)
+    return eqx.tree_at(
+        lambda t: (t.simplices, t.simplex_shifts), tess, (take(tess.simplices), shifts), is_leaf=lambda x: x is None
+    )
 
 
 # the simplices with a tier-0 walker are computed alone when at most this share of all (a
@@ -589,6 +603,9 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
 MERGE_ULPS = 4096
 VERTEX_CHUNK = 256  # cells per chunk of the pairwise count (cells whose window did not suffice)
 VERTEX_WINDOW = 4  # each centre is compared with the next this many along the projection
+# the sorted entries with a neighbour in the window that near (`_vertex_counts`) compare their
+# centres alone when at most 1/NEAR_SHARE of all (a uniform sample: ~1%), all do otherwise
+NEAR_SHARE = 16
 # weights of the projection that orders a cell's centres: irrational ratios, so a lattice's
 # distinct vertices (equal in some coordinates) do not tie
 PROJECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
@@ -603,15 +620,19 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     one (in simplex order) is not counted again.
 
     Every (cell, centre) is sorted by cell and a projection of the centre quantized to the
-    cell's range (`_order_by_cell_and_projection`), so two close centres of a cell lie within
-    VERTEX_WINDOW places of each other unless more than that many crowd within the tolerance's
-    quanta; those few cells (none in uniform samples) are compared pair by pair
-    (`_pairwise_counts`), -1 where a walker has more incident simplices than that table holds
-    (2 K + 8)."""
+    cell's range (`_order_by_cell_and_projection`). Two centres within the tolerance have
+    quanta at most `apart` apart (one number for every cell: the tolerance and the quantum both
+    scale with the cell's range), so they lie within VERTEX_WINDOW places of each other unless
+    more than that many crowd within those quanta. The window is read on the sorted keys first:
+    only the entries with a neighbour there that near (a uniform sample: ~1%) gather their
+    centres and compare them (`_window_repeats`). Crowded cells (none in uniform samples) are
+    compared pair by pair (`_pairwise_counts`), -1 where a walker has more incident simplices
+    than that table holds (2 K + 8)."""
     n, k = tess.neighbors.shape
     d = offsets.shape[-1]
     cells = jnp.where(proper if proper.ndim == 2 else proper[:, None], tess.simplices, n).ravel()
     flat = offsets.reshape(-1, d)
+    m = flat.shape[0]
     valid = cells < n
     extent = jax.ops.segment_max(
         jnp.where(valid, jnp.max(jnp.abs(flat), axis=-1), 0.0), cells, num_segments=n + 1
@@ -619,94 +640,128 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     tolerance = MERGE_ULPS * jnp.finfo(offsets.dtype).eps * extent
     weights = jnp.asarray(PROJECTION[:d], offsets.dtype)
     projection = jnp.where(valid, dot(flat, weights), 0.0)
-    entry, quanta, quantum = _order_by_cell_and_projection(cells, projection, extent[cells] * sum(PROJECTION), n)
-    cells, rows = cells[entry], flat[entry]
-    limit = tolerance[cells]
-    repeated = jnp.zeros(cells.shape, bool)
-    for w in range(1, VERTEX_WINDOW + 1):
-        close = (cells[w:] == cells[:-w]) & (jnp.max(jnp.abs(rows[w:] - rows[:-w]), axis=-1) <= limit[:-w])
-        later = entry[w:] > entry[:-w]  # the one further on in simplex order is the repeat
-        none = jnp.zeros(w, bool)
-        repeated = repeated | jnp.concatenate([none, close & later]) | jnp.concatenate([close & ~later, none])
-    counted = (cells < n) & ~repeated
-    counts = jax.ops.segment_sum(counted.astype(jnp.int32), cells, num_segments=n + 1)[:n]
-    # two centres within the tolerance have projections within sum(PROJECTION) times it, and
-    # quanta within that over the quantum plus one (and one for rounding)
-    apart = (jnp.floor(limit * float(sum(PROJECTION)) / quantum[entry]) + 2).astype(jnp.int32)
-    w = VERTEX_WINDOW
-    sorted_quanta = quanta[entry]
-    crowded = (cells[w:] == cells[:-w]) & (sorted_quanta[w:] - sorted_quanta[:-w] <= apart[:-w])
-    flagged = jnp.zeros(n + 1, bool).at[cells[:-w]].max(crowded)[:n]
-    incident = jax.ops.segment_sum(jnp.ones(cells.shape, jnp.int32), cells, num_segments=n + 1)
-    rows_at, pairwise = _pairwise_counts(cells, rows, entry, limit, incident, flagged, cap=2 * k + 8)
+    order, _, _, keys, bits = _order_by_cell_and_projection(cells, projection, extent[cells] * sum(PROJECTION), n)
+    # within the tolerance t: projections within sum(PROJECTION) t, quanta within that over the
+    # quantum 2 sum(PROJECTION) extent / 2^bits, plus one, plus one for rounding (and one spare)
+    apart = int(np.ceil(MERGE_ULPS * float(jnp.finfo(offsets.dtype).eps) * 2.0 ** (bits - 1))) + 3
+    sorted_cells = (keys >> bits).astype(jnp.int32)
+    near = [
+        jnp.concatenate([(sorted_cells[w:] == sorted_cells[:-w]) & (keys[w:] - keys[:-w] <= apart), jnp.zeros(w, bool)])
+        for w in range(1, VERTEX_WINDOW + 1)
+    ]  # (M,) each: the entry w places on is of the same cell, its quantum that near
+    repeats = functools.partial(_window_repeats, sorted_cells, order, flat, tolerance[sorted_cells], near[-1], n)
+    repeated, crowded = _few_or_all(
+        functools.reduce(jnp.logical_or, near) & (sorted_cells < n),
+        repeats,
+        lambda: repeats(jnp.arange(m, dtype=jnp.int32)),
+        NEAR_SHARE,
+    )
+    per_cell = jax.ops.segment_sum(
+        jnp.stack([valid, valid & ~repeated], axis=1).astype(jnp.int32), cells, num_segments=n + 1
+    )
+    incident, counts = per_cell[:, 0], per_cell[:n, 1]
+    rows_at, pairwise = _pairwise_counts(order, flat, tolerance, incident, crowded, cap=2 * k + 8)
     return counts.at[rows_at].set(pairwise, mode="drop")
+
+
+def _window_repeats(cells, order, flat, limit, crowding, n: int, places):
+    """(repeated (M,), crowded (N,)): of the sorted entries at `places` (padding M) and the next
+    VERTEX_WINDOW, the later in simplex order (`order` (M,): each sorted entry's) of every pair
+    of one cell (`cells` (M,) sorted) whose centres (`flat` (M, d), by entry) lie within the
+    tolerance (`limit` (M,) sorted), marked by entry; and the cells of the places whose entry
+    VERTEX_WINDOW on is as near (`crowding` (M,)), where the window may not suffice."""
+    m = order.shape[0]
+    real = places < m
+    at = jnp.minimum(places, m - 1)
+    first, cell = order[at], cells[at]
+    centre = flat[first]
+    marks = []
+    for w in range(1, VERTEX_WINDOW + 1):
+        on = jnp.minimum(at + w, m - 1)
+        other = order[on]
+        close = (
+            real & (at + w < m) & (cells[on] == cell) & (jnp.max(jnp.abs(flat[other] - centre), axis=-1) <= limit[at])
+        )
+        marks.append(jnp.where(close, jnp.maximum(first, other), m))
+    repeated = jnp.zeros(m + 1, bool).at[jnp.concatenate(marks)].set(True)[:m]
+    crowded = jnp.zeros(n + 1, bool).at[jnp.where(real & crowding[at], cell, n)].set(True)[:n]
+    return repeated, crowded
 
 
 QUANTUM_BITS = (10, 20)  # the fewest and most bits of a cell's quantized projection in the key
 
 
 def _order_by_cell_and_projection(cells, projection, reach, n: int):
-    """(order, quanta, quantum): the permutation (M,) int32 that sorts the entries by (cell,
-    quantum of projection, entry), with each projection in [-reach, reach] (its cell's) cut
-    into 2^b quanta (`quanta` (M,) int32, `quantum` (M,) their width). The key (cell, quantum)
-    fits 32 bits; it is sorted by least-significant-digit radix passes, each a sort of one
-    uint32 holding the key's next digit above the entry's current position (so ties keep their
-    order: each pass is stable). One operand sorts ~9x faster than the (cell, projection,
-    entry) triple in XLA (bench/README.md); on a GPU one-operand sorts are CUB's radix sorts.
-    On the CPU numpy sorts the key and the entry in one uint64 instead (`_order_by_key`)."""
+    """(order, quanta, quantum, keys, bits): the permutation (M,) int32 that sorts the entries
+    by (cell, quantum of projection, entry), with each projection in [-reach, reach] (its
+    cell's) cut into 2^bits quanta (`quanta` (M,) int32, `quantum` (M,) their width), and the
+    sorted keys (M,) uint32, cell << bits | quanta. The key fits 32 bits; it is sorted by
+    least-significant-digit radix passes, each a sort of one uint32 holding the key's next
+    digit above the entry's current position (so ties keep their order: each pass is stable).
+    One operand sorts ~9x faster than the (cell, projection, entry) triple in XLA
+    (bench/README.md); on a GPU one-operand sorts are CUB's radix sorts. On the CPU numpy sorts
+    the key and the entry in one uint64 instead (`_order_by_key`), and the quanta take all the
+    bits the cell leaves (fewer near pairs for `_vertex_counts` to compare)."""
     m = cells.shape[0]
     position_bits = max(1, (m - 1).bit_length())
     digit_bits = 32 - position_bits
     if digit_bits < 1:
         raise ValueError(f"{m} (cell, centre) entries exceed the 2^31 a vertex count can sort.")
     cell_bits = max(1, n.bit_length())  # cells 0..n, n the padding
+    cpu = jax.default_backend() == "cpu"
     passes = -(-(cell_bits + QUANTUM_BITS[0]) // digit_bits)
-    bits = max(1, min(min(passes * digit_bits, 32) - cell_bits, QUANTUM_BITS[1]))
+    bits = max(1, min((32 if cpu else min(passes * digit_bits, 32)) - cell_bits, QUANTUM_BITS[1]))
     safe = jnp.where(reach > 0, reach, 1.0)
     quantum = 2.0 * safe / 2.0**bits
     quanta = jnp.clip(jnp.floor((projection + safe) / quantum), 0, 2**bits - 1).astype(jnp.int32)
     key = (cells.astype(jnp.uint32) << bits) | quanta.astype(jnp.uint32)
-    if jax.default_backend() == "cpu":
-        return _order_by_key(key), quanta, quantum
+    if cpu:  # one sort of all 32 bits: as many quanta as fit
+        order, sorted_keys = _order_by_key(key)
+        return order, quanta, quantum, sorted_keys, bits
     position = jnp.arange(m, dtype=jnp.uint32)
     order = jnp.arange(m, dtype=jnp.int32)
     for shift in range(0, cell_bits + bits, digit_bits):
         digit = (key[order] >> shift) & np.uint32((1 << digit_bits) - 1)
         packed = jax.lax.sort((digit << position_bits) | position)
         order = order[(packed & np.uint32((1 << position_bits) - 1)).astype(jnp.int32)]
-    return order, quanta, quantum
+    return order, quanta, quantum, key[order], bits
 
 
 def _order_by_key(key):
-    """The stable order (M,) int32 of the uint32 `key` (M,), on the CPU backend: numpy sorts the
-    key and the entry packed in one uint64 (a key of 32 bits and a position of at most 31 fit),
-    one pass instead of the radix passes' two or three, each a callback and gathers (3D vertex
-    counts, uniform, float32, interleaved: N = 1e5 340 -> 293 ms, 1e4 23.9 -> 21.7 ms)."""
+    """(order, sorted key): the stable order (M,) int32 of the uint32 `key` (M,) and the key in
+    that order, on the CPU backend: numpy sorts the key and the entry packed in one uint64 (a key
+    of 32 bits and a position of at most 31 fit), one pass instead of the radix passes' two or
+    three, each a callback and gathers (3D vertex counts, uniform, float32, interleaved: N = 1e5
+    340 -> 293 ms, 1e4 23.9 -> 21.7 ms)."""
 
     def order(key):
         key = np.asarray(key)  # the callback may get a jax.Array (no uint64 without x64)
         position_bits = max(1, (key.shape[-1] - 1).bit_length())
         packed = (key.astype(np.uint64) << np.uint64(position_bits)) | np.arange(key.shape[-1], dtype=np.uint64)
         packed.sort(axis=-1)
-        return (packed & np.uint64((1 << position_bits) - 1)).astype(np.int32)
+        positions = (packed & np.uint64((1 << position_bits) - 1)).astype(np.int32)
+        return positions, (packed >> np.uint64(position_bits)).astype(np.uint32)
 
-    shape = jax.ShapeDtypeStruct(key.shape, jnp.int32)
-    return jax.pure_callback(order, shape, key, vmap_method="expand_dims")
+    shapes = (jax.ShapeDtypeStruct(key.shape, jnp.int32), jax.ShapeDtypeStruct(key.shape, jnp.uint32))
+    return jax.pure_callback(order, shapes, key, vmap_method="expand_dims")
 
 
-def _pairwise_counts(cells, rows, entry, limit, incident, flagged, *, cap: int):
-    """(rows, counts): the `flagged` cells' distinct centres compared pair by pair, from the
-    sorted (cell, centre) entries of `_vertex_counts` (`incident` (N + 1,) per cell), chunk by
-    chunk, -1 where a cell has more than `cap` entries."""
+def _pairwise_counts(order, flat, tolerance, incident, flagged, *, cap: int):
+    """(rows, counts): the `flagged` cells' distinct centres compared pair by pair, chunk by
+    chunk, -1 where a cell has more than `cap` entries; `order` (M,) the entries sorted by cell
+    (`incident` (N + 1,) per cell), `flat` (M, d) their centres and `tolerance` (N + 1,) per cell
+    (`_vertex_counts`)."""
     starts = jnp.cumsum(incident, dtype=jnp.int32) - incident  # the cells come sorted
 
     def count(ids):
         at = starts[ids][:, None] + jnp.arange(cap, dtype=jnp.int32)[None, :]
         inside = jnp.arange(cap, dtype=jnp.int32)[None, :] < incident[ids][:, None]
-        at = jnp.where(inside, at, 0)
-        centres, order = rows[at], jnp.where(inside, entry[at], -1)
-        close = jnp.max(jnp.abs(centres[:, :, None, :] - centres[:, None, :, :]), axis=-1) <= limit[at][:, :, None]
-        earlier = order[:, None, :] < order[:, :, None]
+        entry = order[jnp.where(inside, at, 0)]
+        centres, entry = flat[entry], jnp.where(inside, entry, -1)
+        close = (
+            jnp.max(jnp.abs(centres[:, :, None, :] - centres[:, None, :, :]), axis=-1) <= tolerance[ids][:, None, None]
+        )
+        earlier = entry[:, None, :] < entry[:, :, None]
         repeated = jnp.any(close & earlier & inside[:, None, :], axis=2)
         distinct = jnp.sum(inside & ~repeated, axis=1, dtype=jnp.int32)
         return jnp.where(incident[ids] > cap, -1, distinct)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..base._compact import flagged_ids
 from ..base._simplex import dot  # not `@`: under vmap that is a batched dot_general, 0.55 s of 5.2 s here at N = 1e5
 from ..tessellation._graph import Tessellation
 from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_rows, scan_live_chunks
@@ -106,16 +107,17 @@ def triangle_circumcentre(a, b, c):
     return jnp.where(ok, p[best] + offset, a), ok, heights, opposite, normal
 
 
-def order_of_three(ids):
-    """`jnp.argsort(ids, axis=-1, stable=True)` of (..., 3) ids by comparisons (XLA's sort on
-    the CPU costs ~20x as much for rows of three): each entry's rank, ties by position."""
-    i, j = jnp.arange(3, dtype=jnp.int32)[:, None], jnp.arange(3, dtype=jnp.int32)[None, :]
+def order_in_rows(ids):
+    """`jnp.argsort(ids, axis=-1, stable=True)` of (..., m) ids by comparisons (XLA's sort on
+    the CPU costs ~20x as much for rows of three or four): each entry's rank, ties by position."""
+    m = ids.shape[-1]
+    i, j = jnp.arange(m, dtype=jnp.int32)[:, None], jnp.arange(m, dtype=jnp.int32)[None, :]
     before = (ids[..., None, :] < ids[..., :, None]) | ((ids[..., None, :] == ids[..., :, None]) & (j < i))
-    rank = jnp.sum(before, axis=-1, dtype=jnp.int32)  # (..., 3) a permutation of 0, 1, 2
+    rank = jnp.sum(before, axis=-1, dtype=jnp.int32)  # (..., m) a permutation of 0 .. m - 1
     return jnp.sum(jnp.where(rank[..., :, None] == j, i, 0), axis=-2, dtype=jnp.int32)
 
 
-def dual_centres(tess: Tessellation, verts):
+def dual_centres(verts):
     """The circumcentres of the simplices `verts` (S, 4, 3) and of their faces (S, 4, 3), in the
     frame of `verts`, each computed once: a face's two simplices, and every flag of a
     simplex, must share its centre bit for bit, or the signed pieces around an edge stop
@@ -123,17 +125,15 @@ def dual_centres(tess: Tessellation, verts):
     (S, 3), not flat (S,), counted as a vertex (S,), face centres (S, 4, 3), faces not flat
     (S, 4), and per face (S, 4, 3) (`triangle_circumcentre`'s, edge e opposite the face's e-th
     vertex in FACES_3D order) the heights h and lengths of its edges, and (S, 4, 3) its unit
-    normals, either way round); a face's vertices are taken in the order of their walker ids."""
+    normals, either way round). The simplices' vertices come in the order of their walker ids
+    (`_dual.with_sorted_simplices`), so each face's (FACES_3D keeps it) is the same in both its
+    simplices."""
     centres, ok, counted = jax.vmap(circumcentre_3d)(verts)
-    face_ids = tess.simplices[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3)
-    order = order_of_three(face_ids)  # the face's place of each corner
-    corners = jnp.take_along_axis(verts[:, jnp.asarray(FACES_3D, jnp.int32)], order[..., None], axis=-2)
+    corners = verts[:, jnp.asarray(FACES_3D, jnp.int32)]  # (S, 4, 3 corners, 3)
     face_centres, face_ok, heights, lengths, normals = jax.vmap(jax.vmap(triangle_circumcentre))(
         corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
     )
-    placed = order[..., :, None] == jnp.arange(3, dtype=order.dtype)  # (S, 4, corner, place)
-    back = lambda a: jnp.sum(jnp.where(placed, a[..., :, None], 0.0), axis=-2)  # noqa: E731
-    return centres, ok, counted, face_centres, face_ok, (back(heights), back(lengths), normals)
+    return centres, ok, counted, face_centres, face_ok, (heights, lengths, normals)
 
 
 def wall_bounds(lower, upper):
@@ -426,15 +426,7 @@ def _near_one_wall(centres, box):
 def _compacted(flags, first, size: int):
     """The ids where `flags` (M,) holds, those where `first` holds before the others (each in
     order), padded with M to `size`: chunks of pieces that reach one wall each, then the rest."""
-    total = flags.shape[0]
-    ahead, behind = flags & first, flags & ~first
-    n_ahead = jnp.sum(ahead, dtype=jnp.int32)
-    place = jnp.where(
-        ahead,
-        jnp.cumsum(ahead, dtype=jnp.int32) - 1,
-        jnp.where(behind, n_ahead + jnp.cumsum(behind, dtype=jnp.int32) - 1, size),
-    )
-    return jnp.full(size, total, jnp.int32).at[place].set(jnp.arange(total, dtype=jnp.int32), mode="drop")
+    return flagged_ids(flags, size, flags.shape[0], first)
 
 
 def _box_edges():

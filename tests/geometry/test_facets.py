@@ -160,7 +160,7 @@ def test_box_edges_are_measured_in_every_cell_that_holds_one(rng, kind):
     else:  # co-spherical walkers: vertices on the box edges and corners
         x = (np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) / 8
     tess = jaxgeom.delaunay(x, box=(0.0, 1.0))
-    centres, ok, *_ = jax.jit(lambda t: _dualclip.dual_centres(t, simplex_vertices(t)))(tess)
+    centres, ok, *_ = jax.jit(lambda t: _dualclip.dual_centres(simplex_vertices(t)))(tess)
     near = np.asarray(_dualclip.cells_near_box_edges(tess, centres, ok))
     every = jax.jit(_dualclip.box_edge_faces)(tess, tess.tier == 0)
     chosen = jax.jit(_dualclip.box_edge_faces)(tess, jnp.asarray(near))
@@ -397,7 +397,8 @@ def test_facets_of_rows_in_any_order_follow_their_slots(rng, d, periodic):
 
 def test_the_cpu_order_of_a_key_is_numpys_stable_argsort_under_jit_and_vmap(rng):
     """`_order_by_key` (the key and the entry in one uint64, sorted by numpy through a callback)
-    gives the stable argsort of uint32 keys full of ties, up to 2^32 - 1, jitted and vmapped."""
+    gives the stable argsort of uint32 keys full of ties, up to 2^32 - 1, and the sorted keys,
+    jitted and vmapped."""
     import jax
 
     from jaxgeom.geometry import _dual
@@ -405,13 +406,18 @@ def test_the_cpu_order_of_a_key_is_numpys_stable_argsort_under_jit_and_vmap(rng)
     batch = rng.integers(0, 2**32, (3, 5000), dtype=np.uint64).astype(np.uint32)
     batch[:, ::3] = batch[:, 1::3].max()  # ties
     want = np.argsort(batch, axis=1, kind="stable")
-    np.testing.assert_array_equal(jax.jit(jax.vmap(_dual._order_by_key))(jnp.asarray(batch)), want)
-    np.testing.assert_array_equal(jax.jit(_dual._order_by_key)(jnp.asarray(batch[0])), want[0])
+    for keys, got, wanted in [
+        (batch, jax.jit(jax.vmap(_dual._order_by_key))(jnp.asarray(batch)), want),
+        (batch[0], jax.jit(_dual._order_by_key)(jnp.asarray(batch[0])), want[0]),
+    ]:
+        np.testing.assert_array_equal(got[0], wanted)
+        np.testing.assert_array_equal(got[1], np.take_along_axis(keys, wanted, axis=-1))
 
 
 @pytest.mark.parametrize("backend", ["cpu", "gpu"])
 def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backend):
-    """`_order_by_cell_and_projection` against numpy's lexsort, on keys full of ties (few cells,
+    """`_order_by_cell_and_projection` against numpy's lexsort (and its sorted keys against the
+    cells and quanta), on keys full of ties (few cells,
     projections from a handful of values) and at the sizes where the radix passes' digit width
     changes: on the CPU one packed sort (`_order_by_key`, a callback), elsewhere the one-operand
     radix passes (`lax.sort`, run here on the CPU with the backend's name patched)."""
@@ -431,10 +437,10 @@ def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backe
         reach = np.where(cells < n, rng.uniform(0.5, 2.0, n + 1)[cells], 0.0)
         projection = rng.choice([-1.0, 0.0, 0.3, 1.0], m) * reach + rng.normal(0, 1e-3, m) * (rng.random(m) < 0.5)
         projection = np.clip(projection, -reach, reach)
-        order, quanta, quantum = (
-            np.asarray(a) for a in _dual._order_by_cell_and_projection(cells, projection, reach, n)
-        )
+        *arrays, bits = _dual._order_by_cell_and_projection(cells, projection, reach, n)
+        order, quanta, quantum, keys = (np.asarray(a) for a in arrays)
         np.testing.assert_array_equal(order, np.lexsort((np.arange(m), quanta, cells)))
+        np.testing.assert_array_equal(keys, ((cells.astype(np.uint64) << bits) | quanta.astype(np.uint64))[order])
         same = cells[:, None] == cells[None, :100]  # quanta follow the projections within a cell
         below = projection[:, None] < projection[None, :100]
         assert not np.any(same & below & (quanta[:, None] > quanta[None, :100]))
@@ -443,13 +449,20 @@ def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backe
         assert np.log2(share[0]) == round(np.log2(share[0])) <= -10  # 2^-b, b >= QUANTUM_BITS[0]
 
 
-def test_vertex_counts_merge_every_close_centre_however_crowded(rng):
+@pytest.mark.parametrize("near", ["few", "all"])
+def test_vertex_counts_merge_every_close_centre_however_crowded(rng, monkeypatch, near):
     """`_vertex_counts` against a brute force: per cell, a centre within the tolerance (Chebyshev)
     of an earlier one (entry order) is not counted. Clusters of equal centres (1e-15 apart) are
     mixed with distinct centres whose projections crowd within the tolerance's quanta (they differ
     across the projection only), so close pairs lie far apart in the sorted order and the window
-    alone would miss them; cells past the pairwise table (2 K + 8 entries) are -1."""
+    alone would miss them; cells past the pairwise table (2 K + 8 entries) are -1. The entries
+    near in the window compared alone (`few`), and all of them (`all`: what a lattice takes)."""
+    from jaxgeom.geometry import _dual
     from jaxgeom.geometry._dual import MERGE_ULPS, PROJECTION, _vertex_counts
+
+    if near == "all":  # a share no sample stays under
+        monkeypatch.setattr(_dual, "FEW_AT_LEAST", 1)
+        monkeypatch.setattr(_dual, "NEAR_SHARE", 10**9)
 
     n, k, per_simplex = 40, 6, 4
     s = 150
