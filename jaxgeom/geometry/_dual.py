@@ -38,7 +38,7 @@ from ..tessellation._graph import (
     simplex_vertices,
     take_or_zero,
 )
-from ._boxclip import ROUNDING_ULPS, map_flagged_rows
+from ._boxclip import ROUNDING_ULPS, map_flagged_rows, scan_live_chunks
 from ._dualclip import (
     CORNER_WALLS,
     EDGE_WALLS,
@@ -603,9 +603,9 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
 MERGE_ULPS = 4096
 VERTEX_CHUNK = 256  # cells per chunk of the pairwise count (cells whose window did not suffice)
 VERTEX_WINDOW = 4  # each centre is compared with the next this many along the projection
-# the sorted entries with a neighbour in the window that near (`_vertex_counts`) compare their
-# centres alone when at most 1/NEAR_SHARE of all (a uniform sample: ~1%), all do otherwise
-NEAR_SHARE = 16
+# sorted entries per chunk of those with a neighbour in the window that near (`_vertex_counts`;
+# a uniform sample's: ~2% in float32, ~0.01% in float64), chunks past their count skipped
+NEAR_CHUNK = 4096
 # weights of the projection that orders a cell's centres: irrational ratios, so a lattice's
 # distinct vertices (equal in some coordinates) do not tie
 PROJECTION = (1.0, 0.7548776662466927, 0.5698402909980532)
@@ -623,9 +623,10 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     cell's range (`_order_by_cell_and_projection`). Two centres within the tolerance have
     quanta at most `apart` apart (one number for every cell: the tolerance and the quantum both
     scale with the cell's range), so they lie within VERTEX_WINDOW places of each other unless
-    more than that many crowd within those quanta. The window is read on the sorted keys first:
-    only the entries with a neighbour there that near (a uniform sample: ~1%) gather their
-    centres and compare them (`_window_repeats`). Crowded cells (none in uniform samples) are
+    more than that many crowd within those quanta. The window is read on the sorted cells and
+    quanta first: only the entries with a neighbour there that near (a uniform sample: ~2% in
+    float32) gather their centres and compare them, NEAR_CHUNK at a time (`_window_repeats`),
+    so the cost follows their count. Crowded cells (none in uniform samples) are
     compared pair by pair (`_pairwise_counts`), -1 where a walker has more incident simplices
     than that table holds (2 K + 8)."""
     n, k = tess.neighbors.shape
@@ -640,22 +641,27 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     tolerance = MERGE_ULPS * jnp.finfo(offsets.dtype).eps * extent
     weights = jnp.asarray(PROJECTION[:d], offsets.dtype)
     projection = jnp.where(valid, dot(flat, weights), 0.0)
-    order, _, _, keys, bits = _order_by_cell_and_projection(cells, projection, extent[cells] * sum(PROJECTION), n)
+    order, _, _, sorted_cells, sorted_quanta, bits = _order_by_cell_and_projection(
+        cells, projection, extent[cells] * sum(PROJECTION), n
+    )
     # within the tolerance t: projections within sum(PROJECTION) t, quanta within that over the
     # quantum 2 sum(PROJECTION) extent / 2^bits, plus one, plus one for rounding (and one spare)
     apart = int(np.ceil(MERGE_ULPS * float(jnp.finfo(offsets.dtype).eps) * 2.0 ** (bits - 1))) + 3
-    sorted_cells = (keys >> bits).astype(jnp.int32)
     near = [
-        jnp.concatenate([(sorted_cells[w:] == sorted_cells[:-w]) & (keys[w:] - keys[:-w] <= apart), jnp.zeros(w, bool)])
+        jnp.concatenate(
+            [
+                (sorted_cells[w:] == sorted_cells[:-w]) & (sorted_quanta[w:] - sorted_quanta[:-w] <= apart),
+                jnp.zeros(w, bool),
+            ]
+        )
         for w in range(1, VERTEX_WINDOW + 1)
     ]  # (M,) each: the entry w places on is of the same cell, its quantum that near
-    repeats = functools.partial(_window_repeats, sorted_cells, order, flat, tolerance[sorted_cells], near[-1], n)
-    repeated, crowded = _few_or_all(
-        functools.reduce(jnp.logical_or, near) & (sorted_cells < n),
-        repeats,
-        lambda: repeats(jnp.arange(m, dtype=jnp.int32)),
-        NEAR_SHARE,
-    )
+    places = flagged_ids(functools.reduce(jnp.logical_or, near) & (sorted_cells < n), m, m)
+    chunks = -(-m // NEAR_CHUNK)
+    places = jnp.pad(places, (0, chunks * NEAR_CHUNK - m), constant_values=m).reshape(chunks, NEAR_CHUNK)
+    step = functools.partial(_window_repeats, sorted_cells, order, flat, tolerance[sorted_cells], near[-1])
+    repeated, crowded = scan_live_chunks(step, (jnp.zeros(m + 1, bool), jnp.zeros(n + 1, bool)), places, m)
+    repeated, crowded = repeated[:m], crowded[:n]
     per_cell = jax.ops.segment_sum(
         jnp.stack([valid, valid & ~repeated], axis=1).astype(jnp.int32), cells, num_segments=n + 1
     )
@@ -664,13 +670,15 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
     return counts.at[rows_at].set(pairwise, mode="drop")
 
 
-def _window_repeats(cells, order, flat, limit, crowding, n: int, places):
-    """(repeated (M,), crowded (N,)): of the sorted entries at `places` (padding M) and the next
-    VERTEX_WINDOW, the later in simplex order (`order` (M,): each sorted entry's) of every pair
-    of one cell (`cells` (M,) sorted) whose centres (`flat` (M, d), by entry) lie within the
-    tolerance (`limit` (M,) sorted), marked by entry; and the cells of the places whose entry
-    VERTEX_WINDOW on is as near (`crowding` (M,)), where the window may not suffice."""
+def _window_repeats(cells, order, flat, limit, crowding, marked, places):
+    """`marked` (repeated (M + 1,), crowded (N + 1,)) with, of the sorted entries at `places`
+    (padding M) and the next VERTEX_WINDOW, the later in simplex order (`order` (M,): each
+    sorted entry's) of every pair of one cell (`cells` (M,) sorted) whose centres (`flat` (M,
+    d), by entry) lie within the tolerance (`limit` (M,) sorted), marked by entry; and the
+    cells of the places whose entry VERTEX_WINDOW on is as near (`crowding` (M,)), where the
+    window may not suffice."""
     m = order.shape[0]
+    repeated, crowded = marked
     real = places < m
     at = jnp.minimum(places, m - 1)
     first, cell = order[at], cells[at]
@@ -679,29 +687,31 @@ def _window_repeats(cells, order, flat, limit, crowding, n: int, places):
     for w in range(1, VERTEX_WINDOW + 1):
         on = jnp.minimum(at + w, m - 1)
         other = order[on]
-        close = (
-            real & (at + w < m) & (cells[on] == cell) & (jnp.max(jnp.abs(flat[other] - centre), axis=-1) <= limit[at])
-        )
+        apart = jnp.max(jnp.abs(flat[other] - centre), axis=-1)
+        close = real & (at + w < m) & (cells[on] == cell) & (apart <= limit[at])
         marks.append(jnp.where(close, jnp.maximum(first, other), m))
-    repeated = jnp.zeros(m + 1, bool).at[jnp.concatenate(marks)].set(True)[:m]
-    crowded = jnp.zeros(n + 1, bool).at[jnp.where(real & crowding[at], cell, n)].set(True)[:n]
-    return repeated, crowded
+    n = crowded.shape[0] - 1
+    return (
+        repeated.at[jnp.concatenate(marks)].set(True),
+        crowded.at[jnp.where(real & crowding[at], cell, n)].set(True),
+    )
 
 
 QUANTUM_BITS = (10, 20)  # the fewest and most bits of a cell's quantized projection in the key
 
 
 def _order_by_cell_and_projection(cells, projection, reach, n: int):
-    """(order, quanta, quantum, keys, bits): the permutation (M,) int32 that sorts the entries
-    by (cell, quantum of projection, entry), with each projection in [-reach, reach] (its
-    cell's) cut into 2^bits quanta (`quanta` (M,) int32, `quantum` (M,) their width), and the
-    sorted keys (M,) uint32, cell << bits | quanta. The key fits 32 bits; it is sorted by
-    least-significant-digit radix passes, each a sort of one uint32 holding the key's next
-    digit above the entry's current position (so ties keep their order: each pass is stable).
-    One operand sorts ~9x faster than the (cell, projection, entry) triple in XLA
-    (bench/README.md); on a GPU one-operand sorts are CUB's radix sorts. On the CPU numpy sorts
-    the key and the entry in one uint64 instead (`_order_by_key`), and the quanta take all the
-    bits the cell leaves (fewer near pairs for `_vertex_counts` to compare)."""
+    """(order, quanta, quantum, sorted cells, sorted quanta, bits): the permutation (M,) int32
+    that sorts the entries by (cell, quantum of projection, entry), with each projection in
+    [-reach, reach] (its cell's) cut into 2^bits quanta (`quanta` (M,) int32, `quantum` (M,)
+    their width), and the cells and quanta (M,) int32 in that order. Off the CPU the key (cell,
+    quantum) fits 32 bits; it is sorted by least-significant-digit radix passes, each a sort of
+    one uint32 holding the key's next digit above the entry's current position (so ties keep
+    their order: each pass is stable). One operand sorts ~9x faster than the (cell,
+    projection, entry) triple in XLA (bench/README.md); on a GPU one-operand sorts are CUB's
+    radix sorts. On the CPU numpy sorts the cell, the quantum and the entry packed in one
+    uint64 instead (`_order_by_key`), with as many quanta as 64 bits leave (up to
+    QUANTUM_BITS[1]): fewer near pairs for `_vertex_counts` to compare."""
     m = cells.shape[0]
     position_bits = max(1, (m - 1).bit_length())
     digit_bits = 32 - position_bits
@@ -710,40 +720,56 @@ def _order_by_cell_and_projection(cells, projection, reach, n: int):
     cell_bits = max(1, n.bit_length())  # cells 0..n, n the padding
     cpu = jax.default_backend() == "cpu"
     passes = -(-(cell_bits + QUANTUM_BITS[0]) // digit_bits)
-    bits = max(1, min((32 if cpu else min(passes * digit_bits, 32)) - cell_bits, QUANTUM_BITS[1]))
+    room = 64 - position_bits if cpu else min(passes * digit_bits, 32)
+    bits = max(1, min(room - cell_bits, QUANTUM_BITS[1]))
     safe = jnp.where(reach > 0, reach, 1.0)
     quantum = 2.0 * safe / 2.0**bits
     quanta = jnp.clip(jnp.floor((projection + safe) / quantum), 0, 2**bits - 1).astype(jnp.int32)
+    if cpu:
+        order, sorted_cells, sorted_quanta = _order_by_key(cells, quanta, bits)
+        return order, quanta, quantum, sorted_cells, sorted_quanta, bits
     key = (cells.astype(jnp.uint32) << bits) | quanta.astype(jnp.uint32)
-    if cpu:  # one sort of all 32 bits: as many quanta as fit
-        order, sorted_keys = _order_by_key(key)
-        return order, quanta, quantum, sorted_keys, bits
     position = jnp.arange(m, dtype=jnp.uint32)
     order = jnp.arange(m, dtype=jnp.int32)
     for shift in range(0, cell_bits + bits, digit_bits):
         digit = (key[order] >> shift) & np.uint32((1 << digit_bits) - 1)
         packed = jax.lax.sort((digit << position_bits) | position)
         order = order[(packed & np.uint32((1 << position_bits) - 1)).astype(jnp.int32)]
-    return order, quanta, quantum, key[order], bits
+    in_order = key[order]
+    return (
+        order,
+        quanta,
+        quantum,
+        (in_order >> bits).astype(jnp.int32),
+        (in_order & ((1 << bits) - 1)).astype(jnp.int32),
+        bits,
+    )
 
 
-def _order_by_key(key):
-    """(order, sorted key): the stable order (M,) int32 of the uint32 `key` (M,) and the key in
-    that order, on the CPU backend: numpy sorts the key and the entry packed in one uint64 (a key
-    of 32 bits and a position of at most 31 fit), one pass instead of the radix passes' two or
-    three, each a callback and gathers (3D vertex counts, uniform, float32, interleaved: N = 1e5
-    340 -> 293 ms, 1e4 23.9 -> 21.7 ms)."""
+def _order_by_key(cells, quanta, bits: int):
+    """(order, sorted cells, sorted quanta): the stable order (M,) int32 of the entries by
+    (cell, quantum) (`cells`, `quanta` (M,) int32, quanta below 2^bits) and both in that order,
+    on the CPU backend: numpy sorts the cell, the quantum and the entry packed in one uint64,
+    one pass instead of the radix passes' two or three, each a callback and gathers (3D vertex
+    counts, uniform, float32, interleaved: N = 1e5 340 -> 293 ms, 1e4 23.9 -> 21.7 ms)."""
 
-    def order(key):
-        key = np.asarray(key)  # the callback may get a jax.Array (no uint64 without x64)
-        position_bits = max(1, (key.shape[-1] - 1).bit_length())
-        packed = (key.astype(np.uint64) << np.uint64(position_bits)) | np.arange(key.shape[-1], dtype=np.uint64)
+    def order(cells, quanta):
+        cells, quanta = np.asarray(cells), np.asarray(quanta)  # the callback may get jax.Arrays
+        position_bits = np.uint64(max(1, (cells.shape[-1] - 1).bit_length()))
+        packed = cells.astype(np.uint64)  # in place from here: each pass over M uint64 counts
+        packed <<= np.uint64(bits)
+        packed |= quanta.astype(np.uint64)
+        packed <<= position_bits
+        packed |= np.arange(cells.shape[-1], dtype=np.uint64)
         packed.sort(axis=-1)
-        positions = (packed & np.uint64((1 << position_bits) - 1)).astype(np.int32)
-        return positions, (packed >> np.uint64(position_bits)).astype(np.uint32)
+        positions = (packed & ((np.uint64(1) << position_bits) - np.uint64(1))).astype(np.int32)
+        packed >>= position_bits
+        sorted_quanta = (packed & np.uint64((1 << bits) - 1)).astype(np.int32)
+        packed >>= np.uint64(bits)
+        return positions, packed.astype(np.int32), sorted_quanta
 
-    shapes = (jax.ShapeDtypeStruct(key.shape, jnp.int32), jax.ShapeDtypeStruct(key.shape, jnp.uint32))
-    return jax.pure_callback(order, shapes, key, vmap_method="expand_dims")
+    shape = jax.ShapeDtypeStruct(cells.shape, jnp.int32)
+    return jax.pure_callback(order, (shape, shape, shape), cells, quanta, vmap_method="expand_dims")
 
 
 def _pairwise_counts(order, flat, tolerance, incident, flagged, *, cap: int):

@@ -395,29 +395,34 @@ def test_facets_of_rows_in_any_order_follow_their_slots(rng, d, periodic):
         np.testing.assert_allclose(getattr(after, name), getattr(before, name), rtol=1e-12, atol=1e-15)
 
 
-def test_the_cpu_order_of_a_key_is_numpys_stable_argsort_under_jit_and_vmap(rng):
-    """`_order_by_key` (the key and the entry in one uint64, sorted by numpy through a callback)
-    gives the stable argsort of uint32 keys full of ties, up to 2^32 - 1, and the sorted keys,
-    jitted and vmapped."""
+@pytest.mark.parametrize("bits", [1, 12, 20])
+def test_the_cpu_order_is_numpys_stable_lexsort_under_jit_and_vmap(rng, bits):
+    """`_order_by_key` (cell, quantum and entry packed in one uint64, sorted by numpy through a
+    callback) gives the stable lexsort of (cell, quantum) pairs full of ties, quanta up to
+    2^bits - 1 and cells up to what the 64 bits leave, and both in that order, jitted and
+    vmapped."""
     import jax
 
     from jaxgeom.geometry import _dual
 
-    batch = rng.integers(0, 2**32, (3, 5000), dtype=np.uint64).astype(np.uint32)
-    batch[:, ::3] = batch[:, 1::3].max()  # ties
-    want = np.argsort(batch, axis=1, kind="stable")
-    for keys, got, wanted in [
-        (batch, jax.jit(jax.vmap(_dual._order_by_key))(jnp.asarray(batch)), want),
-        (batch[0], jax.jit(_dual._order_by_key)(jnp.asarray(batch[0])), want[0]),
-    ]:
+    m = 5000
+    top = min(2**31, 2 ** (64 - bits - (m - 1).bit_length()))
+    cells = rng.integers(0, top, (3, m), dtype=np.int64).astype(np.int32)
+    quanta = rng.integers(0, 2**bits, (3, m), dtype=np.int64).astype(np.int32)
+    cells[:, ::3], quanta[:, ::3] = cells[:, 1::3].max(), quanta[:, 1::3].max()  # ties
+    want = np.stack([np.lexsort((quanta[b], cells[b])) for b in range(3)])
+    batched = jax.jit(jax.vmap(lambda c, q: _dual._order_by_key(c, q, bits)))(jnp.asarray(cells), jnp.asarray(quanta))
+    single = jax.jit(lambda c, q: _dual._order_by_key(c, q, bits))(jnp.asarray(cells[0]), jnp.asarray(quanta[0]))
+    for got, c, q, wanted in [(batched, cells, quanta, want), (single, cells[0], quanta[0], want[0])]:
         np.testing.assert_array_equal(got[0], wanted)
-        np.testing.assert_array_equal(got[1], np.take_along_axis(keys, wanted, axis=-1))
+        np.testing.assert_array_equal(got[1], np.take_along_axis(c, wanted, axis=-1))
+        np.testing.assert_array_equal(got[2], np.take_along_axis(q, wanted, axis=-1))
 
 
 @pytest.mark.parametrize("backend", ["cpu", "gpu"])
 def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backend):
-    """`_order_by_cell_and_projection` against numpy's lexsort (and its sorted keys against the
-    cells and quanta), on keys full of ties (few cells,
+    """`_order_by_cell_and_projection` against numpy's lexsort (and the cells and quanta it
+    returns in that order), on keys full of ties (few cells,
     projections from a handful of values) and at the sizes where the radix passes' digit width
     changes: on the CPU one packed sort (`_order_by_key`, a callback), elsewhere the one-operand
     radix passes (`lax.sort`, run here on the CPU with the backend's name patched)."""
@@ -438,9 +443,11 @@ def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backe
         projection = rng.choice([-1.0, 0.0, 0.3, 1.0], m) * reach + rng.normal(0, 1e-3, m) * (rng.random(m) < 0.5)
         projection = np.clip(projection, -reach, reach)
         *arrays, bits = _dual._order_by_cell_and_projection(cells, projection, reach, n)
-        order, quanta, quantum, keys = (np.asarray(a) for a in arrays)
+        order, quanta, quantum, sorted_cells, sorted_quanta = (np.asarray(a) for a in arrays)
         np.testing.assert_array_equal(order, np.lexsort((np.arange(m), quanta, cells)))
-        np.testing.assert_array_equal(keys, ((cells.astype(np.uint64) << bits) | quanta.astype(np.uint64))[order])
+        np.testing.assert_array_equal(sorted_cells, cells[order])
+        np.testing.assert_array_equal(sorted_quanta, quanta[order])
+        assert quanta.max() < 2**bits
         same = cells[:, None] == cells[None, :100]  # quanta follow the projections within a cell
         below = projection[:, None] < projection[None, :100]
         assert not np.any(same & below & (quanta[:, None] > quanta[None, :100]))
@@ -449,21 +456,18 @@ def test_the_order_sorts_by_cell_then_quantum_then_entry(rng, monkeypatch, backe
         assert np.log2(share[0]) == round(np.log2(share[0])) <= -10  # 2^-b, b >= QUANTUM_BITS[0]
 
 
-@pytest.mark.parametrize("near", ["few", "all"])
-def test_vertex_counts_merge_every_close_centre_however_crowded(rng, monkeypatch, near):
+@pytest.mark.parametrize("chunk", [4096, 7])
+def test_vertex_counts_merge_every_close_centre_however_crowded(rng, monkeypatch, chunk):
     """`_vertex_counts` against a brute force: per cell, a centre within the tolerance (Chebyshev)
     of an earlier one (entry order) is not counted. Clusters of equal centres (1e-15 apart) are
     mixed with distinct centres whose projections crowd within the tolerance's quanta (they differ
     across the projection only), so close pairs lie far apart in the sorted order and the window
     alone would miss them; cells past the pairwise table (2 K + 8 entries) are -1. The entries
-    near in the window compared alone (`few`), and all of them (`all`: what a lattice takes)."""
+    near in the window compared in one chunk, and in chunks of 7 (the last part padding)."""
     from jaxgeom.geometry import _dual
     from jaxgeom.geometry._dual import MERGE_ULPS, PROJECTION, _vertex_counts
 
-    if near == "all":  # a share no sample stays under
-        monkeypatch.setattr(_dual, "FEW_AT_LEAST", 1)
-        monkeypatch.setattr(_dual, "NEAR_SHARE", 10**9)
-
+    monkeypatch.setattr(_dual, "NEAR_CHUNK", chunk)
     n, k, per_simplex = 40, 6, 4
     s = 150
     simplices = rng.integers(0, n, (s, per_simplex)).astype(np.int32)
