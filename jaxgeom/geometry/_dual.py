@@ -656,9 +656,9 @@ def _vertex_counts(tess: Tessellation, offsets, proper):
         )
         for w in range(1, VERTEX_WINDOW + 1)
     ]  # (M,) each: the entry w places on is of the same cell, its quantum that near
-    places = flagged_ids(functools.reduce(jnp.logical_or, near) & (sorted_cells < n), m, m)
     chunks = -(-m // NEAR_CHUNK)
-    places = jnp.pad(places, (0, chunks * NEAR_CHUNK - m), constant_values=m).reshape(chunks, NEAR_CHUNK)
+    places = flagged_ids(functools.reduce(jnp.logical_or, near) & (sorted_cells < n), chunks * NEAR_CHUNK, m)
+    places = places.reshape(chunks, NEAR_CHUNK)
     step = functools.partial(_window_repeats, sorted_cells, order, flat, tolerance[sorted_cells], near[-1])
     repeated, crowded = scan_live_chunks(step, (jnp.zeros(m + 1, bool), jnp.zeros(n + 1, bool)), places, m)
     repeated, crowded = repeated[:m], crowded[:n]
