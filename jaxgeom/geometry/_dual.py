@@ -238,12 +238,14 @@ def edge_slot_index(tess: Tessellation, rows):
     return _find_slots(tess, rows, tess.simplices[:, pairs], shifts)
 
 
-def flag_slots(edge_index, flags):
-    """(2, M) the slot of each flag (flat ids, simplex * 12 + its place in EDGE_ENDS order) seen
-    from its edge's first end (EDGE_ENDS), then from its second, from `edge_slot_index`."""
-    simplex, within = flags // 12, flags % 12
-    edge, reversed_ = jnp.asarray(FLAG_EDGE)[within], FLAG_REVERSED[within]
-    forward, backward = edge_index[0][simplex, edge], edge_index[1][simplex, edge]
+def face_flag_slots(edge_index, simplex, opposite):
+    """(2, F, 3) the slots of the three flags (EDGE_ENDS order) of each face (F,), the one
+    `opposite` a vertex of `simplex`, seen from its edge's first end (EDGE_ENDS), then from its
+    second, from `edge_slot_index` (one gather of each simplex's six edges per side)."""
+    first, second = (side[simplex] for side in edge_index)  # (F, 6)
+    edge = jnp.asarray(FLAG_EDGE.reshape(4, 3))[opposite]  # (F, 3)
+    reversed_ = FLAG_REVERSED.reshape(4, 3)[opposite]
+    forward, backward = (jnp.take_along_axis(rows, edge, axis=1) for rows in (first, second))
     return jnp.stack([jnp.where(reversed_, backward, forward), jnp.where(reversed_, forward, backward)])
 
 
@@ -522,7 +524,7 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
         hull_face,
         outside,
         _hull_normal_sums(hull_face, normals, edge_index, n * k),
-        functools.partial(flag_slots, edge_index),
+        functools.partial(face_flag_slots, edge_index),
     )
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(
@@ -544,8 +546,8 @@ def _hull_normal_sums(hull_face, normals, edge_index, slots: int):
 
     def add(faces):  # faces (M,): the sum over their flags, each at the slot seen from both ends
         real = faces < total
-        flags = (3 * jnp.minimum(faces, total - 1))[:, None] + jnp.arange(3, dtype=jnp.int32)  # (M, 3)
-        slot = flag_slots(edge_index, flags).reshape(2 * len(faces), 3)
+        face = jnp.minimum(faces, total - 1)
+        slot = face_flag_slots(edge_index, face // 4, face % 4).reshape(2 * len(faces), 3)
         slot = jnp.where(jnp.concatenate([real, real])[:, None], slot, slots)
         values = jnp.broadcast_to(outer[jnp.minimum(faces, total - 1)][:, None, :], (len(faces), 3, 3))
         values = jnp.concatenate([values, values])

@@ -34,11 +34,11 @@ from ._boxclip import ROUNDING_ULPS, cell_planes, line_interval, map_flagged_row
 FACE_CHUNK = 256  # simplex faces per chunk of clipped pieces (3 or 6 pieces each)
 EDGE_CHUNK = 64  # boundary cells per chunk of the box-edge intervals
 FACES_3D = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # face opposite vertex 0, 1, 2, 3
-# flag (face o, edge e) as in `_dual.simplex_flags_3d`: (edge ends x, y, the face's third vertex k, o)
-FLAG_ORDER = jnp.asarray(
-    [[FACES_3D[o][(e + 1) % 3], FACES_3D[o][(e + 2) % 3], FACES_3D[o][e], o] for o in range(4) for e in range(3)],
-    jnp.int32,
-)  # (12, 4)
+# flag (face o, edge e) as in `_dual.simplex_flags_3d`: its edge ends x, y and the face's third
+# vertex k, as corners of the face (FACES_3D[o] order); the fourth point is the vertex o
+FLAG_CORNERS = jnp.asarray([[(e + 1) % 3, (e + 2) % 3, e] for e in range(3)], jnp.int32)  # (3, 3)
+FIRST_END_FLAG = jnp.asarray([2, 0, 1], jnp.int32)  # corner c is the first end of flag (c - 1) % 3
+SECOND_END_FLAG = jnp.asarray([1, 2, 0], jnp.int32)  # and the second end of flag (c + 1) % 3
 
 
 # A tetrahedron whose |det(edges)| is below this many epsilons of the product of its edges'
@@ -315,9 +315,9 @@ def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_
     """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
     triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
     wedges of the hull triangles (`hull_face` (S, 4); `toward` (N * K + 1, 3) per neighbour
-    slot the sum of the outer normals of the hull triangles at its edge). `slots_of(flags)`:
-    (2, M) the neighbour slots of flags (flat ids, simplex * 12 + place) seen from either end
-    (N * K where none).
+    slot the sum of the outer normals of the hull triangles at its edge).
+    `slots_of(simplex, opposite)`: (2, F, 3) the neighbour slots of the three flags of faces
+    (F,) seen from either end of their edges (N * K where none; `_dual.face_flag_slots`).
     `centres`: (the simplices' circumcentres (S, 3), their faces' (S, 4, 3), whether each is
     not flat (S,), (S, 4)), as `dual_centres` gives them.
 
@@ -342,7 +342,9 @@ def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_
 
 
 def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots_of):
-    """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds."""
+    """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds.
+    Each face's inputs are gathered once for its three flags, and each walker of a face gets
+    the sum of its two flags' shares (one update per corner, not per flag end)."""
     n, k = tess.neighbors.shape
     s_cap = tess.simplices.shape[0]
     box = tess.box.astype(tess.points.dtype)
@@ -351,31 +353,43 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
     triangles = kinds == (0,)
     first = _near_one_wall(centres, box) if triangles else jnp.ones_like(faces)
     rows = _compacted(faces.ravel(), first.ravel(), n_chunks * FACE_CHUNK)
+    per_flag = (
+        lambda a: jnp.broadcast_to(  # noqa: E731  (F, 3, ...) per face and flag -> (F * kinds * 3, ...)
+            a[:, None], (a.shape[0], len(kinds), *a.shape[1:])
+        ).reshape(-1, *a.shape[2:])
+    )
 
     def chunk_inputs(face):  # inside the `cond`: a skipped chunk gathers nothing
-        real = jnp.repeat(face < total, 3 * len(kinds))
-        flag = ((face // 4) * 12 + (face % 4) * 3)[:, None, None] + jnp.arange(3, dtype=jnp.int32)[None, None, :]
-        flag = jnp.broadcast_to(flag, (len(face), len(kinds), 3)).ravel() % (s_cap * 12)
-        simplex, within = flag // 12, flag % 12
-        ids = tess.simplices[simplex[:, None], FLAG_ORDER[within]]  # (M, 4): the edge's ends first
-        origin = tess.points[ids[:, 0]]
-        q = tess.points[ids] - origin[:, None]  # (M, 4, 3) in the frame of the edge's first end
-        opposite = FLAG_ORDER[within, 3]  # the flag's face, by its opposite vertex
-        flag_centres = (
-            centres[0][simplex] - origin,
-            centres[1][simplex, opposite] - origin,
-            centres[2][simplex],
-            centres[3][simplex, opposite],
+        real = face < total
+        simplex, opposite = jnp.minimum(face, total - 1) // 4, face % 4
+        corner_ids, corners, apex = _face_corners(tess.simplices[simplex], tess.points, opposite)
+        q = jnp.concatenate(  # (F, 3, 4, 3) per flag (x, y, k, v) in the frame of x
+            [corners[:, FLAG_CORNERS], jnp.broadcast_to(apex[:, None, None], (len(face), 3, 1, 3))], axis=2
         )
-        slots = slots_of(flag)
-        slot = jnp.where(jnp.concatenate([real, real]), slots.ravel(), n * k)
-        walker = jnp.where(jnp.concatenate([real, real]), jnp.concatenate([ids[:, 0], ids[:, 1]]), n)
+        origin = q[:, :, 0]
+        q = per_flag(q - origin[:, :, None])
+        flag_centres = (
+            per_flag(centres[0][simplex][:, None] - origin),
+            per_flag(centres[1][simplex, opposite][:, None] - origin),
+            per_flag(jnp.broadcast_to(centres[2][simplex][:, None], (len(face), 3))),
+            per_flag(jnp.broadcast_to(centres[3][simplex, opposite][:, None], (len(face), 3))),
+        )
+        slots = slots_of(simplex, opposite)  # (2, F, 3)
+        slot = jnp.where(real[None, :, None], slots, n * k)
+        walker = jnp.where(real[:, None], corner_ids, n)  # (F, 3)
+        origin = per_flag(origin)
         lower, upper = box[0] - origin, box[1] - origin
         if triangles:
             return slot, walker, q, lower, upper, jax.vmap(_triangle_piece)(q, flag_centres)
         kind = jnp.broadcast_to(jnp.asarray(kinds, jnp.int32)[None, :, None], (len(face), len(kinds), 3)).ravel()
         pieces = jax.vmap(_hull_piece)(
-            q, flag_centres, hull_face[simplex, opposite], lower, upper, kind, toward[slots[0]]
+            q,
+            flag_centres,
+            per_flag(jnp.broadcast_to(hull_face[simplex, opposite][:, None], (len(face), 3))),
+            lower,
+            upper,
+            kind,
+            per_flag(toward[slots[0]]),
         )
         return slot, walker, q, lower, upper, pieces
 
@@ -387,18 +401,42 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
             lambda: _clipped_by_one_wall(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
             lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
         )
-        both = lambda i: jnp.concatenate([per_end[0][i], per_end[1][i]])  # noqa: E731
+        by_flag = lambda v: jnp.sum(v.reshape(len(face), len(kinds), 3, *v.shape[1:]), axis=1)  # noqa: E731
+        # corner c is the first end of flag c - 1 and the second end of flag c + 1 (FLAG_CORNERS)
+        by_corner = (
+            lambda i: (  # noqa: E731
+                by_flag(per_end[0][i])[:, FIRST_END_FLAG] + by_flag(per_end[1][i])[:, SECOND_END_FLAG]
+            ).reshape(3 * len(face), *per_end[0][i].shape[1:])
+        )
+        area, lengths = by_flag(area), by_flag(lengths)
+        both = lambda v: jnp.broadcast_to(v, (2, *v.shape)).reshape(-1, *v.shape[2:])  # noqa: E731
         areas, walls, volumes, moments, wall_areas, wall_moments = sums
+        walker = walker.ravel()
         return (
-            areas.at[slot].add(jnp.concatenate([area, area])),
-            walls.at[slot].add(jnp.concatenate([lengths, lengths])),
-            volumes.at[walker].add(both(0)),
-            moments.at[walker].add(both(1)),
-            wall_areas.at[walker].add(both(2)),
-            wall_moments.at[walker].add(both(3)),
+            areas.at[slot.ravel()].add(both(area).ravel()),
+            walls.at[slot.ravel()].add(both(lengths)),
+            volumes.at[walker].add(by_corner(0)),
+            moments.at[walker].add(by_corner(1)),
+            wall_areas.at[walker].add(by_corner(2)),
+            wall_moments.at[walker].add(by_corner(3)),
         )
 
     return scan_live_chunks(add, sums, rows.reshape(n_chunks, FACE_CHUNK), total)
+
+
+def _face_corners(simplices, points, opposite):
+    """Per face (the rows of `simplices` (F, 4) and the vertex `opposite` each face, (F,)): its
+    corners' ids (F, 3) and points (F, 3, 3) in FACES_3D order (the other three in ascending
+    place: corner c is place c, or c + 1 from the opposite vertex on), and the opposite
+    vertex's point (F, 3). Selected, not gathered, from the simplex's four points."""
+    verts = points[simplices]  # (F, 4, 3)
+    shifted = jnp.arange(3, dtype=jnp.int32)[None, :] >= opposite[:, None]  # (F, 3) corner c at place c + 1
+    ids = jnp.where(shifted, simplices[:, 1:], simplices[:, :3])
+    corners = jnp.where(shifted[..., None], verts[:, 1:], verts[:, :3])
+    apex = jnp.sum(
+        jnp.where((jnp.arange(4, dtype=jnp.int32)[None, :] == opposite[:, None])[..., None], verts, 0), axis=1
+    )
+    return ids, corners, apex
 
 
 def _clipped_by_one_wall(q, piece, lower, upper, wall):
