@@ -753,7 +753,8 @@ def _order_by_key(cells, quanta, bits: int):
     (cell, quantum) (`cells`, `quanta` (M,) int32, quanta below 2^bits) and both in that order,
     on the CPU backend: numpy sorts the cell, the quantum and the entry packed in one uint64,
     one pass instead of the radix passes' two or three, each a callback and gathers (3D vertex
-    counts, uniform, float32, interleaved: N = 1e5 340 -> 293 ms, 1e4 23.9 -> 21.7 ms)."""
+    counts, uniform, float32, interleaved, when it returned the order alone: N = 1e5 340 -> 293
+    ms, 1e4 23.9 -> 21.7 ms)."""
 
     def order(cells, quanta):
         cells, quanta = np.asarray(cells), np.asarray(quanta)  # the callback may get jax.Arrays
