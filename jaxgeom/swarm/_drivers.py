@@ -5,6 +5,7 @@ devices, Qhull on the host where the device rebuild is not certified)."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 
 import equinox as eqx
@@ -15,10 +16,11 @@ from jax.sharding import Mesh
 
 from ..base._progress import close_bar, open_bar, raise_if_interrupted
 from ..base._sharding import BATCH_AXIS, WALKER_AXIS, check_mesh, shard_walkers
+from ..tessellation._delaunay import deferred_tiers
 from ._divergence import _health, check_health
 from ._dynamics import SwarmState
 from ._history import _bulk_gap, _history
-from ._observables import prepare_scutoid_trace
+from ._observables import prepare_scutoid_trace, reads_tiers
 from ._rebuild import grown, update_host
 from ._steps import (
     _begin_step,
@@ -51,7 +53,11 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         gaps.append((0,) + _bulk_gap(state.tess))
     opening, pending = _begin_step(params, state), []
     dtype = state.positions.dtype
-    done = (state, 0, 0)  # the last consistent state, its steps, its chunks: what Ctrl-C keeps
+    defer = not reads_tiers(params, observe)
+    # How to compute the graph's tiers where its build left them out (`deferred_tiers`): neither
+    # the steps nor the observables read them, so only the state returned gets them.
+    tiers = None
+    done = (state, tiers, 0, 0)  # the last consistent state, its tiers, steps, chunks: what Ctrl-C keeps
     try:
         for start in range(0, n_steps, rebuild_every):
             raise_if_interrupted()
@@ -72,7 +78,9 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
                 jax.block_until_ready((state, opening, first))
             check_health(fitness, params, codes, start, entering)
             t1 = time.perf_counter()
-            moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
+            with deferred_tiers() if defer else contextlib.nullcontext([]) as later:
+                moved, grew, n_moved = update_host(moved, k)  # the positions are final in `moved`
+            tiers = later[0] if later else None
             if n_moved:  # walkers were moved apart: redo the graph-free work at their new positions
                 state, opening = _finish_and_begin(fitness, params, moved)
             state = eqx.tree_at(
@@ -85,16 +93,16 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
             seconds["rebuild"] += time.perf_counter() - t1
             if gap_every and (first_step + end) % gap_every == 0:
                 gaps.append((end,) + _bulk_gap(state.tess))
-            done = (state, end, len(pending))
+            done = (state, tiers, end, len(pending))
             if bar is not None:
                 bar.update(end - start)
     except KeyboardInterrupt:
         close_bar(bar, owned)
-        kept, steps, n_chunks = done
+        kept, kept_tiers, steps, n_chunks = done
         kept, history = _host_history(
             fitness,
             params,
-            kept,
+            _resolved(kept, kept_tiers),
             pending[:n_chunks],
             observe,
             [g for g in gaps if g[0] <= steps],
@@ -103,10 +111,16 @@ def _simulate_host(fitness, state, params, n_steps, rebuild_every, observe, gap_
         )
         raise SimulationInterrupted(kept, history, steps, n_steps) from None
     close_bar(bar, owned)
+    state = _resolved(state, tiers)
     return _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, (n_steps, entering))
 
 
 _jit_progress = jax.jit(_progress, static_argnums=2)  # one program (eagerly: three)
+
+
+def _resolved(state, tiers):
+    """`state` with its graph's real tiers, where its build left them out (`tiers` not None)."""
+    return state if tiers is None else eqx.tree_at(lambda s: s.tess.tier, state, tiers(state.tess))
 
 
 def _host_history(fitness, params, state, pending, observe, gaps, reallocations, seconds, check=None):

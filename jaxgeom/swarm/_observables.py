@@ -201,6 +201,17 @@ def observe_state(fitness, params: SwarmParams, state: SwarmState, progress, obs
     return new, measure(fitness, params, new, progress, observe)
 
 
+def needs_cells(params: SwarmParams, observe: tuple[str, ...]) -> bool:
+    """Whether the step (volume weighting) or an observable of `observe` needs the cells."""
+    return params.volume_weighting or any(OBSERVABLE_TABLE[name].geometric for name in observe)
+
+
+def reads_tiers(params: SwarmParams, observe: tuple[str, ...]) -> bool:
+    """Whether a step or the observables `observe` read the graph's tiers (the cells, the
+    scutoid trace); where not, `simulate` computes them after the step (`deferred_tiers`)."""
+    return needs_cells(params, observe) or any(name in SCUTOID_OBSERVABLES for name in observe)
+
+
 def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ...]) -> SwarmState:
     """The state with its cell volumes and tiers on its current graph, where the step
     (volume weighting) or an observable needs them; else the state unchanged.
@@ -212,7 +223,7 @@ def refresh_cells(params: SwarmParams, state: SwarmState, observe: tuple[str, ..
     is asked for."""
     if any(name in SCUTOID_OBSERVABLES for name in observe):
         state = refresh_scutoids(state)
-    if not (params.volume_weighting or any(OBSERVABLE_TABLE[name].geometric for name in observe)):
+    if not needs_cells(params, observe):
         return state
     volumes, interior = cell_volumes(state.tess)
     measured = state.volumes_step == state.step

@@ -31,6 +31,8 @@ from ..base._checks import mean_spacing
 from ..tessellation._cellclip import rebuild_unchecked
 from ..tessellation._delaunay import (
     CapacityError,
+    GrowingCapacity,
+    as_capacity,
     build_delaunay,
     planar_graph_on_device,
     planar_tessellation,
@@ -62,15 +64,14 @@ def capacity_with_headroom(tess: Tessellation, previous: Capacity | None = None)
         int(np.count_nonzero(np.asarray(tess.simplices)[:, 0] < n)),
         int(np.count_nonzero(np.asarray(tess.neighbors) < n, axis=1).max()),
     )
-    return _with_headroom(need, tess, previous)
+    return _with_headroom(need, tess.dim, tess.capacity.simplices, previous)
 
 
-def _with_headroom(need: Capacity, tess: Tessellation, previous: Capacity | None) -> Capacity:
+def _with_headroom(need: Capacity, dim: int, planar_simplices: int, previous: Capacity | None) -> Capacity:
     """THE growth rule: max degree + NEIGHBOR_HEADROOM and SIMPLEX_HEADROOM x the simplex count,
-    rounded up to their buckets (in 2D the simplex capacity is already the exact bound 2N)."""
-    simplices = (
-        tess.capacity.simplices if tess.dim == 2 else bucket_simplices(math.ceil(SIMPLEX_HEADROOM * need.simplices))
-    )
+    rounded up to their buckets (in 2D the simplex capacity is already the exact bound 2N,
+    `planar_simplices`)."""
+    simplices = planar_simplices if dim == 2 else bucket_simplices(math.ceil(SIMPLEX_HEADROOM * need.simplices))
     cap = Capacity(simplices, bucket_neighbors(need.neighbors + NEIGHBOR_HEADROOM))
     return cap if previous is None else Capacity(*(max(a, b) for a, b in zip(cap, previous, strict=True)))
 
@@ -78,7 +79,7 @@ def _with_headroom(need: Capacity, tess: Tessellation, previous: Capacity | None
 def grown(tess: Tessellation) -> Tessellation:
     """`tess` padded to the next capacity after an overflow: its need is unknown but above its
     capacity, so the growth rule is applied to the capacity itself."""
-    bigger = _with_headroom(tess.capacity, tess, tess.capacity)
+    bigger = _with_headroom(tess.capacity, tess.dim, tess.capacity.simplices, tess.capacity)
     return pad_to_capacity(eqx.tree_at(lambda t: t.overflow, tess, jnp.asarray(False)), bigger)
 
 
@@ -170,18 +171,19 @@ def allocate_graph(x: np.ndarray, graph: str, k: int, capacity=None, triangulato
     if graph == "knn":
         return Allocated(knn_graph(x, k), False, x, 0, 0)
     if capacity is not None:
-        try:
-            tess, x_new, moved, fallbacks = delaunay_separating(x, capacity, triangulator)
-            return Allocated(tess, False, x_new, moved, fallbacks)
-        except CapacityError:
-            pass
+        floor = growing_capacity(capacity, x.shape[1], len(x))
+        tess, x_new, moved, fallbacks = delaunay_separating(x, floor, triangulator)
+        return Allocated(tess, tess.capacity != floor.floor, x_new, moved, fallbacks)
     fresh, x, moved, fallbacks = delaunay_separating(x, None, triangulator)
-    previous = (
-        None if capacity is None else (capacity.capacity if isinstance(capacity, Tessellation) else Capacity(*capacity))
-    )
-    return Allocated(
-        pad_to_capacity(fresh, capacity_with_headroom(fresh, previous)), capacity is not None, x, moved, fallbacks
-    )
+    return Allocated(pad_to_capacity(fresh, capacity_with_headroom(fresh)), False, x, moved, fallbacks)
+
+
+def growing_capacity(capacity, d: int, n: int) -> GrowingCapacity:
+    """`capacity` (a `Capacity`, a tuple or a graph) for a rebuild of `n` walkers in `d`
+    dimensions that grows it by the growth rule where the new graph does not fit (one
+    triangulation, where a `CapacityError` and a second build would take two)."""
+    floor = as_capacity(capacity)
+    return GrowingCapacity(floor, lambda need: _with_headroom(need, d, 2 * n, floor))
 
 
 def update_host(state: SwarmState, k: int) -> tuple[SwarmState, bool, int]:

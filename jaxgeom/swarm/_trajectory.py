@@ -25,12 +25,12 @@ import numpy as np
 from ..base._checks import check_choice
 from ..base._h5md import H5MD_SUFFIXES, H5MDTrajectory
 from ..base._progress import check_progress, close_bar, open_bar, raise_if_interrupted
-from ..tessellation._delaunay import CapacityError, build_delaunay
+from ..tessellation._delaunay import build_delaunay
 from ..tessellation._knn import knn_graph
 from ._dynamics import SwarmParams, SwarmState
 from ._history import _bulk_gap
 from ._observables import ALL_OBSERVABLES, OBSERVABLE_TABLE, observe_state, prepare_scutoid_trace
-from ._rebuild import capacity_with_headroom, pad_to_capacity
+from ._rebuild import capacity_with_headroom, growing_capacity, pad_to_capacity
 from ._swarm_init import fresh_state
 
 NEVER = {
@@ -201,17 +201,12 @@ def _graph(x, graph, k, box, periodic, triangulator, capacity):
     if graph == "knn":
         return knn_graph(x, k, box=box, periodic=periodic), None, False
     if capacity is not None:
-        try:
-            return (
-                build_delaunay(x, box=box, periodic=periodic, capacity=capacity, triangulator=triangulator)[0],
-                capacity,
-                False,
-            )
-        except CapacityError:
-            pass
+        floor = growing_capacity(capacity, x.shape[1], len(x))
+        tess = build_delaunay(x, box=box, periodic=periodic, capacity=floor, triangulator=triangulator)[0]
+        return tess, tess.capacity, tess.capacity != floor.floor
     fresh = build_delaunay(x, box=box, periodic=periodic, triangulator=triangulator)[0]
-    grown = capacity_with_headroom(fresh, capacity)
-    return pad_to_capacity(fresh, grown), grown, capacity is not None
+    grown = capacity_with_headroom(fresh)
+    return pad_to_capacity(fresh, grown), grown, False
 
 
 def _first_state(x, tess, dtype) -> SwarmState:

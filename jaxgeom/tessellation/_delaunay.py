@@ -13,11 +13,14 @@ which decides whether Qhull must be run again.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import ctypes
 import functools
 import itertools
 import math
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -100,6 +103,36 @@ TIE_BREAKS = (1e-9, 1e-8, 1e-7)
 
 class CapacityError(ValueError):
     """A graph does not fit the capacities it was pinned to (grow them and rebuild)."""
+
+
+class GrowingCapacity(NamedTuple):
+    """A capacity that grows where the graph does not fit it, in place of `CapacityError`:
+    `floor` where the graph fits, else `grow(need)` (at least the need), so that a moving
+    swarm's rebuild that outgrows its capacity runs the triangulator once, not twice."""
+
+    floor: Capacity
+    grow: Callable[[Capacity], Capacity]
+
+
+# While a list is set here, `_open_graph` builds its graph with every tier 2 and appends the
+# function that computes its tiers (`deferred_tiers`).
+_DEFERRED_TIERS: contextvars.ContextVar[list | None] = contextvars.ContextVar("deferred_tiers", default=None)
+
+
+@contextlib.contextmanager
+def deferred_tiers():
+    """Within: an open graph in d >= 3 is built with every tier 2, and the function that
+    returns its real (N,) tiers, given the finished graph, is appended to the yielded list
+    (none for other graphs). XLA runs a backend's programs in the order they were
+    dispatched, so the hull walk behind the tiers (3D, N = 1e4: ~11 ms) would delay the
+    next step; `simulate` leaves it out where no step or observable reads the tiers, and
+    computes them for the state it returns."""
+    pending: list = []
+    token = _DEFERRED_TIERS.set(pending)
+    try:
+        yield pending
+    finally:
+        _DEFERRED_TIERS.reset(token)
 
 
 class RawGraph(NamedTuple):
@@ -266,7 +299,7 @@ def planar_triangles(
     n = len(x)
     triangles_at = np.bincount(simplices.ravel(), minlength=n)
     bound = int(triangles_at.max()) + 1  # a vertex has one neighbour more than triangles on the hull, else as many
-    if capacity is None or _as_capacity(capacity).neighbors < bound:
+    if capacity is None or as_capacity(capacity).neighbors < bound:
         bound = _planar_max_degree(triangles_at, simplices, tri.neighbors)
     cap = _fit_capacity(Capacity(len(simplices), bound), n, 2, capacity)
     padded = np.full((cap.simplices, 3), n, np.int32)
@@ -441,7 +474,9 @@ def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessel
     s_cap = _simplex_capacity(len(simplices), n, d, capacity)
     graph, adjacency = _checked_walkers(x, simplices, hull, tri.neighbors, box, s_cap)
     center, flat = circumcenters_and_flat(graph)
-    reaching_out = _cells_reaching_out(graph, adjacency, center)  # the longest: its hull walk
+    deferred = _DEFERRED_TIERS.get()
+    # the longest check (its hull walk), dispatched to run while the host builds the rows
+    reaching_out = None if deferred is not None else _cells_reaching_out(graph, adjacency, center)
     rows, cols = simplex_edges(simplices, n, edge_keys)  # a checked triangulation is unsorted: its keys fit
     cap = _fit_capacity(Capacity(len(simplices), _longest_run(rows, n)), n, d, capacity)
     nbrs = _pad_sorted_rows(rows, cols, n, cap.neighbors)
@@ -462,15 +497,22 @@ def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessel
     suspects = _cospherical_suspects(tess, *(np.asarray(a)[: len(simplices)] for a in (center, flat)))
     if suspects.size:
         tess = _drop_rows(tess, nbrs, None, _contacts_near(tess, _padded_walkers(tess), suspects))
+    fallbacks = () if fallback is None else (fallback,)
+    if deferred is not None:
+        deferred.append(lambda final: tiers_of(_cells_reaching_out(graph, adjacency, center)[:n], final))
+        return tess, fallbacks
     tier = tiers_of(reaching_out[:n], tess)  # the rows without zero-measure contacts
-    return eqx.tree_at(lambda t: t.tier, tess, tier), () if fallback is None else (fallback,)
+    return eqx.tree_at(lambda t: t.tier, tess, tier), fallbacks
 
 
 def _simplex_capacity(n_simplices: int, n: int, d: int, capacity) -> int:
     """The simplex capacity `_fit_capacity` gives (it raises later where too small)."""
     if capacity is None:
         return bucket_simplices(n_simplices)
-    return max(_as_capacity(capacity).simplices, n_simplices)
+    pinned = as_capacity(capacity).simplices
+    if isinstance(capacity, GrowingCapacity) and n_simplices > pinned:
+        return capacity.grow(Capacity(n_simplices, 0)).simplices
+    return max(pinned, n_simplices)
 
 
 def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
@@ -762,9 +804,11 @@ def _canonical_vertex(ids: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     return np.argmin(key, axis=1)
 
 
-def _as_capacity(capacity) -> Capacity:
+def as_capacity(capacity) -> Capacity:
     if isinstance(capacity, Tessellation):
         return capacity.capacity
+    if isinstance(capacity, GrowingCapacity):
+        return capacity.floor
     try:
         simplices, neighbors = (int(v) for v in capacity)
     except (TypeError, ValueError):
@@ -781,8 +825,10 @@ def _fit_capacity(need: Capacity, n: int, d: int, capacity) -> Capacity:
         # In 2D a triangulation has at most 2N triangles (exactly 2N on the torus).
         simplices = 2 * n if d == 2 else bucket_simplices(need.simplices)
         return Capacity(simplices, bucket_neighbors(need.neighbors))
-    pinned = _as_capacity(capacity)
+    pinned = as_capacity(capacity)
     if pinned.simplices < need.simplices or pinned.neighbors < need.neighbors:
+        if isinstance(capacity, GrowingCapacity):
+            return capacity.grow(need)
         raise CapacityError(
             f"`capacity` {tuple(pinned)} is too small for this graph: it needs simplices >= "
             f"{need.simplices} and neighbors >= {need.neighbors}. Pass capacity=None to size it "
@@ -1017,8 +1063,8 @@ def _drop_rows(tess: Tessellation, nbrs: np.ndarray, shifts, keep: np.ndarray) -
 def _shared_centers(center: np.ndarray, tess: Tessellation, tolerance: float = 0.0) -> np.ndarray:
     """(S,) bool: centres that another centre shares on a grid of 1e-9 mean spacings (or
     `tolerance`, if coarser); a centre that is not finite (a flat simplex's) counts as shared."""
-    finite = np.isfinite(center).all(axis=1)
-    if not finite.all():
+    if not np.isfinite(center).all():  # the test per row costs 0.8 ms at 66k centres, the global one 0.02
+        finite = np.isfinite(center).all(axis=1)
         shared = np.ones(len(center), bool)
         shared[finite] = _shared_centers(center[finite], tess, tolerance)
         return shared

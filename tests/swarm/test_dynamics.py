@@ -1,3 +1,4 @@
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -385,3 +386,48 @@ def test_mean_metric_curvature_on_a_knn_swarm_in_high_dimension(rng):
     error = np.sqrt(np.sum((w * np.asarray(info.standard_error)) ** 2)) / w.sum()
     assert 0 < error < 0.1 * abs(expected)
     assert abs(history["mean_metric_curvature"][0] - expected) < 4 * error
+
+
+def test_tiers_left_to_after_the_step_change_nothing(rng, monkeypatch):
+    """A 3D host run whose steps and observables read no tiers computes each graph's tiers
+    after the next step (`deferred_tiers`): the same run, and the final graph's tiers are
+    those of a fresh `delaunay` of the final walkers."""
+    from jaxgeom.swarm import _drivers
+
+    state = jaxgeom.init_swarm(bowl, rng.uniform(-1, 1, (400, 3)), key=0)
+    params = jaxgeom.SwarmParams(dt=0.05, temperature=0.3, clone_rate=0.5)
+    observe = ("mean_fitness", "n_clones")
+    deferred = jaxgeom.simulate(bowl, state, params, n_steps=6, observe=observe, spectral_gap_every=3)
+    monkeypatch.setattr(_drivers, "reads_tiers", lambda params, observe: True)
+    at_once = jaxgeom.simulate(bowl, state, params, n_steps=6, observe=observe, spectral_gap_every=3)
+    (a, history_a), (b, history_b) = deferred, at_once
+    for leaf_a, leaf_b in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        assert np.array_equal(np.asarray(leaf_a), np.asarray(leaf_b), equal_nan=True)
+    for name in (*observe, "spectral_gap"):
+        assert np.array_equal(np.asarray(history_a[name]), np.asarray(history_b[name]), equal_nan=True)
+    fresh = jaxgeom.delaunay(np.asarray(a.positions))
+    assert np.array_equal(np.asarray(a.tess.tier), np.asarray(fresh.tier))
+    assert 0 < int(np.sum(np.asarray(a.tess.tier) == 0)) < 400
+
+
+@pytest.mark.parametrize(
+    "params_kwargs, observe",
+    [({}, ("mean_fitness", "best_fitness", "n_clones")), ({"weights": "metric_diagonal"}, ("velocity_variance",))],
+)
+def test_a_step_that_reads_no_tiers_is_blind_to_them(rng, params_kwargs, observe):
+    """The condition under which `simulate` computes a graph's tiers only after the next step
+    (`reads_tiers` false) holds: that step's results do not change with the tiers."""
+    from jaxgeom.swarm._observables import reads_tiers
+    from jaxgeom.swarm._steps import _begin_step, _run_chunk
+
+    state = jaxgeom.init_swarm(bowl, rng.uniform(-1, 1, (300, 3)), key=0)
+    params = jaxgeom.SwarmParams(dt=0.05, clone_rate=0.5, **params_kwargs)
+    assert not reads_tiers(params, observe)
+    blind = state.tess.tier.at[:].set(0)
+    outs = [
+        _run_chunk(bowl, params, s, _begin_step(params, s), jnp.asarray(0), jnp.asarray(5), 2, observe)
+        for s in (state, eqx.tree_at(lambda s: s.tess.tier, state, blind))
+    ]
+    same_tiers = [eqx.tree_at(lambda o: o[0].tess.tier, o, blind) for o in outs]  # the tiers pass through
+    for leaf_a, leaf_b in zip(*map(jax.tree_util.tree_leaves, same_tiers), strict=True):
+        assert np.array_equal(np.asarray(leaf_a), np.asarray(leaf_b), equal_nan=True)

@@ -13,6 +13,7 @@ from jaxgeom.swarm._rebuild import (
     grown,
     pad_to_capacity,
 )
+from jaxgeom.tessellation import _delaunay as delaunay_module
 from jaxgeom.tessellation._graph import bucket_neighbors, bucket_simplices
 
 
@@ -54,6 +55,24 @@ def test_one_growth_rule_for_allocation_and_overflow():
     regrown, grew, _, _, _ = allocate_graph(x, "delaunay", 12, small)
     assert grew and regrown.capacity == cap
     np.testing.assert_allclose(jaxgeom.voronoi_volumes(regrown), jaxgeom.voronoi_volumes(fresh), rtol=1e-12)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_a_graph_that_outgrows_its_capacity_is_triangulated_once(d, monkeypatch):
+    x = np.random.default_rng(3).random((400, d))
+    fresh = allocate_graph(x, "delaunay", 12, None).tess
+    calls = []
+    triangulate = delaunay_module.triangulate
+    monkeypatch.setattr(delaunay_module, "triangulate", lambda *a, **k: calls.append(1) or triangulate(*a, **k))
+    small = jaxgeom.Capacity(fresh.capacity.simplices // 2 if d == 3 else fresh.capacity.simplices, 4)
+    regrown, grew, _, _, _ = allocate_graph(x, "delaunay", 12, small)
+    assert len(calls) == 1 and grew
+    assert regrown.capacity == capacity_with_headroom(fresh, small)
+    assert np.array_equal(np.asarray(regrown.neighbors), np.asarray(fresh.neighbors))
+    assert np.array_equal(np.asarray(regrown.tier), np.asarray(fresh.tier))
+    calls.clear()
+    same, grew, _, _, _ = allocate_graph(x, "delaunay", 12, regrown)
+    assert len(calls) == 1 and not grew and same.capacity == regrown.capacity
 
 
 def test_planar_graphs_keep_the_exact_simplex_bound():
