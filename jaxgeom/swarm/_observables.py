@@ -208,7 +208,8 @@ def needs_cells(params: SwarmParams, observe: tuple[str, ...]) -> bool:
 
 def reads_tiers(params: SwarmParams, observe: tuple[str, ...]) -> bool:
     """Whether a step or the observables `observe` read the graph's tiers (the cells, the
-    scutoid trace); where not, `simulate` computes them after the step (`deferred_tiers`)."""
+    scutoid trace); where not, `simulate` builds its graphs without them and computes them
+    only for the state it returns (`deferred_tiers`)."""
     return needs_cells(params, observe) or any(name in SCUTOID_OBSERVABLES for name in observe)
 
 
