@@ -389,9 +389,9 @@ def test_mean_metric_curvature_on_a_knn_swarm_in_high_dimension(rng):
 
 
 def test_tiers_left_to_after_the_step_change_nothing(rng, monkeypatch):
-    """A 3D host run whose steps and observables read no tiers computes each graph's tiers
-    after the next step (`deferred_tiers`): the same run, and the final graph's tiers are
-    those of a fresh `delaunay` of the final walkers."""
+    """A 3D host run whose steps and observables read no tiers builds its graphs without them
+    and computes them only for the state it returns (`deferred_tiers`): the same run, and the
+    final graph's tiers are those of a fresh `delaunay` of the final walkers."""
     from jaxgeom.swarm import _drivers
 
     state = jaxgeom.init_swarm(bowl, rng.uniform(-1, 1, (400, 3)), key=0)
@@ -415,8 +415,8 @@ def test_tiers_left_to_after_the_step_change_nothing(rng, monkeypatch):
     [({}, ("mean_fitness", "best_fitness", "n_clones")), ({"weights": "metric_diagonal"}, ("velocity_variance",))],
 )
 def test_a_step_that_reads_no_tiers_is_blind_to_them(rng, params_kwargs, observe):
-    """The condition under which `simulate` computes a graph's tiers only after the next step
-    (`reads_tiers` false) holds: that step's results do not change with the tiers."""
+    """The condition under which `simulate` leaves the tiers out of its graphs (`reads_tiers`
+    false) holds: a chunk's results do not change with the tiers."""
     from jaxgeom.swarm._observables import reads_tiers
     from jaxgeom.swarm._steps import _begin_step, _run_chunk
 
