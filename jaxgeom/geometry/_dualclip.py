@@ -395,12 +395,15 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
 
     def add(sums, face):
         slot, walker, q, lower, upper, piece = chunk_inputs(face)
-        reached = jax.vmap(walls_reached)(piece[2], piece[3], lower, upper, jax.vmap(clip_tolerance)(lower, upper))
-        area, lengths, per_end = jax.lax.cond(  # pieces that reach one wall each are cut by it alone
-            jnp.all(jnp.sum(reached, axis=1) <= 1),
-            lambda: _clipped_by_one_wall(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
-            lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
-        )
+        if triangles:  # triangles that reach one wall each are cut by it alone
+            reached = jax.vmap(walls_reached)(piece[2], piece[3], lower, upper, jax.vmap(clip_tolerance)(lower, upper))
+            area, lengths, per_end = jax.lax.cond(
+                jnp.all(jnp.sum(reached, axis=1) <= 1),
+                lambda: _clipped_by_one_wall(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
+                lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
+            )
+        else:  # the hull's pieces (few) by every wall: one program less to compile
+            area, lengths, per_end = jax.vmap(clipped_piece)(q, piece, lower, upper)
         by_flag = lambda v: jnp.sum(v.reshape(len(face), len(kinds), 3, *v.shape[1:]), axis=1)  # noqa: E731
         # corner c is the first end of flag c - 1 and the second end of flag c + 1 (FLAG_CORNERS)
         by_corner = (
@@ -479,6 +482,7 @@ def _box_edges():
 
 BOX_EDGES, BOX_CORNERS = _box_edges()
 EDGE_WALLS = jnp.asarray([[w1, w2] for _, w1, w2 in BOX_EDGES], jnp.int32)  # (12, 2)
+EDGE_AXES = jnp.asarray([k for k, _, _ in BOX_EDGES], jnp.int32)  # (12,) each edge's direction
 CORNER_WALLS = jnp.asarray(BOX_CORNERS, jnp.int32)  # (8, 3)
 
 
@@ -517,36 +521,34 @@ def box_edge_faces(tess: Tessellation, cells):
         normals, offsets, active = cell_planes(tess, ids)
         x = tess.points[jnp.minimum(ids, n - 1)]
 
-        def cell(x_i, nrm, off, act):
+        def cell(x_i, nrm, off, act):  # the 12 edges at once: one program, not 12 copies
             size = jnp.max(jnp.where(act, off, 0.0))
             tol = ROUNDING_ULPS * jnp.finfo(off.dtype).eps * jnp.maximum(size, jnp.max(box[1] - box[0]))
-            area, moment = jnp.zeros(6, off.dtype), jnp.zeros((6, 3), off.dtype)
-            real, inner = [], []
-            for k, w1, w2 in BOX_EDGES:
-                point = (
-                    jnp.zeros(3, off.dtype)
-                    .at[axes[w1]]
-                    .set(bounds[w1] - x_i[axes[w1]])
-                    .at[axes[w2]]
-                    .set(bounds[w2] - x_i[axes[w2]])
-                )
-                lo, hi, empty, _, _ = line_interval(point, eye[k], nrm, off, act, size)
-                length = jnp.where(empty, 0.0, jnp.maximum(hi - lo, 0.0))
-                middle = point + 0.5 * (lo + hi) * eye[k]
-                for wall, other in ((w1, w2), (w2, w1)):
-                    h = signs[other] * (bounds[other] - x_i[axes[other]])  # the edge's distance from the foot
-                    foot = (bounds[wall] - x_i[axes[wall]]) * eye[axes[wall]]
-                    piece = 0.5 * h * length
-                    area = area.at[wall].add(piece)
-                    moment = moment.at[wall].add(piece * (foot + 2.0 * middle) / 3.0)
-                real.append(length > tol)
-                ends = (lo > box[0, k] - x_i[k] + tol).astype(jnp.int32) + (hi < box[1, k] - x_i[k] - tol).astype(
-                    jnp.int32
-                )
-                inner.append(jnp.where(length > tol, ends, 0))
+            walls = EDGE_WALLS  # (12, 2): each edge's two walls
+            place = bounds[walls] - x_i[axes[walls]]  # (12, 2) the walls' offsets from the walker
+            point = jnp.zeros((12, 3), off.dtype)
+            for side in (0, 1):
+                point = point.at[jnp.arange(12), axes[walls[:, side]]].set(place[:, side])
+            direction = eye[EDGE_AXES]
+            lo, hi, empty, _, _ = jax.vmap(line_interval, in_axes=(0, 0, None, None, None, None))(
+                point, direction, nrm, off, act, size
+            )
+            length = jnp.where(empty, 0.0, jnp.maximum(hi - lo, 0.0))
+            middle = point + 0.5 * (lo + hi)[:, None] * direction
+            # per edge, its share of wall w1's face (h: the distance from w2), then of w2's
+            h = signs[walls[:, ::-1]] * place[:, ::-1]  # (12, 2)
+            foot = place[:, :, None] * eye[axes[walls]]  # (12, 2, 3)
+            piece = 0.5 * h * length[:, None]
+            shares = piece[:, :, None] * (foot + 2.0 * middle[:, None, :]) / 3.0
+            area = jnp.zeros(6, off.dtype).at[walls.ravel()].add(piece.ravel())
+            moment = jnp.zeros((6, 3), off.dtype).at[walls.ravel()].add(shares.reshape(-1, 3))
+            real = length > tol
+            ends = (lo > box[0, EDGE_AXES] - x_i[EDGE_AXES] + tol).astype(jnp.int32) + (
+                hi < box[1, EDGE_AXES] - x_i[EDGE_AXES] - tol
+            ).astype(jnp.int32)
             corner = bounds[CORNER_WALLS] - x_i  # (8, 3): each corner's walls are x, y and z in order
             in_cell = jnp.all(~act[None, :] | (corner @ nrm.T <= off[None, :] + tol), axis=1)
-            return area, moment, jnp.stack(real), jnp.stack(inner), in_cell
+            return area, moment, real, jnp.where(real, ends, 0), in_cell
 
         return jax.vmap(cell)(x, normals, offsets, active)
 
