@@ -402,7 +402,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
                 lambda: _clipped_by_one_wall(q, piece, lower, upper, jnp.argmax(reached, axis=1)),
                 lambda: jax.vmap(clipped_piece)(q, piece, lower, upper),
             )
-        else:  # the hull's pieces (few) by every wall: one program less to compile
+        else:  # the hull's pieces (a uniform sample's few hundred) by every wall: one program less to compile
             area, lengths, per_end = jax.vmap(clipped_piece)(q, piece, lower, upper)
         by_flag = lambda v: jnp.sum(v.reshape(len(face), len(kinds), 3, *v.shape[1:]), axis=1)  # noqa: E731
         # corner c is the first end of flag c - 1 and the second end of flag c + 1 (FLAG_CORNERS)
