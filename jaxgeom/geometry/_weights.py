@@ -18,7 +18,7 @@ from jaxtyping import Array, Float
 
 from ..base._checks import check_choice, check_positive
 from ..base._simplex import safe_sqrt
-from ..tessellation._graph import Tessellation, mean_row_minimum, neighbor_distances
+from ..tessellation._graph import Tessellation, mean_row_minimum, minimum_along_rows, neighbor_distances
 from ._metric import edge_sq_lengths
 
 DEFAULT_ALPHA = 3.0
@@ -49,7 +49,7 @@ def kernel(sq, mask, *, length_scale=None, alpha=DEFAULT_ALPHA, shift: str = "no
     exponent = sq / (2.0 * scale**2)
     if shift != "none":
         masked = jnp.where(mask, exponent, jnp.inf)
-        smallest = jnp.min(masked, axis=1, keepdims=True) if shift == "row" else jnp.min(masked)
+        smallest = minimum_along_rows(masked)[:, None] if shift == "row" else jnp.min(masked)
         exponent = exponent - jax.lax.stop_gradient(jnp.where(jnp.isfinite(smallest), smallest, 0.0))
     return jnp.where(mask, jnp.exp(-exponent), 0.0)
 

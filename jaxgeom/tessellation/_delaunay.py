@@ -472,11 +472,12 @@ def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessel
     hull = np.zeros(n, bool)
     hull[hull_ids] = True
     s_cap = _simplex_capacity(len(simplices), n, d, capacity)
-    graph, adjacency = _checked_walkers(x, simplices, hull, tri.neighbors, box, s_cap)
+    graph = _checked_walkers(x, simplices, hull, box, s_cap)
     center, flat = circumcenters_and_flat(graph)
     deferred = _DEFERRED_TIERS.get()
+    adjacency = lambda: jnp.asarray(_pad_adjacency(tri.neighbors, s_cap))  # noqa: E731  (padded only where read)
     # the longest check (its hull walk), dispatched to run while the host builds the rows
-    reaching_out = None if deferred is not None else _cells_reaching_out(graph, adjacency, center)
+    reaching_out = None if deferred is not None else _cells_reaching_out(graph, adjacency(), center)
     rows, cols = simplex_edges(simplices, n, edge_keys)  # a checked triangulation is unsorted: its keys fit
     cap = _fit_capacity(Capacity(len(simplices), _longest_run(rows, n)), n, d, capacity)
     nbrs = _pad_sorted_rows(rows, cols, n, cap.neighbors)
@@ -499,7 +500,7 @@ def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessel
         tess = _drop_rows(tess, nbrs, None, _contacts_near(tess, _padded_walkers(tess), suspects))
     fallbacks = () if fallback is None else (fallback,)
     if deferred is not None:
-        deferred.append(lambda final: tiers_of(_cells_reaching_out(graph, adjacency, center)[:n], final))
+        deferred.append(lambda final: tiers_of(_cells_reaching_out(graph, adjacency(), center)[:n], final))
         return tess, fallbacks
     tier = tiers_of(reaching_out[:n], tess)  # the rows without zero-measure contacts
     return eqx.tree_at(lambda t: t.tier, tess, tier), fallbacks
@@ -515,8 +516,8 @@ def _simplex_capacity(n_simplices: int, n: int, d: int, capacity) -> int:
     return max(pinned, n_simplices)
 
 
-def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
-    """(graph, adjacency) for the checks of `_open_graph`: the walkers padded to
+def _checked_walkers(x, simplices, hull, box, s_cap: int):
+    """The graph for the checks of `_open_graph`: the walkers padded to
     `bucket_walkers(N)` as in `_padded_walkers` (so that the checks compile once per bucket),
     the simplices to `s_cap`; the graph has no neighbour rows (one padding slot each), which
     the checks do not read."""
@@ -524,7 +525,7 @@ def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
     m = bucket_walkers(n)
     simplices_m = np.full((s_cap, d + 1), m, np.int32)
     simplices_m[: len(simplices)] = simplices
-    graph = Tessellation(
+    return Tessellation(
         points=jnp.asarray(_padded_points(x, m)),
         neighbors=jnp.full((m, 1), m, jnp.int32),
         tier=jnp.full((m,), 2, jnp.int8),
@@ -536,7 +537,6 @@ def _checked_walkers(x, simplices, hull, adjacency, box, s_cap: int):
         overflow=jnp.asarray(False),
         periodic=False,
     )
-    return graph, jnp.asarray(_pad_adjacency(adjacency, s_cap))
 
 
 def _longest_run(rows: np.ndarray, n: int) -> int:

@@ -175,7 +175,20 @@ def nearest_neighbor_distances(tess: Tessellation) -> Float[Array, " N"]:
 
 def row_minimum(lengths, mask) -> Float[Array, " N"]:
     """Smallest edge length of each row over its real slots (inf for a row without any)."""
-    return jnp.min(jnp.where(mask, lengths, jnp.inf), axis=1)
+    return minimum_along_rows(jnp.where(mask, lengths, jnp.inf))
+
+
+def minimum_along_rows(values) -> Array:
+    """`jnp.min(values, axis=1)` by halving the rows with elementwise minima. XLA on the CPU
+    turns a min-reduction over more than 32 slots into a reduce-window that costs ~2.5x the
+    whole halving (3D step, (1e4, 48) slots: ~1.2 ms against ~0.35 ms)."""
+    if values.shape[1] == 0:
+        return jnp.full(values.shape[:1], jnp.inf, values.dtype)
+    while values.shape[1] > 1:
+        half = values.shape[1] // 2
+        paired = jnp.minimum(values[:, :half], values[:, half : 2 * half])
+        values = jnp.concatenate([paired, values[:, 2 * half :]], axis=1) if values.shape[1] % 2 else paired
+    return values[:, 0]
 
 
 def mean_row_minimum(lengths, mask) -> Float[Array, ""]:

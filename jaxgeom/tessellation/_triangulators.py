@@ -610,7 +610,7 @@ def _pair_keys(simplices: np.ndarray, n: int) -> tuple[np.ndarray, int]:
     distinct = np.empty(keys.size, bool)
     distinct[0] = True
     np.not_equal(keys[1:], keys[:-1], out=distinct[1:])
-    return keys[distinct], bits
+    return np.compress(distinct, keys), bits  # half the time of keys[distinct] (numpy 2.2)
 
 
 # simplices per chunk of the host checks (here and the periodic slabs'): their float64

@@ -192,3 +192,25 @@ def test_bad_input_raises(rng, kwargs, match):
     v = args.pop("velocities")
     with pytest.raises(ValueError, match=match):
         jaxgeom.viscous_force(tess, v, **args)
+
+
+@pytest.mark.parametrize("width", [0, 1, 2, 3, 7, 16, 33, 48, 63])
+def test_minimum_along_rows_is_the_row_minimum(width):
+    """The halving minimum (kernels' length scales, nearest distances) equals jnp.min over
+    each row bitwise, with inf, NaN and ties, and its gradient picks the minimum's slot."""
+    from jaxgeom.tessellation._graph import minimum_along_rows
+
+    rng = np.random.default_rng(width)
+    values = rng.integers(0, 9, (40, width)).astype(np.float64)  # many ties
+    values[rng.random(values.shape) < 0.2] = np.inf
+    values[3, :] = np.inf
+    if width:
+        values[5, width // 2] = np.nan
+    got = np.asarray(minimum_along_rows(jnp.asarray(values)))
+    expected = np.min(values, axis=1) if width else np.full(40, np.inf)
+    np.testing.assert_array_equal(got, expected)
+    if width:
+        unique = jnp.asarray(rng.permutation(40 * width).reshape(40, width).astype(np.float64))
+        grad = jax.grad(lambda v: jnp.sum(minimum_along_rows(v) * jnp.arange(40.0)))(unique)
+        one_hot = np.asarray(unique) == np.min(np.asarray(unique), axis=1, keepdims=True)
+        np.testing.assert_array_equal(np.asarray(grad), one_hot * np.arange(40.0)[:, None])
