@@ -22,9 +22,11 @@ All in float32 (the library default), 2D rastrigin swarm, default SwarmParams
 rebuild every step at each of --sizes, fitness observables, one rebuild mode per child process
 (its own compilation, a timeout from --budget), the device named; results/dynamics_modes.json.
 
-`--against REV [REV ...] [--rounds 3]`: the 2D N = 1e4 step configurations (fitness observables,
-every observable, rebuild="callback") of this working tree against earlier commits, each tree in
-its own child process, the trees alternating within each round; results/dynamics_against.json.
+`--against REV [REV ...] [--rounds 3] [--only 2D]`: the N = 1e4 step configurations whose label
+holds --only (2D: fitness observables, every observable, rebuild="callback"; 3D: fitness
+observables) of this working tree against earlier commits, each tree in its own child process,
+the trees alternating within each round, with bare Qhull on each run's final walkers;
+results/dynamics_against.json.
 """
 
 from __future__ import annotations
@@ -326,9 +328,9 @@ import numpy as np, jax, jax.numpy as jnp
 import jaxgeom
 def rastrigin(x):
     return 10.0 * x.shape[0] + jnp.sum(x * x - 10.0 * jnp.cos(2.0 * jnp.pi * x))
-n, steps, observe, rebuild, repeats = json.loads(sys.argv[1])
+d, n, steps, observe, rebuild, repeats = json.loads(sys.argv[1])
 observe = jaxgeom.OBSERVABLES if observe is None else tuple(observe)
-x = np.random.default_rng(0).uniform(-5.12, 5.12, (n, 2)).astype(np.float32)
+x = np.random.default_rng(0).uniform(-5.12, 5.12, (n, d)).astype(np.float32)
 state = jaxgeom.init_swarm(rastrigin, x, key=0)
 params = jaxgeom.SwarmParams(dt=0.01, temperature=1.0, gamma=2.0, nu=0.1)
 times = []
@@ -338,18 +340,27 @@ for _ in range(1 + repeats):
                                 rebuild=rebuild)
     jax.block_until_ready(final.positions)
     times.append((time.perf_counter() - start) / steps)
-print(json.dumps({"seconds_per_step": times[1:], "jaxgeom": jaxgeom.__file__}))
+import scipy.spatial
+from jaxgeom.tessellation._triangulators import QHULL_OPTIONS
+points, bare = np.asarray(final.positions, np.float64), []
+for _ in range(5):  # bare Qhull on the final walkers, as `qhull_alone` (unsorted: N < MORTON_MIN_POINTS)
+    start = time.perf_counter()
+    scipy.spatial.Delaunay(points, qhull_options=QHULL_OPTIONS)
+    bare.append(time.perf_counter() - start)
+row = {"seconds_per_step": times[1:], "bare_qhull_seconds": float(np.median(bare)), "jaxgeom": jaxgeom.__file__}
+print(json.dumps(row))
 """
 
 AGAINST_CONFIGS = [
-    ("2D N=1e4 fitness observables", 10_000, 20, list(OBS_FITNESS), "host"),
-    ("2D N=1e4 every observable", 10_000, 20, None, "host"),
-    ("2D N=1e4 callback", 10_000, 20, list(OBS_FITNESS), "callback"),
+    ("2D N=1e4 fitness observables", 2, 10_000, 20, list(OBS_FITNESS), "host"),
+    ("2D N=1e4 every observable", 2, 10_000, 20, None, "host"),
+    ("2D N=1e4 callback", 2, 10_000, 20, list(OBS_FITNESS), "callback"),
+    ("3D N=1e4 fitness observables", 3, 10_000, 10, list(OBS_FITNESS), "host"),
 ]
 
 
-def against(revs, rounds: int, repeats: int = 3) -> dict:
-    """The 2D N = 1e4 step configurations for this working tree and each commit in `revs`
+def against(revs, rounds: int, repeats: int = 3, only: str = "2D") -> dict:
+    """The N = 1e4 step configurations whose label holds `only` for this working tree and each commit in `revs`
     (checked out into temporary git worktrees), each run in its own child process with that
     tree's jaxgeom; the trees alternate within each of `rounds` rounds, so that a drift of the
     machine's speed reaches all of them alike. Per tree and config: every timed run's seconds
@@ -367,13 +378,15 @@ def against(revs, rounds: int, repeats: int = 3) -> dict:
                 capture_output=True,
             )
         try:
-            runs = {label: {tree: [] for tree in trees} for label, *_ in AGAINST_CONFIGS}
+            configs = [c for c in AGAINST_CONFIGS if only in c[0]]
+            runs = {label: {tree: [] for tree in trees} for label, *_ in configs}
+            bare = {label: {tree: [] for tree in trees} for label, *_ in configs}
             for _ in range(rounds):
-                for label, n, steps, observe, rebuild in AGAINST_CONFIGS:
+                for label, d, n, steps, observe, rebuild in configs:
                     for tree, path in trees.items():
                         env = dict(os.environ, PYTHONPATH=str(path))
                         out = subprocess.run(
-                            [sys.executable, "-c", AGAINST_CHILD, json.dumps([n, steps, observe, rebuild, repeats])],
+                            [sys.executable, "-c", AGAINST_CHILD, json.dumps([d, n, steps, observe, rebuild, repeats])],
                             env=env,
                             capture_output=True,
                             text=True,
@@ -383,12 +396,14 @@ def against(revs, rounds: int, repeats: int = 3) -> dict:
                         row = json.loads(out.stdout.splitlines()[-1])
                         assert Path(row["jaxgeom"]).resolve().is_relative_to(path.resolve()), row["jaxgeom"]
                         runs[label][tree] += row["seconds_per_step"]
+                        bare[label][tree].append(row["bare_qhull_seconds"])
                         print(
                             json.dumps(
                                 {
                                     "config": label,
                                     "tree": tree,
                                     "ms": [round(1e3 * t, 2) for t in row["seconds_per_step"]],
+                                    "bare_qhull_ms": round(1e3 * row["bare_qhull_seconds"], 2),
                                 }
                             ),
                             flush=True,
@@ -405,6 +420,8 @@ def against(revs, rounds: int, repeats: int = 3) -> dict:
                 "min_ms": 1e3 * min(t),
                 "max_ms": 1e3 * max(t),
                 "runs_ms": [1e3 * v for v in t],
+                "bare_qhull_ms": [1e3 * v for v in bare[label][tree]],
+                "step_over_bare_qhull": float(np.median(t) / np.median(bare[label][tree])),
                 "speedup_over": {
                     other: float(np.median(runs[label][other]) / np.median(t)) for other in trees if other != tree
                 },
@@ -442,6 +459,9 @@ def main() -> None:
         "(each in a child process, alternating over --rounds), into results/dynamics_against.json",
     )
     parser.add_argument("--rounds", type=int, default=3, help="rounds of --against")
+    parser.add_argument(
+        "--only", default="2D", help="--against: the configurations whose label holds this (2D, 3D, callback, ...)"
+    )
     parser.add_argument("--one", nargs=3, metavar=("N", "MODE", "STEPS"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if len(args.steps) != len(args.sizes):  # each size its own step count (zip once dropped the extra sizes)
@@ -458,7 +478,7 @@ def main() -> None:
                 "dtype": "float32",
                 "date": time.strftime("%Y-%m-%d"),
             },
-            "against": against(args.against, args.rounds),
+            "against": against(args.against, args.rounds, only=args.only),
         }
         out = args.out or Path(__file__).parent / "results" / "dynamics_against.json"
         out.write_text(json.dumps(result, indent=2))
