@@ -475,7 +475,8 @@ def _open_graph(x: np.ndarray, triangulator: str, capacity, box) -> tuple[Tessel
     graph = _checked_walkers(x, simplices, hull, box, s_cap)
     center, flat = circumcenters_and_flat(graph)
     deferred = _DEFERRED_TIERS.get()
-    adjacency = lambda: jnp.asarray(_pad_adjacency(tri.neighbors, s_cap))  # noqa: E731  (padded only where read)
+    neighbors = tri.neighbors  # the simplex adjacency, padded only where read (not where the tiers are deferred)
+    adjacency = lambda: jnp.asarray(_pad_adjacency(neighbors, s_cap))  # noqa: E731
     # the longest check (its hull walk), dispatched to run while the host builds the rows
     reaching_out = None if deferred is not None else _cells_reaching_out(graph, adjacency(), center)
     rows, cols = simplex_edges(simplices, n, edge_keys)  # a checked triangulation is unsorted: its keys fit
