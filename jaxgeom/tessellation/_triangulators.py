@@ -598,14 +598,15 @@ def _pair_keys(simplices: np.ndarray, n: int) -> tuple[np.ndarray, int]:
     up to n = 2^16 walkers, ids < 2^16; 64-bit above)."""
     bits = max(1, int(n - 1).bit_length())
     dtype = np.uint32 if 2 * bits <= 32 else np.uint64
-    s = simplices.astype(dtype, copy=False)
-    a, b = np.triu_indices(s.shape[1], 1)
-    high, low = s[:, a], s[:, b]
-    keys = np.minimum(high, low)
-    np.maximum(high, low, out=low)
-    np.left_shift(keys, bits, out=keys)
-    np.bitwise_or(keys, low, out=keys)
-    keys = keys.ravel(order="K")  # a view: the columns' gathers come out column-major
+    columns = simplices.T.astype(dtype, order="C")  # (d + 1, S) contiguous: each pair's key in whole-row passes
+    pairs = list(zip(*np.triu_indices(len(columns), 1), strict=True))
+    keys, larger = np.empty((len(pairs), columns.shape[1]), dtype), np.empty(columns.shape[1], dtype)
+    for row, (a, b) in zip(keys, pairs, strict=True):  # (3D, 8.7e5 simplices: 28 ms against 54 for fancy indexing)
+        np.minimum(columns[a], columns[b], out=row)
+        np.maximum(columns[a], columns[b], out=larger)
+        row <<= dtype(bits)
+        row |= larger
+    keys = keys.ravel()
     keys.sort()
     distinct = np.empty(keys.size, bool)
     distinct[0] = True
