@@ -360,11 +360,13 @@ AGAINST_CONFIGS = [
 
 
 def against(revs, rounds: int, repeats: int = 3, only: str = "2D") -> dict:
-    """The N = 1e4 step configurations whose label holds `only` for this working tree and each commit in `revs`
-    (checked out into temporary git worktrees), each run in its own child process with that
-    tree's jaxgeom; the trees alternate within each of `rounds` rounds, so that a drift of the
-    machine's speed reaches all of them alike. Per tree and config: every timed run's seconds
-    per step, their median, min and max, and the median's ratio to each tree's."""
+    """The N = 1e4 step configurations whose label holds `only`, for this working tree and
+    each commit in `revs` (checked out into temporary git worktrees), each run in its own
+    child process with that tree's jaxgeom; the trees alternate within each of `rounds`
+    rounds, so that a drift of the machine's speed reaches all of them alike. Per tree and
+    config: every timed run's seconds per step, their median, min and max, bare Qhull on each
+    child's final walkers and the median step over the median of those, and the median's
+    ratio to each tree's."""
     import tempfile
 
     root = Path(__file__).resolve().parent.parent
