@@ -18,15 +18,11 @@ Run alone (2 cores: anything beside it skews the ratios):
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import time
-from pathlib import Path
 
 import jax
 import numpy as np
 import scipy.spatial
-from _timing import summary, timed
+from _timing import summary, timed, write_rows
 
 
 def cases(x, dtype, triangulator: str):
@@ -120,20 +116,7 @@ def main() -> None:
                 f"{r['over_freud'][name]:6.2f}x freud (by round {by_round['min']:.2f}-{by_round['max']:.2f})"
             )
     suffix = "" if args.triangulator == "qhull" else f"_{args.triangulator}"
-    out = Path(__file__).parent / "results" / f"cells_3d_{args.dtype}{suffix}.json"
-    out.write_text(
-        json.dumps(
-            {
-                "rows": rows,
-                "machine": platform.processor() or platform.machine(),
-                "cores": len(__import__("os").sched_getaffinity(0)),
-                "jax": jax.__version__,
-                "date": time.strftime("%Y-%m-%d"),
-            },
-            indent=1,
-        )
-    )
-    print(f"wrote {out}")
+    write_rows(f"cells_3d_{args.dtype}{suffix}.json", rows)
 
 
 if __name__ == "__main__":
