@@ -1,5 +1,6 @@
 """voronoi_facets against scipy's half-space intersection, the divergence theorem, and freud."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -115,6 +116,19 @@ def test_boxed_3d_pieces_cut_by_their_one_wall_equal_scipy(rng, monkeypatch):
 
 def tess_box(d):
     return np.zeros(d), np.ones(d)
+
+
+@pytest.mark.parametrize("length", [0, 1, 6, 16])
+def test_running_count_is_the_cumulative_sum(length):
+    """Sutherland-Hodgman's running count of kept vertices (additions, not XLA's
+    reduce-window) equals jnp.cumsum, alone and under vmap as the clipping calls it."""
+    from jaxgeom.geometry._dualclip import running_count
+
+    flags = np.random.default_rng(length).random((50, length)) < 0.5
+    expected = np.cumsum(flags, axis=1)
+    np.testing.assert_array_equal(jax.vmap(running_count)(jnp.asarray(flags)), expected)
+    if length:
+        np.testing.assert_array_equal(running_count(jnp.asarray(flags[0])), expected[0])
 
 
 def test_one_wall_cut_equals_the_cut_by_every_wall(rng):

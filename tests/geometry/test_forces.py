@@ -214,3 +214,28 @@ def test_minimum_along_rows_is_the_row_minimum(width):
         grad = jax.grad(lambda v: jnp.sum(minimum_along_rows(v) * jnp.arange(40.0)))(unique)
         one_hot = np.asarray(unique) == np.min(np.asarray(unique), axis=1, keepdims=True)
         np.testing.assert_array_equal(np.asarray(grad), one_hot * np.arange(40.0)[:, None])
+
+
+@pytest.mark.parametrize("width", [0, 1, 5, 33, 62])
+def test_halving_reductions_match_jnp_along_the_last_axis(width):
+    """`maximum_along_rows` and `any_along_rows` (the Voronoi clipping's reductions over a
+    cell's K + 2d planes) equal jnp.max / jnp.any bitwise, on the last axis of 3D arrays too,
+    and under vmap as the clipping calls them."""
+    from jaxgeom.tessellation._graph import any_along_rows, maximum_along_rows, minimum_along_rows
+
+    rng = np.random.default_rng(width)
+    values = rng.integers(-5, 5, (4, 6, width)).astype(np.float64)
+    values[rng.random(values.shape) < 0.2] = -np.inf
+    if width:
+        values[1, 2, width // 2] = np.nan
+    flags = rng.random((4, 6, width)) < 0.05
+    empty = lambda fill: np.full((4, 6), fill)  # noqa: E731
+    np.testing.assert_array_equal(
+        maximum_along_rows(jnp.asarray(values)), np.max(values, -1) if width else empty(-np.inf)
+    )
+    np.testing.assert_array_equal(
+        minimum_along_rows(jnp.asarray(values)), np.min(values, -1) if width else empty(np.inf)
+    )
+    np.testing.assert_array_equal(any_along_rows(jnp.asarray(flags)), np.any(flags, -1))
+    per_row = jax.vmap(jax.vmap(maximum_along_rows))(jnp.asarray(values))
+    np.testing.assert_array_equal(per_row, np.max(values, -1) if width else empty(-np.inf))
