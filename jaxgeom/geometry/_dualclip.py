@@ -190,11 +190,11 @@ def running_count(flags):
     """`jnp.cumsum(flags)` (int32) of a short row by additions: XLA's CPU backend makes a
     cumulative sum a reduce-window, which over a polygon's few candidates costs more than the
     clipping around it."""
-    total, counts = jnp.zeros((), jnp.int32), [jnp.zeros((0,), jnp.int32)]
+    total, counts = jnp.zeros((), jnp.int32), []
     for flag in flags.astype(jnp.int32):
         total = total + flag
-        counts.append(total[None])
-    return jnp.concatenate(counts)
+        counts.append(total)
+    return jnp.stack(counts) if counts else jnp.zeros((0,), jnp.int32)
 
 
 def walls_reached(verts, count, lower, upper, tol):
