@@ -514,6 +514,7 @@ def test_vertex_counts_merge_every_close_centre_however_crowded(rng, monkeypatch
     assert (counts == -1).any() and (counts > 0).any()
 
 
+@pytest.mark.slow  # compile-bound (each program twice, ~10 s a kind): an internal equality, run by CI's slow tier
 @pytest.mark.parametrize("kind", ["open", "boxed", "periodic"])
 def test_3d_dual_in_blocks_equals_it_in_one(rng, kind, monkeypatch):
     """`_in_blocks` (the 3D dual's per-simplex stage SIMPLEX_BLOCK simplices at a time, the last
@@ -551,6 +552,7 @@ def test_3d_dual_in_blocks_equals_it_in_one(rng, kind, monkeypatch):
     np.testing.assert_allclose(grad_blocked, grad_one, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow  # compile-bound (the boxed program twice, ~13 s): an internal equality, run by CI's slow tier
 def test_hull_sums_over_few_faces_equal_those_over_every_face(rng, monkeypatch):
     """`_few_or_all` sums the hull's faces alone when they are few (a uniform sample) and walks
     every face otherwise (a lattice's flat outer layer): both give the same boxed cells, forced
