@@ -418,9 +418,10 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
 
 def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
     """Per walker and neighbour slot: (areas (N, K), unbounded (N, K)); per walker: volumes
-    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N, -1 where the count's
-    table overflowed; zeros without `counts`), (N,) False (3D keeps flat simplices: they add
-    nothing) and the faces on the box walls (N, 6), from the Delaunay dual (module docstring).
+    (N,), first moments about the walker (N, 3), Voronoi vertex counts (N, -1 where a count's
+    table overflowed: `_vertex_counts`, boxed `packed_slots`; zeros without `counts`), (N,)
+    False (3D keeps flat simplices: they add nothing) and the faces on the box walls (N, 6),
+    from the Delaunay dual (module docstring).
     With a (non-periodic) box every cell is clipped to it (`_dualclip`); otherwise hull cells'
     volumes, moments and counts are meaningless (callers mask them with `tess.hull`)."""
     tess = with_sorted_simplices(tess)
@@ -473,6 +474,8 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             vertices = jnp.where(
                 vertices < 0, vertices, vertices + _wall_vertices(tess, wall_areas, wall_lengths, edges)
             )
+            _, first, width = wall_lengths
+            vertices = jnp.where(first + width > len(wall_lengths[0]), -1, vertices)  # past the packed table
     return areas, unbounded, cell_volume, moments, vertices, jnp.zeros(n, bool), wall_areas
 
 
@@ -514,10 +517,12 @@ def tier0_volumes_3d(tess: Tessellation):
 def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_index, areas, cell_volume, moments):
     """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
-    segments' lengths on each wall per slot (N, K, 6), and what `box_edge_faces` counts).
+    segments' lengths on each wall per slot (packed: `packed_slots`'s table (size, 6), each
+    walker's first place and row width (N,)), and what `box_edge_faces` counts).
     `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex; `edge_index`
     (first, second) (S, 6): `edge_slot_index`."""
     n, k = tess.neighbors.shape
+    packing = packed_slots(tess)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
         tess,
         centres,
@@ -525,6 +530,7 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
         outside,
         _hull_normal_sums(hull_face, normals, edge_index, n * k),
         functools.partial(face_flag_slots, edge_index),
+        packing[:2],
     )
     areas = areas + area_add.reshape(n, k)
     edge_area, edge_moment, real, inner, corners = box_edge_faces(
@@ -535,7 +541,28 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
     distance = jnp.concatenate([box[1] - tess.points, tess.points - box[0]], axis=1)  # (N, 6)
     cell_volume = cell_volume + volume_add + jnp.sum(distance * wall_area, axis=1) / 3.0
     moments = moments + moment_add + jnp.sum(distance[:, :, None] * wall_moment, axis=1) / 4.0
-    return areas, cell_volume, moments, wall_area, wall_lengths.reshape(n, k, 6), (real, inner, corners)
+    return areas, cell_volume, moments, wall_area, (wall_lengths, *packing[2:]), (real, inner, corners)
+
+
+def packed_slots(tess: Tessellation):
+    """(pack, size, first, width): a table per neighbour slot packed to the rows' used widths
+    (`width` (N,): up to the last neighbour; `first` (N,): each walker's first place) in `size`
+    places, 2 (2 N + S) where less than N K: a bound of the directed edges of a 3D
+    triangulation of N walkers in S simplices (Euler: E = N - 1 + S + H / 2, with H <= 2 N - 4
+    hull triangles), so Delaunay rows fit (uniform, N = 1e5: 33% of N K, the rows' common
+    width being the widest's). `pack(slots)`: the places of flat slots (size for N K, padding,
+    and for a slot past `size`: the walkers with first + width > size, which `dual_faces_3d`
+    reports)."""
+    n, k = tess.neighbors.shape
+    size = min(n * k, 2 * (2 * n + tess.simplices.shape[0]))
+    width = jnp.max(jnp.where(tess.neighbors < n, jnp.arange(1, k + 1, dtype=jnp.int32), 0), axis=1)
+    first = jnp.cumsum(width, dtype=jnp.int32) - width
+
+    def pack(slots):
+        place = first.at[slots // k].get(mode="fill", fill_value=size) + slots % k
+        return jnp.where((slots < n * k) & (place < size), place, size)
+
+    return pack, size, first, width
 
 
 def _hull_normal_sums(hull_face, normals, edge_index, slots: int):
@@ -584,10 +611,15 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
     (the faces' segments on it and the box's edges inside the cell); a vertex on j walls with
     a face there (inside a box edge, or a box corner) is counted j times, so j - 1 less."""
     real, inner, corners = edges
+    lengths, first, width = wall_lengths  # `packed_slots`' table (size, 6), first places, widths (N,)
+    k = tess.neighbors.shape[1]
     eps = jnp.finfo(wall_areas.dtype).eps
     scale = jnp.max(tess.box[1] - tess.box[0])
     faces = wall_areas > ROUNDING_ULPS * eps * scale**2  # (N, 6)
-    segments = jnp.sum(wall_lengths > ROUNDING_ULPS * eps * scale, axis=1, dtype=jnp.int32)  # (N, 6)
+    hits = jnp.concatenate([lengths > ROUNDING_ULPS * eps * scale, jnp.zeros((1, 6), bool)])  # place `size`: none
+    place = jnp.arange(k, dtype=jnp.int32)
+    places = jnp.where(place < width[:, None], first[:, None] + place, len(lengths))  # (N, K)
+    segments = jnp.sum(hits.at[places].get(mode="fill", fill_value=False), axis=1, dtype=jnp.int32)  # (N, 6)
     box_edges = jnp.zeros_like(segments).at[:, EDGE_WALLS].add(real[:, :, None].astype(jnp.int32))
     counted = jnp.sum(jnp.where(faces, segments + box_edges, 0), axis=1, dtype=jnp.int32)
     on_edge = jnp.sum(faces[:, EDGE_WALLS], axis=2, dtype=jnp.int32)  # (N, 12) walls j of an edge's vertices

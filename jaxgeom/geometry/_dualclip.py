@@ -322,17 +322,20 @@ def clipped_piece(q, piece, lower, upper, wall=None):
     return area, sign * lengths, per_end
 
 
-def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_of):
+def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_of, walls_of):
     """Every flag piece that reaches a wall, clipped (`clipped_piece`) and summed: the
     triangles of the flags of the faces marked `outside` (S, 4), and the half-strips and
     wedges of the hull triangles (`hull_face` (S, 4); `toward` (N * K + 1, 3) per neighbour
     slot the sum of the outer normals of the hull triangles at its edge).
     `slots_of(simplex, opposite)`: (2, F, 3) the neighbour slots of the three flags of faces
-    (F,) seen from either end of their edges (N * K where none; `_dual.face_flag_slots`).
+    (F,) seen from either end of their edges (N * K where none; `_dual.face_flag_slots`);
+    `walls_of` = (pack, size): the places of those slots in the wall segments' table (`pack`:
+    slots -> 0 ... size - 1, size where none; `_dual.packed_slots`).
     `centres`: (the simplices' circumcentres (S, 3), their faces' (S, 4, 3), whether each is
     not flat (S,), (S, 4)), as `dual_centres` gives them.
 
-    Returns the sums per slot of the areas (N * K,) and of the segments on each wall (N * K, 6),
+    Returns the sums per slot of the areas (N * K,) and of the segments on each wall (size, 6)
+    (by `walls_of`),
     and per walker of the cones' volumes (N,), first moments (N, 3), and the wall faces' areas
     (N, 6) and first moments (N, 6, 3). The faces are compacted and their pieces summed chunk
     by chunk (`lax.scan`; chunks past their count are skipped by `lax.cond`), so the cost
@@ -341,18 +344,20 @@ def clipped_sums(tess: Tessellation, centres, hull_face, outside, toward, slots_
     dtype = tess.points.dtype
     sums = (
         jnp.zeros(n * k + 1, dtype),
-        jnp.zeros((n * k + 1, 6), dtype),
+        jnp.zeros((walls_of[1] + 1, 6), dtype),
         jnp.zeros(n + 1, dtype),
         jnp.zeros((n + 1, 3), dtype),
         jnp.zeros((n + 1, 6), dtype),
         jnp.zeros((n + 1, 6, 3), dtype),
     )
     for faces, kinds in ((outside, (0,)), (hull_face, (1, 2))):
-        sums = _sum_pieces(tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots_of)
+        sums = _sum_pieces(
+            tess, sums, faces & tess.simplex_mask[:, None], kinds, centres, hull_face, toward, slots_of, walls_of[0]
+        )
     return tuple(a[:-1] for a in sums)
 
 
-def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots_of):
+def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, toward, slots_of, pack):
     """`clipped_sums` for the flags of the marked `faces` (S, 4), pieces of the given kinds.
     Each face's inputs are gathered once for its three flags, and each walker of a face gets
     the sum of its two flags' shares (one update per corner, not per flag end)."""
@@ -428,7 +433,7 @@ def _sum_pieces(tess: Tessellation, sums, faces, kinds, centres, hull_face, towa
         walker = walker.ravel()
         return (
             areas.at[slot.ravel()].add(both(area).ravel()),
-            walls.at[slot.ravel()].add(both(lengths)),
+            walls.at[pack(slot.ravel())].add(both(lengths)),
             volumes.at[walker].add(by_corner(0)),
             moments.at[walker].add(by_corner(1)),
             wall_areas.at[walker].add(by_corner(2)),

@@ -44,7 +44,9 @@ class VoronoiFacets(eqx.Module):
       for a periodic graph, possibly outside the box by up to a cell's size).
     - `n_vertices`: (N,) the number of vertices of each cell (clipped to the box), -1 for an
       unbounded cell (and, 3D, for a walker with more incident simplices than 2K + 8, the table
-      that counts its distinct circumcentres: `_dual`).
+      that counts its distinct circumcentres: `_dual`; boxed, for a walker whose row lies past
+      the table of the faces' wall segments, which holds as many slots as a triangulation has
+      directed edges: a graph with more edges than `delaunay` gives).
     """
 
     areas: Float[Array, "N K"]

@@ -409,6 +409,29 @@ def test_facets_of_rows_in_any_order_follow_their_slots(rng, d, periodic):
         np.testing.assert_allclose(getattr(after, name), getattr(before, name), rtol=1e-12, atol=1e-15)
 
 
+def test_boxed_rows_past_the_packed_wall_table_count_minus_one(rng):
+    """Boxed 3D vertex counts read the faces' wall segments from a table packed to the rows'
+    used widths, as many places as a triangulation has directed edges, 2 (2 N + S)
+    (`_dual.packed_slots`). Rows shuffled (padding between neighbours: each row as wide as its
+    last neighbour's slot) overflow it: the walkers whose rows lie past it count -1, the others
+    their cell's vertices as before; faces, volumes and centroids are unchanged."""
+    import equinox as eqx
+
+    tess = jaxgeom.delaunay(rng.random((300, 3)), box=(0.0, 1.0))
+    n, k = tess.neighbors.shape
+    order = np.argsort(rng.random(tess.neighbors.shape), axis=1)
+    shuffled = eqx.tree_at(lambda t: t.neighbors, tess, jnp.take_along_axis(tess.neighbors, jnp.asarray(order), axis=1))
+    width = np.max(np.where(np.asarray(shuffled.neighbors) < n, np.arange(1, k + 1), 0), axis=1)
+    fits = np.cumsum(width) <= min(n * k, 2 * (2 * n + tess.simplices.shape[0]))
+    assert fits.any() and not fits.all()
+    before, after = jaxgeom.voronoi_facets(tess), jaxgeom.voronoi_facets(shuffled)
+    np.testing.assert_array_equal(after.n_vertices, np.where(fits, before.n_vertices, -1))
+    assert (np.asarray(before.n_vertices)[fits] > 4).all()
+    np.testing.assert_array_equal(np.take_along_axis(np.asarray(before.areas), order, axis=1), after.areas)
+    for name in ("volumes", "centroids", "wall_areas"):
+        np.testing.assert_allclose(getattr(after, name), getattr(before, name), rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.parametrize("bits", [1, 12, 20])
 def test_the_cpu_order_is_numpys_stable_lexsort_under_jit_and_vmap(rng, bits):
     """`_order_by_key` (cell, quantum and entry packed in one uint64, sorted by numpy through a
