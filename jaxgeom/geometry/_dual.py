@@ -49,6 +49,7 @@ from ._dualclip import (
     dual_centres,
     near_walls,
     order_in_rows,
+    triangle_circumcentre,
 )
 
 
@@ -61,13 +62,12 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
     face's e-th vertex): `piece` (4,) p_(s,T), `volume` (4, 3) r h p / 12 (each
     of the edge's two ends gets it), `weighted` (4, 3, 3) the volume times m_ab + c_T + C (the
     orthoscheme at end x has its centroid at (x + m_ab + c_T + C) / 4: `_sums_at_vertices`
-    takes the moments about the ends from it); and the faces' unit normals towards the
-    opposite vertex (4, 3)."""
-    pieces, volumes, weighted, oriented = [], [], [], []
+    takes the moments about the ends from it). The faces' normals are oriented towards the
+    opposite vertex (`_outer_normals` orients the hull's the same way)."""
+    pieces, volumes, weighted = [], [], []
     for o, face in enumerate(FACES_3D):
         c_t, tri_ok = face_centres[o], face_ok[o]
         normal = jnp.where(dot(normals[o], p[o] - p[face[0]]) < 0, -normals[o], normals[o])
-        oriented.append(normal)
         piece = jnp.where(ok & tri_ok, dot(centre - c_t, normal), 0.0)
         pieces.append(piece)
         v_row, w_row = [], []
@@ -78,7 +78,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
             w_row.append(volume * (middle + c_t + centre))
         volumes.append(jnp.stack(v_row))
         weighted.append(jnp.stack(w_row))
-    return jnp.stack(pieces), jnp.stack(volumes), jnp.stack(weighted), jnp.stack(oriented)
+    return jnp.stack(pieces), jnp.stack(volumes), jnp.stack(weighted)
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -377,8 +377,9 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     areas its flags add to its 6 edges' faces (S, 6), the volumes and first moments its
     orthoschemes add to its 4 walkers' cells (S, 4), (S, 4, 3), its circumcentre (S, 3), whether
     it is not flat and counted as a vertex (S,); in a box also its faces' centres, their
-    flatness, unit normals towards the opposite vertex and whether their pieces reach a wall
-    (clipped by `_clip_to_box`, not summed here); and the neighbour slots of its edges
+    flatness and whether their pieces reach a wall (clipped by `_clip_to_box`, not summed
+    here; the hull's normals are computed there again, `_outer_normals`); and the neighbour
+    slots of its edges
     (`edge_slot_index`, `rows`: `_sorted_rows` of the whole graph; not on a torus, where only
     the areas need them). The areas, volumes and moments are added to `sums` (flat slots
     (N K + 1,), per walker (N + 1,) and (N + 1, 3)) instead. One block of `_in_blocks`."""
@@ -386,7 +387,7 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     centres, ok, proper, face_centres, face_ok, measures = dual_centres(verts)
     origin = verts[:, :1]
     heights = measures[0]
-    pieces, volumes, weighted, normals = jax.vmap(simplex_flags_3d)(
+    pieces, volumes, weighted = jax.vmap(simplex_flags_3d)(
         verts - origin, centres - origin[:, 0], ok, face_centres - origin, face_ok, *measures
     )
     mask = tess.simplex_mask
@@ -404,7 +405,7 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
         on_wall = jnp.any(reaches(verts[:, FACE_VERTS]), axis=-1)  # (S, 4) a face with a walker on a wall
         outside = mask[:, None] & (centre_out[:, None] | reaches(face_centres) | on_wall)  # (S, 4)
         keep = mask[:, None] & ~outside
-        out.update(face_centres=face_centres, face_ok=face_ok, normals=normals, outside=outside)
+        out.update(face_centres=face_centres, face_ok=face_ok, outside=outside)
     keep = jnp.broadcast_to(keep, pieces.shape)[:, :, None]
     # face areas: each simplex adds its own share 1/2 h p_s of every flag's edge (no pairing),
     # summed over the edge's two flags first
@@ -447,7 +448,6 @@ def dual_faces_3d(tess: Tessellation, *, counts: bool = True):
             tess,
             (centres, stage["face_centres"], stage["ok"], stage["face_ok"]),
             hull_face,
-            stage["normals"],
             stage["outside"],
             edge_index,
             areas,
@@ -514,13 +514,12 @@ def tier0_volumes_3d(tess: Tessellation):
     )
 
 
-def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_index, areas, cell_volume, moments):
+def _clip_to_box(tess: Tessellation, centres, hull_face, outside, edge_index, areas, cell_volume, moments):
     """Add the clipped pieces (`_dualclip`) to the areas, volumes and moments of the pieces
     inside the box, and the walls' faces: (areas, volumes, moments, wall areas (N, 6), the
     segments' lengths on each wall per slot (packed: `packed_slots`'s table (size, 6), each
     walker's first place and row width (N,)), and what `box_edge_faces` counts).
-    `normals` (S, 4, 3): the faces' unit normals towards the opposite vertex; `edge_index`
-    (first, second) (S, 6): `edge_slot_index`."""
+    `edge_index` (first, second) (S, 6): `edge_slot_index`."""
     n, k = tess.neighbors.shape
     packing = packed_slots(tess)
     area_add, wall_lengths, volume_add, moment_add, wall_area, wall_moment = clipped_sums(
@@ -528,7 +527,7 @@ def _clip_to_box(tess: Tessellation, centres, hull_face, normals, outside, edge_
         centres,
         hull_face,
         outside,
-        _hull_normal_sums(hull_face, normals, edge_index, n * k),
+        _hull_normal_sums(tess, hull_face, edge_index, n * k),
         functools.partial(face_flag_slots, edge_index),
         packing[:2],
     )
@@ -565,24 +564,41 @@ def packed_slots(tess: Tessellation):
     return pack, size, first, width
 
 
-def _hull_normal_sums(hull_face, normals, edge_index, slots: int):
+def _outer_normals(tess: Tessellation, simplex, opposite):
+    """(F, 3) the unit normals of the faces `opposite` (F,) a vertex of `simplex` (F,), away
+    from that vertex: the stage's (`dual_centres`, oriented as in `simplex_flags_3d`, bit for
+    bit), computed for the faces that need them (the hull's) instead of kept for all (S, 4, 3)."""
+    verts = simplex_vertices(eqx.tree_at(lambda t: t.simplices, tess, tess.simplices[simplex]))  # (F, 4, 3)
+    face = FACE_VERTS[opposite]  # (F, 3)
+    corners = jnp.take_along_axis(verts, face[:, :, None], axis=1)
+    normal = jax.vmap(triangle_circumcentre)(corners[:, 0], corners[:, 1], corners[:, 2])[-1]
+    p = verts - verts[:, :1]
+    at = lambda i: jnp.take_along_axis(p, i[:, None, None], axis=1)[:, 0]  # noqa: E731
+    toward = jax.vmap(dot)(normal, at(opposite) - at(face[:, 0]))
+    return jnp.where(toward[:, None] < 0, normal, -normal)
+
+
+def _hull_normal_sums(tess: Tessellation, hull_face, edge_index, slots: int):
     """(slots + 1, 3) per neighbour slot the sum of the outer normals of the hull triangles at
     its edge (a hull edge has two), over the hull's faces alone when they are few (`_few_or_all`)."""
     total = hull_face.size
-    outer = jnp.where(hull_face[..., None], -normals, 0.0).reshape(-1, 3)  # per face
+    dtype = tess.points.dtype
 
     def add(faces):  # faces (M,): the sum over their flags, each at the slot seen from both ends
         real = faces < total
         face = jnp.minimum(faces, total - 1)
         slot = face_flag_slots(edge_index, face // 4, face % 4).reshape(2 * len(faces), 3)
         slot = jnp.where(jnp.concatenate([real, real])[:, None], slot, slots)
-        values = jnp.broadcast_to(outer[jnp.minimum(faces, total - 1)][:, None, :], (len(faces), 3, 3))
+        outer = jnp.where(real[:, None], _outer_normals(tess, face // 4, face % 4), 0.0)
+        values = jnp.broadcast_to(outer[:, None, :], (len(faces), 3, 3))
         values = jnp.concatenate([values, values])
-        return jnp.zeros((slots + 1, 3), outer.dtype).at[slot.ravel()].add(values.reshape(-1, 3))
+        return jnp.zeros((slots + 1, 3), dtype).at[slot.ravel()].add(values.reshape(-1, 3))
 
     def every():  # all faces in their (S, 4) layout: each flag's slots are its edge's (no gather of ids)
+        face = jnp.arange(total, dtype=jnp.int32)
+        outer = jnp.where(hull_face.reshape(-1, 1), _outer_normals(tess, face // 4, face % 4), 0.0)
         values = jnp.broadcast_to(outer.reshape(*hull_face.shape, 1, 3), (*hull_face.shape, 3, 3)).reshape(-1, 3)
-        sums = jnp.zeros((slots + 1, 3), outer.dtype)
+        sums = jnp.zeros((slots + 1, 3), dtype)
         for side in edge_index:  # both ends of each edge get the normal: their order does not matter
             sums = sums.at[side[:, FLAG_EDGE].ravel()].add(values)
         return sums
