@@ -5,7 +5,9 @@ side by side in one process (every case once per round, interleaved): `voronoi_f
 (boxed), `dual_faces_3d` with and without vertex counts (boxed and open), and the per-simplex
 stage alone (`_in_blocks` over every simplex: circumcentres, flags, areas, volumes). The
 differences are the parts: boxed clipping = boxed without counts - the stage; counts = with -
-without. Medians (min, max) of warm calls. Writes bench/results/cells_3d_parts_<dtype>.json.
+without. Medians (min, max) of warm calls, and the median of each call's minor page faults
+(the fresh memory it touched: XLA maps a program's temporaries anew on every call, and on
+this VM a first touch costs ~1 ms per MB). Writes bench/results/cells_3d_parts_<dtype>.json.
 
 Run alone (2 cores: anything beside it skews the times):
     .venv/bin/python bench/cells_3d_parts.py [--n 10000 100000] [--repeat 5] [--dtype float64]
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import resource
 
 import jax
 import jax.numpy as jnp
@@ -62,9 +65,12 @@ def row(n: int, repeat: int, dtype) -> dict:
     for fn in fns.values():  # compile and warm
         timed(fn)
     times = {name: [] for name in fns}
+    faults = {name: [] for name in fns}
     for _ in range(repeat):
         for name, fn in fns.items():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             times[name].append(timed(fn))
+            faults[name].append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
     med = {k: float(np.median(v)) for k, v in times.items()}
     return {
         "n": n,
@@ -72,6 +78,7 @@ def row(n: int, repeat: int, dtype) -> dict:
         "simplices": int(boxed.simplices.shape[0]),
         "tier0": int(np.sum(np.asarray(boxed.tier) == 0)),
         "seconds": {k: summary(v) for k, v in times.items()},
+        "minor page faults per call (median)": {k: int(np.median(v)) for k, v in faults.items()},
         "parts (medians)": {
             "boxed: stage": med["stage alone boxed"],
             "boxed: clipping and the rest (no counts - stage)": med["dual boxed, no counts"] - med["stage alone boxed"],
@@ -93,7 +100,9 @@ def main() -> None:
     for r in rows:
         print(f"N = {r['n']} ({r['dtype']}), {r['simplices']} simplex slots, {r['tier0']} tier-0 walkers")
         for name, s in r["seconds"].items():
-            print(f"  {name:<26} {1e3 * s['median']:8.1f} ms ({1e3 * s['min']:.1f}-{1e3 * s['max']:.1f})")
+            faults = r["minor page faults per call (median)"][name]
+            spread = f"{1e3 * s['min']:.1f}-{1e3 * s['max']:.1f}"
+            print(f"  {name:<26} {1e3 * s['median']:8.1f} ms ({spread}), {faults} faults")
         for name, seconds in r["parts (medians)"].items():
             print(f"  = {name:<50} {1e3 * seconds:8.1f} ms")
     write_rows(f"cells_3d_parts_{args.dtype}.json", rows)
