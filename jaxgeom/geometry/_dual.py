@@ -63,7 +63,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
     of the edge's two ends gets it), `weighted` (4, 3, 3) the volume times m_ab + c_T + C (the
     orthoscheme at end x has its centroid at (x + m_ab + c_T + C) / 4: `_sums_at_vertices`
     takes the moments about the ends from it). The faces' normals are oriented towards the
-    opposite vertex (`_outer_normals` orients the hull's the same way)."""
+    opposite vertex (`_outer_normal` orients the hull's the same way)."""
     pieces, volumes, weighted = [], [], []
     for o, face in enumerate(FACES_3D):
         c_t, tri_ok = face_centres[o], face_ok[o]
@@ -378,7 +378,7 @@ def _simplex_stage_3d(tess: Tessellation, sums, rows):
     orthoschemes add to its 4 walkers' cells (S, 4), (S, 4, 3), its circumcentre (S, 3), whether
     it is not flat and counted as a vertex (S,); in a box also its faces' centres, their
     flatness and whether their pieces reach a wall (clipped by `_clip_to_box`, not summed
-    here; the hull's normals are computed there again, `_outer_normals`); and the neighbour
+    here; the hull's normals are computed there again, `_outer_normal`); and the neighbour
     slots of its edges
     (`edge_slot_index`, `rows`: `_sorted_rows` of the whole graph; not on a torus, where only
     the areas need them). The areas, volumes and moments are added to `sums` (flat slots
@@ -564,18 +564,15 @@ def packed_slots(tess: Tessellation):
     return pack, size, first, width
 
 
-def _outer_normals(tess: Tessellation, simplex, opposite):
-    """(F, 3) the unit normals of the faces `opposite` (F,) a vertex of `simplex` (F,), away
-    from that vertex: the stage's (`dual_centres`, oriented as in `simplex_flags_3d`, bit for
-    bit), computed for the faces that need them (the hull's) instead of kept for all (S, 4, 3)."""
-    verts = simplex_vertices(eqx.tree_at(lambda t: t.simplices, tess, tess.simplices[simplex]))  # (F, 4, 3)
-    face = FACE_VERTS[opposite]  # (F, 3)
-    corners = jnp.take_along_axis(verts, face[:, :, None], axis=1)
-    normal = jax.vmap(triangle_circumcentre)(corners[:, 0], corners[:, 1], corners[:, 2])[-1]
-    p = verts - verts[:, :1]
-    at = lambda i: jnp.take_along_axis(p, i[:, None, None], axis=1)[:, 0]  # noqa: E731
-    toward = jax.vmap(dot)(normal, at(opposite) - at(face[:, 0]))
-    return jnp.where(toward[:, None] < 0, normal, -normal)
+def _outer_normal(verts, opposite):
+    """(3,) the unit normal of the face `opposite` a vertex of one simplex (`verts` (4, 3)),
+    away from that vertex: the stage's (`dual_centres`, oriented as in `simplex_flags_3d`, bit
+    for bit), computed for the faces that need it (the hull's) instead of kept for all."""
+    face = FACE_VERTS[opposite]
+    corners = verts[face]
+    normal = triangle_circumcentre(corners[0], corners[1], corners[2])[-1]
+    p = verts - verts[0]
+    return jnp.where(dot(normal, p[opposite] - p[face[0]]) < 0, normal, -normal)
 
 
 def _hull_normal_sums(tess: Tessellation, hull_face, edge_index, slots: int):
@@ -589,14 +586,16 @@ def _hull_normal_sums(tess: Tessellation, hull_face, edge_index, slots: int):
         face = jnp.minimum(faces, total - 1)
         slot = face_flag_slots(edge_index, face // 4, face % 4).reshape(2 * len(faces), 3)
         slot = jnp.where(jnp.concatenate([real, real])[:, None], slot, slots)
-        outer = jnp.where(real[:, None], _outer_normals(tess, face // 4, face % 4), 0.0)
+        verts = simplex_vertices(eqx.tree_at(lambda t: t.simplices, tess, tess.simplices[face // 4]))
+        outer = jnp.where(real[:, None], jax.vmap(_outer_normal)(verts, face % 4), 0.0)
         values = jnp.broadcast_to(outer[:, None, :], (len(faces), 3, 3))
         values = jnp.concatenate([values, values])
         return jnp.zeros((slots + 1, 3), dtype).at[slot.ravel()].add(values.reshape(-1, 3))
 
     def every():  # all faces in their (S, 4) layout: each flag's slots are its edge's (no gather of ids)
-        face = jnp.arange(total, dtype=jnp.int32)
-        outer = jnp.where(hull_face.reshape(-1, 1), _outer_normals(tess, face // 4, face % 4), 0.0)
+        faces = jnp.arange(4, dtype=jnp.int32)
+        normals = jax.vmap(lambda v: jax.vmap(_outer_normal, (None, 0))(v, faces))(simplex_vertices(tess))  # (S, 4, 3)
+        outer = jnp.where(hull_face[..., None], normals, 0.0).reshape(-1, 3)
         values = jnp.broadcast_to(outer.reshape(*hull_face.shape, 1, 3), (*hull_face.shape, 3, 3)).reshape(-1, 3)
         sums = jnp.zeros((slots + 1, 3), dtype)
         for side in edge_index:  # both ends of each edge get the normal: their order does not matter
