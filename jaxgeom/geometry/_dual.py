@@ -67,7 +67,7 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
     pieces, volumes, weighted = [], [], []
     for o, face in enumerate(FACES_3D):
         c_t, tri_ok = face_centres[o], face_ok[o]
-        normal = jnp.where(dot(normals[o], p[o] - p[face[0]]) < 0, -normals[o], normals[o])
+        normal = towards_vertex(normals[o], p, o, face[0])
         piece = jnp.where(ok & tri_ok, dot(centre - c_t, normal), 0.0)
         pieces.append(piece)
         v_row, w_row = [], []
@@ -79,6 +79,12 @@ def simplex_flags_3d(p, centre, ok, face_centres, face_ok, heights, lengths, nor
         volumes.append(jnp.stack(v_row))
         weighted.append(jnp.stack(w_row))
     return jnp.stack(pieces), jnp.stack(volumes), jnp.stack(weighted)
+
+
+def towards_vertex(normal, p, o, corner):
+    """`normal` of the face opposite vertex `o` of the tetrahedron p (4, 3), turned towards
+    that vertex (`corner`: a vertex of the face)."""
+    return jnp.where(dot(normal, p[o] - p[corner]) < 0, -normal, normal)
 
 
 FACE_VERTS = jnp.asarray(FACES_3D, jnp.int32)  # (4, 3)
@@ -571,8 +577,7 @@ def _outer_normal(verts, opposite):
     face = FACE_VERTS[opposite]
     corners = verts[face]
     normal = triangle_circumcentre(corners[0], corners[1], corners[2])[-1]
-    p = verts - verts[0]
-    return jnp.where(dot(normal, p[opposite] - p[face[0]]) < 0, normal, -normal)
+    return -towards_vertex(normal, verts - verts[0], opposite, face[0])
 
 
 def _hull_normal_sums(tess: Tessellation, hull_face, edge_index, slots: int):
@@ -631,9 +636,9 @@ def _wall_vertices(tess: Tessellation, wall_areas, wall_lengths, edges):
     eps = jnp.finfo(wall_areas.dtype).eps
     scale = jnp.max(tess.box[1] - tess.box[0])
     faces = wall_areas > ROUNDING_ULPS * eps * scale**2  # (N, 6)
-    hits = jnp.concatenate([lengths > ROUNDING_ULPS * eps * scale, jnp.zeros((1, 6), bool)])  # place `size`: none
+    hits = lengths > ROUNDING_ULPS * eps * scale
     place = jnp.arange(k, dtype=jnp.int32)
-    places = jnp.where(place < width[:, None], first[:, None] + place, len(lengths))  # (N, K)
+    places = jnp.where(place < width[:, None], first[:, None] + place, len(lengths))  # (N, K); past the table: none
     segments = jnp.sum(hits.at[places].get(mode="fill", fill_value=False), axis=1, dtype=jnp.int32)  # (N, 6)
     box_edges = jnp.zeros_like(segments).at[:, EDGE_WALLS].add(real[:, :, None].astype(jnp.int32))
     counted = jnp.sum(jnp.where(faces, segments + box_edges, 0), axis=1, dtype=jnp.int32)
